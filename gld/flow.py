@@ -1,0 +1,127 @@
+"""Optical-flow estimators behind one signature: `estimate(image1, image2) -> [H, W, 2]`.
+
+Flow is in pixels, I1 -> I2: pixel p of image 1 sits at p + flow(p) in image 2.
+The default, OpenCV's DIS, is used off the shelf (neither trained nor tuned on
+gld's data), as the paper uses a pre-trained flow network. Flow is computed once,
+when a dataset is built, and stored with the records.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from gld import geometry
+
+DEFAULT_ESTIMATOR = "dis"
+
+
+def _as_gray_uint8(image: np.ndarray, name: str) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[-1] not in (1, 3)):
+        raise ValueError(f"{name} must be [H, W] or [H, W, 3], got shape {image.shape}")
+    if image.dtype != np.uint8:
+        if not np.issubdtype(image.dtype, np.floating):
+            raise ValueError(f"{name} must be uint8 or float, got dtype {image.dtype}")
+        if not np.all(np.isfinite(image)):
+            raise ValueError(f"{name} contains NaN or inf")
+        # Floats follow the example contract ([-0.5, 0.5]) or [0, 1].
+        offset = 0.5 if image.min() < 0 else 0.0
+        image = np.clip((image + offset) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if image.ndim == 3 and image.shape[-1] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    return image.reshape(image.shape[:2])
+
+
+def _check_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    gray1 = _as_gray_uint8(image1, "image1")
+    gray2 = _as_gray_uint8(image2, "image2")
+    if gray1.shape != gray2.shape:
+        raise ValueError(
+            f"image1 and image2 must have the same size, got {np.shape(image1)} and "
+            f"{np.shape(image2)}"
+        )
+    return gray1, gray2
+
+
+def dis_flow(image1: np.ndarray, image2: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """OpenCV DIS optical flow (Kroeger et al. 2016) with variational refinement.
+
+    Args:
+      image1, image2: [H, W, 3] RGB (uint8, or float in [-0.5, 0.5] / [0, 1]) or [H, W].
+      preset: "ultrafast", "fast" or "medium".
+
+    Returns:
+      [H, W, 2] float32 flow in pixels, I1 -> I2.
+    """
+    gray1, gray2 = _check_pair(image1, image2)
+    presets = {
+        "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+        "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+        "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+    }
+    if preset not in presets:
+        raise ValueError(f"unknown DIS preset {preset!r}; valid: {sorted(presets)}")
+    estimator = cv2.DISOpticalFlow_create(presets[preset])
+    return estimator.calc(gray1, gray2, None).astype(np.float32)
+
+
+def farneback_flow(image1: np.ndarray, image2: np.ndarray) -> np.ndarray:
+    """OpenCV Farneback dense optical flow; same signature as `dis_flow`."""
+    gray1, gray2 = _check_pair(image1, image2)
+    flow = cv2.calcOpticalFlowFarneback(
+        gray1,
+        gray2,
+        None,
+        pyr_scale=0.5,
+        levels=5,
+        winsize=15,
+        iterations=5,
+        poly_n=7,
+        poly_sigma=1.5,
+        flags=cv2.OPTFLOW_FARNEBACK_GAUSSIAN,
+    )
+    return flow.astype(np.float32)
+
+
+def geometric_flow(
+    depth: np.ndarray,
+    intrinsics1: np.ndarray,
+    intrinsics2: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    depth2: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact flow from view-1 depth, both normalised intrinsics and the relative pose.
+
+    Returns flow [H, W, 2] float32 and its validity [H, W] (see
+    `geometry.ground_truth_flow`).
+    """
+    return geometry.ground_truth_flow(
+        depth, depth2, intrinsics1, intrinsics2, rotation, translation
+    )
+
+
+# Image-based estimators, selectable by name (the builders' `flow_estimator` setting).
+ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "dis": dis_flow,
+    "dis_fast": lambda image1, image2: dis_flow(image1, image2, preset="fast"),
+    "farneback": farneback_flow,
+}
+
+
+def estimate(image1: np.ndarray, image2: np.ndarray, method: str = DEFAULT_ESTIMATOR) -> np.ndarray:
+    """Flow I1 -> I2 [H, W, 2] with the named estimator (see `ESTIMATORS`)."""
+    if method not in ESTIMATORS:
+        raise ValueError(f"unknown flow estimator {method!r}; valid: {sorted(ESTIMATORS)}")
+    return ESTIMATORS[method](image1, image2)
+
+
+def endpoint_error(flow: np.ndarray, flow_true: np.ndarray, valid: np.ndarray) -> float:
+    """Mean end-point error in pixels over `valid` pixels ([H, W, 2], [H, W, 2], [H, W])."""
+    valid = np.asarray(valid, bool)
+    if not valid.any():
+        return float("nan")
+    return float(np.linalg.norm(flow - flow_true, axis=-1)[valid].mean())

@@ -1,0 +1,88 @@
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gld import geometry
+
+
+def _random_pose(rng, max_angle=0.15):
+    rotation = geometry.rotation_matrix(rng.normal(size=3) * max_angle)
+    translation = rng.normal(size=3) * 0.3
+    return rotation, translation
+
+
+def test_intrinsics_round_trip_and_pixel_centre_convention():
+    intrinsics = np.array([0.89115971, 1.18821287, 0.5, 0.5])
+    matrix = geometry.intrinsics_matrix(intrinsics, 192, 256)
+    # The principal point at the image centre sits between pixels 127 and 128.
+    np.testing.assert_allclose(matrix[0, 2], 127.5)
+    np.testing.assert_allclose(matrix[1, 2], 95.5)
+    np.testing.assert_allclose(geometry.normalised_intrinsics(matrix, 192, 256), intrinsics)
+
+
+def test_depth_to_flow_then_triangulation_recovers_depth():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1.0, 5.0, size=(12, 16))
+    k1 = geometry.intrinsics_matrix(np.array([0.9, 1.2, 0.5, 0.5]), 12, 16)
+    k2 = geometry.intrinsics_matrix(np.array([1.0, 1.1, 0.45, 0.55]), 12, 16)
+    rotation, translation = _random_pose(rng)
+    flow, z2 = geometry.depth_to_flow(depth, k1, k2, rotation, translation)
+    assert np.all(z2 > 0)
+    recovered = geometry.triangulate_depth(flow, k1, k2, rotation, translation)
+    np.testing.assert_allclose(recovered, depth, rtol=1e-6)
+
+
+def test_triangulation_is_jittable_and_batched():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(1.0, 5.0, size=(2, 6, 8)).astype(np.float32)
+    k = np.broadcast_to(geometry.intrinsics_matrix(np.array([0.9, 1.2, 0.5, 0.5]), 6, 8), (2, 3, 3))
+    rotation = np.stack([_random_pose(rng)[0] for _ in range(2)]).astype(np.float32)
+    translation = np.array([[0.3, 0.0, 0.1], [-0.2, 0.1, 0.3]], np.float32)
+    flow, _ = geometry.depth_to_flow(depth, k, k, rotation, translation)
+    recovered = geometry.triangulate_depth(
+        jnp.asarray(flow), jnp.asarray(k), jnp.asarray(k), jnp.asarray(rotation),
+        jnp.asarray(translation),
+    )
+    np.testing.assert_allclose(np.asarray(recovered), depth, rtol=2e-3)
+
+
+def test_zero_parallax_is_not_triangulated():
+    k = geometry.intrinsics_matrix(np.array([0.9, 1.2, 0.5, 0.5]), 4, 4)
+    depth = geometry.triangulate_depth(np.zeros((4, 4, 2)), k, k, np.eye(3), np.zeros(3))
+    assert np.all(depth == 0)
+
+
+def test_relative_pose_maps_camera1_points_to_camera2():
+    rng = np.random.default_rng(2)
+    (r1, t1), (r2, t2) = _random_pose(rng, 1.0), _random_pose(rng, 1.0)
+    world = rng.normal(size=(5, 3))
+    camera1 = world @ r1.T + t1
+    camera2 = world @ r2.T + t2
+    rotation, translation = geometry.relative_pose(r1, t1, r2, t2)
+    np.testing.assert_allclose(camera1 @ rotation.T + translation, camera2, atol=1e-12)
+
+
+def test_ground_truth_flow_marks_occlusion_and_leaving_the_image():
+    height, width = 8, 10
+    intrinsics = np.array([0.9, 1.2, 0.5, 0.5])
+    depth1 = np.full((height, width), 2.0)
+    translation = np.array([0.5, 0.0, 0.0])  # camera moves right: content flows left
+    depth2 = np.full((height, width), 2.0)
+    depth2[:, 5] = 1.0  # an occluder in view 2
+    flow, valid = geometry.ground_truth_flow(
+        depth1, depth2, intrinsics, intrinsics, np.eye(3), -translation
+    )
+    fx = 0.9 * width
+    np.testing.assert_allclose(flow[..., 0], -fx * 0.5 / 2.0, rtol=1e-6)
+    landing = np.arange(width) + flow[0, :, 0]
+    assert not valid[:, landing < -0.5].any()
+    assert not valid[:, np.rint(landing) == 5].any()
+    assert valid[:, (landing > 0) & (np.rint(landing) != 5)].all()
+
+
+def test_rotation_errors():
+    rotation = geometry.rotation_matrix(np.array([0.0, 0.0, np.radians(30.0)]))
+    assert geometry.rotation_error_degrees(rotation, np.eye(3)) == pytest.approx(30.0)
+    assert geometry.translation_error_degrees(
+        np.array([1.0, 0, 0]), np.array([0, 2.0, 0])
+    ) == pytest.approx(90.0)
