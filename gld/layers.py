@@ -1,0 +1,46 @@
+"""Small pieces every depth network in gld shares: activation, inputs, output head."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+# LeakyReLU slope of every network (the paper uses LeakyReLU throughout; baselines too).
+NEGATIVE_SLOPE = 0.2
+# Networks start out predicting this inverse depth everywhere (scale-normalised scenes
+# have inverse depths of order 0.1), so early training is not spent finding the scale.
+INITIAL_INV_DEPTH = 0.1
+_INV_DEPTH_OFFSET = math.log(math.expm1(INITIAL_INV_DEPTH))
+MIN_INV_DEPTH = 1e-4
+
+
+def leaky_relu(x: jax.Array) -> jax.Array:
+    """LeakyReLU with gld's slope."""
+    return jax.nn.leaky_relu(x, NEGATIVE_SLOPE)
+
+
+def normalise_flow(flow: jax.Array) -> jax.Array:
+    """Flow [..., H, W, 2] in pixels -> fractions of the image width and height."""
+    height, width = flow.shape[-3:-1]
+    return flow / jnp.asarray([width, height], flow.dtype)
+
+
+def network_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> jax.Array:
+    """The 8-channel input of encoders and baselines: [B, H, W, 3 + 3 + 2]."""
+    return jnp.concatenate([image1, image2, normalise_flow(flow)], axis=-1)
+
+
+def positive_inv_depth(logits: jax.Array) -> jax.Array:
+    """Unconstrained network output -> positive inverse depth (softplus, offset so that
+    a zero output means `INITIAL_INV_DEPTH`)."""
+    return jax.nn.softplus(logits + _INV_DEPTH_OFFSET) + MIN_INV_DEPTH
+
+
+def depth_outputs(logits: jax.Array) -> dict[str, jax.Array]:
+    """[B, H, W, 1] (or [B, H, W]) logits -> {'inv_depth', 'depth'}, each [B, H, W]."""
+    if logits.ndim == 4:
+        logits = logits[..., 0]
+    inv_depth = positive_inv_depth(logits)
+    return {"inv_depth": inv_depth, "depth": 1.0 / inv_depth}
