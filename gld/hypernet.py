@@ -1,0 +1,465 @@
+"""The hypernetwork LP and the per-example filter banks it generates.
+
+The paper's local network C_phi is a stack of 3x3 convolutions whose filters are
+not learned directly: a single linear layer (the hypernetwork LP) maps each
+example's global parameters `g` [B, G] to the weights and biases of every bank.
+Every example of a batch is therefore convolved with its own filters.
+
+`apply_filter_banks` applies such per-example banks. The design's reference is a
+`jax.vmap` over `lax.conv_general_dilated` ("vmap"), which XLA lowers to a grouped
+convolution that is very slow to differentiate on CPU; the other entries of
+`FORMULATIONS` compute the same function (outputs and gradients) in forms that
+XLA compiles to better code. `default_formulation()` picks the fastest one
+measured on each platform (see `experiments/benchmark.py`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from gld import layers
+
+_DIMENSION_NUMBERS = ("NHWC", "HWIO", "NHWC")
+
+# Fraction of a filter's initial scale by which a unit-variance global parameter
+# vector moves it at initialisation: enough that the global module steers the local
+# network from the first step, small enough that the filters start as a well-scaled
+# (He-initialised) conv stack rather than noise driven by an untrained encoder.
+MODULATION_SCALE = 0.2
+
+
+class FilterBank(NamedTuple):
+    """One per-example convolution layer.
+
+    Attributes:
+      kernel: [B, k, k, C_in, C_out] filters of each example (HWIO per example).
+      bias: [B, C_out] biases of each example.
+    """
+
+    kernel: jax.Array
+    bias: jax.Array
+
+
+def _bank_shapes(
+    in_channels: int, bank_channels: Sequence[int], kernel_size: int
+) -> list[tuple[int, int]]:
+    """(C_in, C_out) of every bank."""
+    if kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd number, got {kernel_size}")
+    if in_channels < 1 or not bank_channels or min(bank_channels) < 1:
+        raise ValueError(
+            f"in_channels ({in_channels}) and bank_channels ({tuple(bank_channels)}) "
+            "must be positive and bank_channels non-empty"
+        )
+    channels = [in_channels, *bank_channels]
+    return list(zip(channels[:-1], channels[1:], strict=True))
+
+
+def hypernet_output_size(
+    in_channels: int = 4, bank_channels: Sequence[int] = (20, 10, 20), kernel_size: int = 3
+) -> int:
+    """Number of hypernetwork outputs: every bank's kernel and bias entries.
+
+    With the paper's defaults ([flow, x, y] = 4 input channels, banks of 20, 10, 20
+    3x3 filters) this is 4,370 (the paper rounds it to 3.9K).
+    """
+    return sum(
+        kernel_size * kernel_size * c_in * c_out + c_out
+        for c_in, c_out in _bank_shapes(in_channels, bank_channels, kernel_size)
+    )
+
+
+def _initial_kernel_std(c_in: int, kernel_size: int) -> float:
+    """He-normal standard deviation of a conv followed by a LeakyReLU."""
+    gain = 2.0 / (1.0 + layers.NEGATIVE_SLOPE**2)
+    return math.sqrt(gain / (kernel_size * kernel_size * c_in))
+
+
+def _split_banks(
+    flat: jax.Array, shapes: Sequence[tuple[int, int]], kernel_size: int
+) -> list[FilterBank]:
+    """[B, hypernet_output_size] -> banks; the layout is (kernel, bias) per bank."""
+    batch_size = flat.shape[0]
+    banks, offset = [], 0
+    for c_in, c_out in shapes:
+        kernel_entries = kernel_size * kernel_size * c_in * c_out
+        kernel = flat[:, offset : offset + kernel_entries].reshape(
+            batch_size, kernel_size, kernel_size, c_in, c_out
+        )
+        offset += kernel_entries
+        bias = flat[:, offset : offset + c_out]
+        offset += c_out
+        banks.append(FilterBank(kernel=kernel, bias=bias))
+    return banks
+
+
+def _conv_stack_init(shapes: Sequence[tuple[int, int]], kernel_size: int):
+    """Initialiser of the flat vector: He-normal kernels and zero biases per bank."""
+
+    def init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
+        parts = []
+        for c_in, c_out in shapes:
+            key, bank_key = jax.random.split(key)
+            std = _initial_kernel_std(c_in, kernel_size)
+            kernel_shape = (kernel_size * kernel_size * c_in * c_out,)
+            parts.append(std * jax.random.normal(bank_key, kernel_shape, dtype))
+            parts.append(jnp.zeros((c_out,), dtype))
+        flat = jnp.concatenate(parts)
+        if flat.shape != tuple(shape):
+            raise ValueError(f"hypernetwork bias shape {tuple(shape)} != {flat.shape}")
+        return flat
+
+    return init
+
+
+def _modulation_init(shapes: Sequence[tuple[int, int]], kernel_size: int):
+    """Initialiser of the [G, outputs] kernel: each output column has standard deviation
+    `MODULATION_SCALE * filter_std / sqrt(G)`, so that unit-variance global parameters
+    perturb every filter (and bias) by about `MODULATION_SCALE` of the filter scale."""
+
+    def init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
+        global_dim = shape[0]
+        column_std = []
+        for c_in, c_out in shapes:
+            std = MODULATION_SCALE * _initial_kernel_std(c_in, kernel_size)
+            column_std.append(jnp.full((kernel_size * kernel_size * c_in * c_out + c_out,), std))
+        scale = jnp.concatenate(column_std).astype(dtype) / math.sqrt(global_dim)
+        if scale.shape[0] != shape[1]:
+            raise ValueError(f"hypernetwork kernel shape {tuple(shape)} != (G, {scale.shape[0]})")
+        return jax.random.normal(key, tuple(shape), dtype) * scale
+
+    return init
+
+
+class HyperNetwork(nn.Module):
+    """The paper's LP: ONE linear layer, global parameters -> per-example filter banks.
+
+    Initialisation: the layer's bias is the flattened weights of a He-initialised
+    static conv stack (zero conv biases), and its kernel is scaled so that a
+    unit-variance `global_params` perturbs each generated filter by about
+    `MODULATION_SCALE` (20%) of its initial scale. The generated network thus starts
+    as a sensible conv stack that the global parameters modulate rather than swamp,
+    which matters when training from one supervised pixel per image.
+
+    Attributes:
+      in_channels: channels of the local network's input (flow + x, y = 4).
+      bank_channels: output channels of each generated bank.
+      kernel_size: odd spatial size of every generated filter.
+    """
+
+    in_channels: int = 4
+    bank_channels: Sequence[int] = (20, 10, 20)
+    kernel_size: int = 3
+
+    @nn.compact
+    def __call__(self, global_params: jax.Array) -> list[FilterBank]:
+        """global_params: [B, G] -> banks with kernel [B, k, k, C_in, C_out], bias [B, C_out]."""
+        if global_params.ndim != 2:
+            raise ValueError(f"global_params must be [B, G], got shape {global_params.shape}")
+        shapes = _bank_shapes(self.in_channels, self.bank_channels, self.kernel_size)
+        flat = nn.Dense(
+            hypernet_output_size(self.in_channels, self.bank_channels, self.kernel_size),
+            kernel_init=_modulation_init(shapes, self.kernel_size),
+            bias_init=_conv_stack_init(shapes, self.kernel_size),
+            name="linear",
+        )(global_params)
+        return _split_banks(flat, shapes, self.kernel_size)
+
+
+class StaticFilterBanks(nn.Module):
+    """Learned filters shared by all examples (the "no global module" ablation).
+
+    Same initialisation as the hypernetwork's conv stack (He-normal, zero bias).
+    """
+
+    in_channels: int = 4
+    bank_channels: Sequence[int] = (20, 10, 20)
+    kernel_size: int = 3
+
+    @nn.compact
+    def __call__(self, batch_size: int) -> list[FilterBank]:
+        """-> banks with kernel [batch_size, k, k, C_in, C_out] (the same for every example)."""
+        shapes = _bank_shapes(self.in_channels, self.bank_channels, self.kernel_size)
+        banks = []
+        for index, (c_in, c_out) in enumerate(shapes):
+            std = _initial_kernel_std(c_in, self.kernel_size)
+            kernel = self.param(
+                f"kernel_{index}",
+                nn.initializers.normal(std),
+                (self.kernel_size, self.kernel_size, c_in, c_out),
+            )
+            bias = self.param(f"bias_{index}", nn.initializers.zeros, (c_out,))
+            banks.append(
+                FilterBank(
+                    kernel=jnp.broadcast_to(kernel, (batch_size, *kernel.shape)),
+                    bias=jnp.broadcast_to(bias, (batch_size, c_out)),
+                )
+            )
+        return banks
+
+
+# ----------------------------------------------------------------------------------
+# Formulations. Each takes (filter_banks, inputs [B, H, W, C_in], negative_slope) and
+# returns [B, H, W, C_out of the last bank]: 'SAME' padding, stride 1, LeakyReLU after
+# every bank.
+
+
+def _conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
+    """Plain conv of a batch with one shared kernel: [N, H, W, C_in] x [k, k, C_in, C_out]."""
+    return lax.conv_general_dilated(
+        inputs, kernel, (1, 1), "SAME", dimension_numbers=_DIMENSION_NUMBERS
+    )
+
+
+def _conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
+    """One example: [H, W, C_in] x [k, k, C_in, C_out] -> [H, W, C_out]."""
+    return _conv(image[None], kernel)[0]
+
+
+def _pad_same(images: jax.Array, kernel_size: int) -> jax.Array:
+    """Zero-pads the two spatial axes (the third- and second-last) for a 'SAME' conv."""
+    pad = kernel_size // 2
+    widths = [(0, 0)] * (images.ndim - 3) + [(pad, pad), (pad, pad), (0, 0)]
+    return jnp.pad(images, widths)
+
+
+def _shifted_conv(images: jax.Array, kernels: jax.Array) -> jax.Array:
+    """Per-example conv as a sum of k*k shifted batched matmuls (no patch tensor).
+
+    images: [B, H, W, C_in]; kernels: [B, k, k, C_in, C_out] -> [B, H, W, C_out].
+    """
+    kernel_size = kernels.shape[1]
+    height, width = images.shape[1:3]
+    padded = _pad_same(images, kernel_size)
+    out = None
+    for dy in range(kernel_size):
+        for dx in range(kernel_size):
+            view = padded[:, dy : dy + height, dx : dx + width, :]
+            term = jnp.einsum("bhwc,bcd->bhwd", view, kernels[:, dy, dx])
+            out = term if out is None else out + term
+    return out
+
+
+def _patches(image: jax.Array, kernel_size: int) -> jax.Array:
+    """im2col of one example: [H, W, C] -> [H, W, k*k*C] ordered (dy, dx, c) like HWIO."""
+    height, width = image.shape[:2]
+    padded = _pad_same(image, kernel_size)
+    return jnp.concatenate(
+        [
+            padded[dy : dy + height, dx : dx + width, :]
+            for dy in range(kernel_size)
+            for dx in range(kernel_size)
+        ],
+        axis=-1,
+    )
+
+
+def _im2col_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
+    """One example as im2col + matmul: [H, W, C_in] x [k, k, C_in, C_out]."""
+    kernel_size, _, c_in, c_out = kernel.shape
+    patches = _patches(image, kernel_size)
+    return patches @ kernel.reshape(kernel_size * kernel_size * c_in, c_out)
+
+
+def _apply_stack(
+    conv: Callable[[jax.Array, jax.Array], jax.Array],
+    filter_banks: Sequence[FilterBank],
+    inputs: jax.Array,
+    negative_slope: float,
+) -> jax.Array:
+    """Bank after bank: conv + bias + LeakyReLU, with `conv` batched per example."""
+    activations = inputs
+    for bank in filter_banks:
+        pre = conv(activations, bank.kernel) + bank.bias[..., None, None, :]
+        activations = jax.nn.leaky_relu(pre, negative_slope)
+    return activations
+
+
+def _vmap_formulation(filter_banks, inputs, negative_slope):
+    """The design's reference: `jax.vmap` over `lax.conv_general_dilated`."""
+    return _apply_stack(jax.vmap(_conv_single), filter_banks, inputs, negative_slope)
+
+
+def _map_conv_formulation(filter_banks, inputs, negative_slope):
+    """`lax.map` over examples of the whole stack of plain convolutions."""
+
+    def one_example(args):
+        image, banks = args
+        return _apply_stack(_conv_single, banks, image, negative_slope)
+
+    return lax.map(one_example, (inputs, list(filter_banks)))
+
+
+def _map_im2col_formulation(filter_banks, inputs, negative_slope):
+    """`lax.map` over examples of the stack, each conv as im2col + one matmul."""
+
+    def one_example(args):
+        image, banks = args
+        return _apply_stack(_im2col_conv_single, banks, image, negative_slope)
+
+    return lax.map(one_example, (inputs, list(filter_banks)))
+
+
+def _shifted_formulation(filter_banks, inputs, negative_slope):
+    """Whole batch at once, each conv a sum of k*k shifted batched matmuls."""
+    return _apply_stack(_shifted_conv, filter_banks, inputs, negative_slope)
+
+
+# --- Custom VJP of the whole stack: convolution forward, matmul gradients. -----------
+
+
+def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float) -> jax.Array:
+    """Cotangent through LeakyReLU, read off its output (same sign as its input)."""
+    return jnp.where(activations > 0, cotangent, slope * cotangent)
+
+
+def _input_grad_single(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """d(conv)/d(input) of one example: conv with the flipped, io-transposed kernel."""
+    return _conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
+
+
+def _kernel_grad_single(image: jax.Array, cotangent: jax.Array, kernel_size: int) -> jax.Array:
+    """d(conv)/d(kernel) of one example as k*k matmuls over pixels.
+
+    image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
+    """
+    height, width = image.shape[:2]
+    padded = _pad_same(image, kernel_size)
+    rows = []
+    for dy in range(kernel_size):
+        row = []
+        for dx in range(kernel_size):
+            view = padded[dy : dy + height, dx : dx + width, :]
+            row.append(jnp.einsum("hwc,hwd->cd", view, cotangent))
+        rows.append(jnp.stack(row))
+    return jnp.stack(rows)
+
+
+def _stack_forward_single(image, banks, negative_slope):
+    """Forward of one example, keeping every bank's output for the backward pass."""
+    outputs = []
+    activations = image
+    for kernel, bias in banks:
+        activations = jax.nn.leaky_relu(_conv_single(activations, kernel) + bias, negative_slope)
+        outputs.append(activations)
+    return outputs
+
+
+def _stack_backward_single(image, banks, outputs, cotangent, negative_slope, need_input_grad):
+    """Backward of one example: cotangents of every kernel and bias (and the input)."""
+    bank_inputs = [image, *outputs[:-1]]
+    kernel_grads, bias_grads = [], []
+    for index in reversed(range(len(banks))):
+        kernel = banks[index][0]
+        pre_grad = _leaky_relu_grad(outputs[index], cotangent, negative_slope)
+        kernel_grads.append(_kernel_grad_single(bank_inputs[index], pre_grad, kernel.shape[0]))
+        bias_grads.append(pre_grad.sum((0, 1)))
+        if index > 0 or need_input_grad:
+            cotangent = _input_grad_single(pre_grad, kernel)
+    input_grad = cotangent if need_input_grad else jnp.zeros_like(image)
+    return kernel_grads[::-1], bias_grads[::-1], input_grad
+
+
+def _make_fused_stack(negative_slope: float):
+    @jax.custom_vjp
+    def stack(banks, inputs):
+        return _fwd(banks, inputs)[0]
+
+    def _fwd(banks, inputs):
+        outputs = lax.map(
+            lambda args: _stack_forward_single(args[0], args[1], negative_slope),
+            (inputs, banks),
+        )
+        return outputs[-1], (banks, inputs, outputs)
+
+    def _bwd(residuals, cotangent):
+        banks, inputs, outputs = residuals
+        kernel_grads, bias_grads, input_grad = lax.map(
+            lambda args: _stack_backward_single(*args, negative_slope, True),
+            (inputs, banks, outputs, cotangent),
+        )
+        bank_grads = [(k, b) for k, b in zip(kernel_grads, bias_grads, strict=True)]
+        return bank_grads, input_grad
+
+    stack.defvjp(_fwd, _bwd)
+    return stack
+
+
+def _fused_formulation(filter_banks, inputs, negative_slope):
+    """`jax.custom_vjp` of the whole stack: per-example convolutions forward (`lax.map`),
+    per-example matmul kernel gradients and conv input gradients backward."""
+    banks = [(bank.kernel, bank.bias) for bank in filter_banks]
+    return _make_fused_stack(float(negative_slope))(banks, inputs)
+
+
+FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
+    "vmap": _vmap_formulation,
+    "map_conv": _map_conv_formulation,
+    "map_im2col": _map_im2col_formulation,
+    "shifted": _shifted_formulation,
+    "fused": _fused_formulation,
+}
+
+# Fastest formulation per platform, measured with `python -m experiments.benchmark`.
+_DEFAULT_FORMULATIONS = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
+
+
+def default_formulation(backend: str | None = None) -> str:
+    """Name of the fastest formulation on `backend` ('cpu', 'gpu'; None = JAX's default)."""
+    backend = jax.default_backend() if backend is None else backend
+    return _DEFAULT_FORMULATIONS.get(backend, "vmap")
+
+
+def apply_filter_banks(
+    filter_banks: Sequence[FilterBank],
+    inputs: jax.Array,
+    *,
+    formulation: str | None = None,
+    negative_slope: float = layers.NEGATIVE_SLOPE,
+) -> jax.Array:
+    """Applies per-example filter banks, each followed by a LeakyReLU.
+
+    Args:
+      filter_banks: banks with kernel [B, k, k, C_in, C_out] and bias [B, C_out];
+        each bank's C_in is the previous bank's C_out.
+      inputs: [B, H, W, C_in] (the local network's [flow, x, y]).
+      formulation: a key of `FORMULATIONS`; None = `default_formulation()`.
+      negative_slope: LeakyReLU slope applied after every bank.
+
+    Returns:
+      [B, H, W, C_out of the last bank]; 'SAME' padding, stride 1.
+    """
+    name = default_formulation() if formulation is None else formulation
+    if name not in FORMULATIONS:
+        raise ValueError(f"unknown formulation {name!r}; choose one of {sorted(FORMULATIONS)}")
+    if inputs.ndim != 4:
+        raise ValueError(f"inputs must be [B, H, W, C], got shape {inputs.shape}")
+    if not filter_banks:
+        raise ValueError("filter_banks is empty")
+    channels = inputs.shape[-1]
+    for index, bank in enumerate(filter_banks):
+        kernel, bias = bank.kernel, bank.bias
+        if kernel.ndim != 5 or kernel.shape[1] != kernel.shape[2] or kernel.shape[1] % 2 == 0:
+            raise ValueError(
+                f"filter_banks[{index}].kernel must be [B, k, k, C_in, C_out] with odd k, "
+                f"got shape {kernel.shape}"
+            )
+        if kernel.shape[0] != inputs.shape[0] or kernel.shape[3] != channels:
+            raise ValueError(
+                f"filter_banks[{index}].kernel shape {kernel.shape} does not match "
+                f"batch {inputs.shape[0]} and {channels} input channels (inputs {inputs.shape})"
+            )
+        if bias.shape != (kernel.shape[0], kernel.shape[4]):
+            raise ValueError(
+                f"filter_banks[{index}].bias must be {(kernel.shape[0], kernel.shape[4])}, "
+                f"got shape {bias.shape}"
+            )
+        channels = kernel.shape[4]
+    return FORMULATIONS[name](list(filter_banks), inputs, negative_slope)

@@ -1,0 +1,158 @@
+"""Tests of gld/hypernet.py: the hypernetwork and every filter-bank formulation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+from gld import hypernet
+from gld.hypernet import FilterBank
+
+BANK_CHANNELS = (5, 3, 4)
+IN_CHANNELS = 4
+
+
+def _loop_reference(filter_banks, inputs, negative_slope):
+    """A Python loop of plain per-example convolutions, the ground truth."""
+    outputs = []
+    for index in range(inputs.shape[0]):
+        activations = inputs[index : index + 1]
+        for bank in filter_banks:
+            activations = lax.conv_general_dilated(
+                activations,
+                bank.kernel[index],
+                (1, 1),
+                "SAME",
+                dimension_numbers=("NHWC", "HWIO", "NHWC"),
+                precision=lax.Precision.HIGHEST,
+            )
+            activations = jax.nn.leaky_relu(activations + bank.bias[index], negative_slope)
+        outputs.append(activations[0])
+    return jnp.stack(outputs)
+
+
+def _random_banks(key, batch_size, kernel_size=3, bank_channels=BANK_CHANNELS):
+    banks = []
+    channels = [IN_CHANNELS, *bank_channels]
+    for c_in, c_out in zip(channels[:-1], channels[1:], strict=True):
+        key, kernel_key, bias_key = jax.random.split(key, 3)
+        kernel = jax.random.normal(kernel_key, (batch_size, kernel_size, kernel_size, c_in, c_out))
+        kernel = kernel / np.sqrt(kernel_size * kernel_size * c_in)
+        bias = 0.3 * jax.random.normal(bias_key, (batch_size, c_out))
+        banks.append(FilterBank(kernel, bias))
+    return banks
+
+
+def _loss_fn(formulation_fn):
+    # A fixed random projection makes every output element matter to the gradient.
+    weights = jax.random.normal(jax.random.PRNGKey(7), (3, 6, 7, BANK_CHANNELS[-1]))
+
+    def loss(banks, inputs):
+        return jnp.sum(formulation_fn(banks, inputs) * weights)
+
+    return loss
+
+
+def test_output_size_matches_paper_defaults():
+    assert hypernet.hypernet_output_size() == 4370
+    # 5x5 kernels, two banks: 25*2*3 + 3 + 25*3*1 + 1.
+    assert hypernet.hypernet_output_size(2, (3, 1), 5) == 25 * 6 + 3 + 25 * 3 + 1
+
+
+@pytest.mark.parametrize("formulation", sorted(hypernet.FORMULATIONS))
+def test_formulation_matches_loop_of_plain_convs(formulation):
+    inputs = jax.random.normal(jax.random.PRNGKey(0), (3, 6, 7, IN_CHANNELS))
+    banks = _random_banks(jax.random.PRNGKey(1), 3)
+    slope = 0.2
+
+    def apply(banks, inputs):
+        return hypernet.apply_filter_banks(
+            banks, inputs, formulation=formulation, negative_slope=slope
+        )
+
+    reference = lambda banks, inputs: _loop_reference(banks, inputs, slope)
+    np.testing.assert_allclose(
+        jax.jit(apply)(banks, inputs), reference(banks, inputs), rtol=1e-4, atol=1e-5
+    )
+    grads = jax.jit(jax.grad(_loss_fn(apply), argnums=(0, 1)))(banks, inputs)
+    expected = jax.grad(_loss_fn(reference), argnums=(0, 1))(banks, inputs)
+    for got_bank, want_bank in zip(grads[0], expected[0], strict=True):
+        np.testing.assert_allclose(got_bank.kernel, want_bank.kernel, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(got_bank.bias, want_bank.bias, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(grads[1], expected[1], rtol=1e-4, atol=1e-4)
+
+
+def test_hypernetwork_shapes_and_initial_modulation():
+    module = hypernet.HyperNetwork()
+    global_params = jax.random.normal(jax.random.PRNGKey(0), (256, 6))
+    params = module.init(jax.random.PRNGKey(1), global_params)
+    banks = module.apply(params, global_params)
+    assert [bank.kernel.shape for bank in banks] == [
+        (256, 3, 3, 4, 20),
+        (256, 3, 3, 20, 10),
+        (256, 3, 3, 10, 20),
+    ]
+    assert [bank.bias.shape for bank in banks] == [(256, 20), (256, 10), (256, 20)]
+    assert params["params"]["linear"]["kernel"].shape == (6, 4370)
+    # Zero global parameters give the static conv stack stored in the bias: He-normal
+    # kernels (std sqrt(2 / (1 + 0.2^2) / fan_in)) and zero biases.
+    static = module.apply(params, jnp.zeros((1, 6)))
+    for bank, fan_in in zip(static, (36, 180, 90), strict=True):
+        he_std = np.sqrt(2 / 1.04 / fan_in)
+        assert abs(float(bank.kernel.std()) - he_std) < 0.15 * he_std
+        np.testing.assert_array_equal(bank.bias, 0.0)
+    # Unit-variance global parameters move each filter by ~MODULATION_SCALE of its scale.
+    for bank, static_bank in zip(banks, static, strict=True):
+        relative = (bank.kernel - static_bank.kernel).std() / static_bank.kernel.std()
+        assert 0.5 * hypernet.MODULATION_SCALE < relative < 1.5 * hypernet.MODULATION_SCALE
+    # Different examples get different filters.
+    assert not np.allclose(banks[0].kernel[0], banks[0].kernel[1])
+
+
+def test_hypernetwork_gradients_reach_global_params():
+    module = hypernet.HyperNetwork(in_channels=2, bank_channels=(3, 2))
+    global_params = jax.random.normal(jax.random.PRNGKey(0), (2, 6))
+    params = module.init(jax.random.PRNGKey(1), global_params)
+    inputs = jax.random.normal(jax.random.PRNGKey(2), (2, 5, 5, 2))
+
+    def loss(global_params):
+        banks = module.apply(params, global_params)
+        return hypernet.apply_filter_banks(banks, inputs).sum()
+
+    grad = jax.grad(loss)(global_params)
+    assert grad.shape == (2, 6) and np.all(np.abs(grad) > 0)
+
+
+def test_static_filter_banks_are_shared_by_the_batch():
+    module = hypernet.StaticFilterBanks(bank_channels=(3, 2), kernel_size=5)
+    params = module.init(jax.random.PRNGKey(0), 4)
+    banks = module.apply(params, 4)
+    assert banks[0].kernel.shape == (4, 5, 5, 4, 3) and banks[1].bias.shape == (4, 2)
+    np.testing.assert_array_equal(banks[0].kernel[0], banks[0].kernel[3])
+    np.testing.assert_array_equal(banks[0].kernel[0], params["params"]["kernel_0"])
+
+
+def test_default_formulation_is_registered():
+    for backend in ("cpu", "gpu", None):
+        assert hypernet.default_formulation(backend) in hypernet.FORMULATIONS
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda banks, x: (banks, x[0]), "inputs must be"),
+        (lambda banks, x: (banks, x[..., :3]), "input channels"),
+        (lambda banks, x: (banks[1:], x), "input channels"),
+        (lambda banks, x: ([FilterBank(banks[0].kernel, banks[0].bias[:, :2])], x), "bias"),
+        (lambda banks, x: ([FilterBank(banks[0].kernel[:, :2, :2], banks[0].bias)], x), "odd"),
+    ],
+)
+def test_apply_filter_banks_rejects_bad_shapes(change, message):
+    banks = _random_banks(jax.random.PRNGKey(0), 2)
+    inputs = jnp.zeros((2, 6, 7, IN_CHANNELS))
+    bad_banks, bad_inputs = change(banks, inputs)
+    with pytest.raises(ValueError, match=message):
+        hypernet.apply_filter_banks(bad_banks, bad_inputs)
+    with pytest.raises(ValueError, match="unknown formulation"):
+        hypernet.apply_filter_banks(banks, inputs, formulation="nope")
