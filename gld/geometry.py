@@ -131,9 +131,7 @@ def project(points: Array, camera_matrix: Array) -> tuple[Array, Array]:
 def transform_points(points: Array, rotation: Array, translation: Array) -> Array:
     """`R @ X + t` for points [..., H, W, 3], rotation [..., 3, 3], translation [..., 3]."""
     xp = _xp(points, rotation, translation)
-    return (
-        xp.einsum("...ij,...hwj->...hwi", rotation, points) + translation[..., None, None, :]
-    )
+    return xp.einsum("...ij,...hwj->...hwi", rotation, points) + translation[..., None, None, :]
 
 
 def depth_to_flow(

@@ -1,0 +1,121 @@
+r"""Trains a depth model and evaluates it: `python -m experiments.train [--flagfile=...]`.
+
+With no flags this is the demo: it builds the embedded benchmark `gld_scenes/small` on
+first use, trains the global-local model with ONE supervised pixel per image, evaluates
+it and the dataset-mean baseline on the test split and leaves everything in runs/demo.
+Re-running the same command resumes from the last checkpoint.
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import common
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_string("workdir", "runs/demo", "Run directory (checkpoints, logs, eval).")
+flags.DEFINE_string("model", "global_local", "Model name (gld.model.MODELS).")
+flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
+flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
+flags.DEFINE_integer("batch_size", 16, "Global batch size.")
+flags.DEFINE_integer("steps", 2500, "Training steps (the paper: 94000 at 256x192).")
+flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
+flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
+flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
+flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
+flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
+flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
+flags.DEFINE_integer("eval_every", 500, "Steps between evaluations on the test split (0: off).")
+flags.DEFINE_integer("eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all.")
+flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
+flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
+flags.DEFINE_bool("final_eval", True, "Evaluate the final model on the whole test split.")
+flags.DEFINE_integer("num_figures", 8, "Example figures written by the final evaluation.")
+# Architecture of the global-local model (the paper's numbers are the defaults).
+flags.DEFINE_list("encoder_channels", ["16", "32", "64", "128", "256"], "Global encoder channels.")
+flags.DEFINE_list("encoder_strides", ["2", "2", "2", "2", "1"], "Global encoder strides.")
+flags.DEFINE_integer("global_dim", 6, "Size of the global parameter vector.")
+flags.DEFINE_list("bank_channels", ["20", "10", "20"], "Output channels of the generated banks.")
+flags.DEFINE_integer("kernel_size", 3, "Kernel size of generated filters and the final conv.")
+flags.DEFINE_bool("use_image_pair", True, "Ablation switch: image pair into the global module.")
+flags.DEFINE_bool("use_coordinates", True, "Ablation switch: CoordConv channels.")
+flags.DEFINE_bool("use_global_module", True, "Ablation switch: filters generated from g.")
+flags.DEFINE_bool("use_flow", True, "Ablation switch: optical flow as the local input.")
+flags.DEFINE_string(
+    "filter_formulation", None, "apply_filter_banks formulation (default: fastest here)."
+)
+common.define_data_flags()
+common.define_distributed_flags()
+
+
+def model_config_from_flags() -> dict:
+    """Constructor arguments of the selected model from the architecture flags."""
+    if FLAGS.model != "global_local":
+        return {}
+    config = {
+        "encoder_channels": [int(c) for c in FLAGS.encoder_channels],
+        "encoder_strides": [int(s) for s in FLAGS.encoder_strides],
+        "global_dim": FLAGS.global_dim,
+        "bank_channels": [int(c) for c in FLAGS.bank_channels],
+        "kernel_size": FLAGS.kernel_size,
+        "use_image_pair": FLAGS.use_image_pair,
+        "use_coordinates": FLAGS.use_coordinates,
+        "use_global_module": FLAGS.use_global_module,
+        "use_flow": FLAGS.use_flow,
+    }
+    if FLAGS.filter_formulation:
+        config["filter_formulation"] = FLAGS.filter_formulation
+    return config
+
+
+def main(argv):
+    del argv
+    common.initialise_distributed()
+    from gld import train
+
+    builder = common.prepare_dataset()
+    height, width = common.dataset_resolution(builder)
+    config = train.TrainConfig(
+        model=FLAGS.model,
+        model_config=model_config_from_flags(),
+        batch_size=FLAGS.batch_size,
+        steps=FLAGS.steps,
+        learning_rate=FLAGS.learning_rate,
+        depth_weight=FLAGS.depth_weight,
+        smoothness_weight=FLAGS.smoothness_weight,
+        gt_pixels=FLAGS.gt_pixels,
+        fixed_sparse_pixels=FLAGS.fixed_sparse_pixels,
+        flow=FLAGS.flow,
+        augment=FLAGS.augment,
+        seed=FLAGS.seed,
+        log_every=FLAGS.log_every,
+        eval_every=FLAGS.eval_every,
+        checkpoint_every=FLAGS.checkpoint_every,
+        eval_examples=FLAGS.eval_examples,
+        worker_count=FLAGS.worker_count,
+        dataset=FLAGS.dataset,
+        height=height,
+        width=width,
+    )
+    common.write_flags(FLAGS.workdir)
+    print(
+        f"dataset {FLAGS.dataset}: {builder.info.splits['train'].num_examples} train / "
+        f"{builder.info.splits['test'].num_examples} test pairs at {width}x{height}"
+    )
+    train.train_and_evaluate(
+        config,
+        FLAGS.workdir,
+        builder.as_data_source("train"),
+        builder.as_data_source("test"),
+    )
+    if FLAGS.final_eval:
+        from experiments import evaluate
+
+        evaluate.evaluate_workdir(
+            FLAGS.workdir, builder, num_figures=FLAGS.num_figures, with_dataset_mean=True
+        )
+
+
+if __name__ == "__main__":
+    app.run(main)

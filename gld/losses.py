@@ -1,0 +1,85 @@
+"""The paper's training loss: sparse L1 on inverse depth + edge-aware smoothness."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+
+@dataclasses.dataclass(frozen=True)
+class LossWeights:
+    """Weights of the loss terms (the paper's lambda_p and lambda_s)."""
+
+    depth: float = 5.0
+    smoothness: float = 2.0
+
+
+def inverse_depth_target(depth: jax.Array, mask: jax.Array) -> jax.Array:
+    """1 / depth where `mask`, 0 elsewhere ([B, H, W]); never divides by zero."""
+    return jnp.where(mask, 1.0 / jnp.where(mask, depth, 1.0), 0.0)
+
+
+def sparse_l1(inv_depth: jax.Array, inv_depth_true: jax.Array, mask: jax.Array) -> jax.Array:
+    """Mean |z_hat - z| over the supervised pixels of the whole batch.
+
+    Args:
+      inv_depth, inv_depth_true: [B, H, W].
+      mask: [B, H, W] bool, the supervised pixels (the paper's set P).
+
+    Returns:
+      Scalar; 0 when no pixel is supervised.
+    """
+    mask = mask.astype(inv_depth.dtype)
+    total = jnp.sum(jnp.abs(inv_depth - inv_depth_true) * mask)
+    return total / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def edge_aware_smoothness(inv_depth: jax.Array, image: jax.Array) -> jax.Array:
+    """Mean over the image of |d_x z| exp(-|d_x I|) + |d_y z| exp(-|d_y I|).
+
+    Args:
+      inv_depth: [B, H, W] predicted inverse depth.
+      image: [B, H, W, C] the first image; its gradient magnitude is averaged over channels.
+
+    Returns:
+      Scalar.
+    """
+    weight_x = jnp.exp(-jnp.mean(jnp.abs(jnp.diff(image, axis=2)), axis=-1))
+    weight_y = jnp.exp(-jnp.mean(jnp.abs(jnp.diff(image, axis=1)), axis=-1))
+    smooth_x = jnp.mean(jnp.abs(jnp.diff(inv_depth, axis=2)) * weight_x)
+    smooth_y = jnp.mean(jnp.abs(jnp.diff(inv_depth, axis=1)) * weight_y)
+    return smooth_x + smooth_y
+
+
+def total_loss(
+    outputs: dict[str, jax.Array],
+    batch: dict[str, jax.Array],
+    weights: LossWeights = LossWeights(),
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The weighted training loss of a batch.
+
+    Multi-scale models (DispNet-style) add `inv_depth_pyramid`: coarser predictions that
+    are upsampled bilinearly to full resolution and get the same loss; the terms are
+    averaged over scales so the loss keeps the single-scale magnitude.
+
+    Args:
+      outputs: the model's outputs, with `inv_depth` [B, H, W].
+      batch: the example contract (`depth`, `sparse_mask`, `image1` are used).
+      weights: the loss weights.
+
+    Returns:
+      (loss, {"loss", "depth_l1", "smoothness"}) where the terms are unweighted.
+    """
+    image = batch["image1"]
+    mask = batch["sparse_mask"]
+    inv_depth_true = inverse_depth_target(batch["depth"], mask)
+    predictions = [outputs["inv_depth"]]
+    full_shape = outputs["inv_depth"].shape
+    for coarse in outputs.get("inv_depth_pyramid", ()):
+        predictions.append(jax.image.resize(coarse, full_shape, method="bilinear"))
+    depth_term = sum(sparse_l1(p, inv_depth_true, mask) for p in predictions) / len(predictions)
+    smooth_term = sum(edge_aware_smoothness(p, image) for p in predictions) / len(predictions)
+    loss = weights.depth * depth_term + weights.smoothness * smooth_term
+    return loss, {"loss": loss, "depth_l1": depth_term, "smoothness": smooth_term}
