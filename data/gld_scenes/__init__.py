@@ -1,0 +1,1 @@
+"""The embedded benchmark: procedural two-view indoor scenes (renderer + TFDS builder)."""
