@@ -1,0 +1,527 @@
+"""Input pipeline: a random-access record source (e.g. a TFDS data source) -> grain batches.
+
+Training (`train_dataset`): per-process shard (`process_index::process_count`) ->
+seeded shuffle, reshuffled every epoch -> decode -> augmentation (rotate 180 degrees
+with p = 0.5, then mirror along x with p = 0.5) -> scale normalisation (||t|| = 1) ->
+sparse sampling of the supervised pixels -> batches of the per-process batch size,
+optionally produced by grain worker processes. The dataset is infinite and its
+iterator state is JSON-serialisable, so a trainer can checkpoint and resume it.
+
+Evaluation (`eval_batches`): one pass over the process's shard, no augmentation,
+dense supervision mask, the last batch padded with masked-out copies.
+
+Randomness is explicit: augmentation and sparse sampling draw from numpy
+`Generator`s seeded by (seed, stable hash of the example id, epoch) on independent
+streams, so an example gets the same treatment whatever the shard, shuffle or
+worker count. Examples follow the example contract of the design notes
+(`image1`, `image2`, `flow`, `depth`, `depth_valid`, `sparse_mask`, `intrinsics1`,
+`intrinsics2`, `rotation`, `translation`, `gt_flow`, `gt_flow_valid`, `id`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import grain
+import numpy as np
+
+from gld import geometry, records
+
+FLOW_SOURCES = ("estimated", "gt")
+# Maps with the image's spatial layout; vector fields are listed separately.
+_SPATIAL_KEYS = ("image1", "image2", "depth", "depth_valid", "gt_flow_valid", "sparse_mask")
+_FLOW_KEYS = ("flow", "gt_flow")
+# Stream ids of the per-example random generators.
+_AUGMENT_STREAM = 0
+_SPARSE_STREAM = 1
+# Translations shorter than this cannot set the scale of a pair.
+_MIN_TRANSLATION_NORM = 1e-6
+# Threads preparing examples in each process. grain's defaults (16 threads, 500
+# prefetched elements) suit small remote records; ours are large decoded images, and
+# a 500-example buffer would cost ~1 GB and seconds before the first batch.
+_READ_THREADS = 2
+_PREFETCH_BATCHES = 2
+
+
+# ----------------------------------------------------------------------------- decoding
+
+
+def _check_shape(value: np.ndarray, shape: tuple[int, ...], key: str, where: str) -> None:
+    if value.shape != shape:
+        raise ValueError(f"{where}: {key} has shape {value.shape}, expected {shape}")
+
+
+def _check_finite(value: np.ndarray, key: str, where: str) -> None:
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"{where}: {key} contains non-finite values")
+
+
+def decode_example(
+    record: dict[str, Any], *, flow_source: str = "estimated", where: str = ""
+) -> dict[str, Any]:
+    """A stored record -> an example before scale normalisation and sparse sampling.
+
+    Args:
+      record: a record as read from a data source (see `gld.records`).
+      flow_source: "estimated" takes the network's input flow from the stored
+        estimated flow, "gt" from the ground-truth flow.
+      where: names the record (file and index) in errors.
+
+    Returns:
+      image1, image2: [H, W, 3] float32 in [-0.5, 0.5]; flow: [H, W, 2] float32 pixels,
+      I1 -> I2; depth: [H, W] float32 view-1 depth, 0 where invalid; depth_valid: [H, W]
+      bool; intrinsics1, intrinsics2: [4] float32 normalised; rotation: [3, 3];
+      translation: [3] (raw scale); gt_flow: [H, W, 2] float32; gt_flow_valid: [H, W]
+      bool; id: str.
+
+    Raises:
+      ValueError: naming `where` for missing keys, undecodable images, inconsistent
+        shapes, non-finite flow/intrinsics/pose or a rotation that is not orthonormal.
+    """
+    if flow_source not in FLOW_SOURCES:
+        raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
+    where = where or "record"
+    raw = records.decode(record, where=where)
+    height, width = raw["image1"].shape[:2]
+    _check_shape(raw["image2"], (height, width, 3), "image2", where)
+
+    try:
+        depth = np.asarray(raw["depth1"], np.float32)
+        gt_flow = np.asarray(raw["gt_flow"], np.float32)
+        estimated_flow = np.asarray(raw["flow"], np.float32)
+        gt_flow_valid = np.asarray(raw["gt_flow_valid"], bool)
+        intrinsics1 = np.asarray(raw["intrinsics1"], np.float32)
+        intrinsics2 = np.asarray(raw["intrinsics2"], np.float32)
+        rotation = np.asarray(raw["rotation"], np.float32)
+        translation = np.asarray(raw["translation"], np.float32)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{where}: undecodable value ({error})") from None
+    _check_shape(depth, (height, width), "depth1", where)
+    _check_shape(gt_flow, (height, width, 2), "gt_flow", where)
+    _check_shape(estimated_flow, (height, width, 2), "flow", where)
+    _check_shape(gt_flow_valid, (height, width), "gt_flow_valid", where)
+    for key, value in (("intrinsics1", intrinsics1), ("intrinsics2", intrinsics2)):
+        _check_shape(value, (4,), key, where)
+        _check_finite(value, key, where)
+        if np.any(value[:2] <= 0):
+            raise ValueError(f"{where}: {key} has non-positive focal lengths {value.tolist()}")
+    _check_shape(rotation, (3, 3), "rotation", where)
+    _check_shape(translation, (3,), "translation", where)
+    for key, value in (
+        ("rotation", rotation),
+        ("translation", translation),
+        ("flow", estimated_flow),
+        ("gt_flow", gt_flow),
+    ):
+        _check_finite(value, key, where)
+    if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3:
+        raise ValueError(f"{where}: rotation is not orthonormal: {rotation.tolist()}")
+
+    depth_valid = geometry.valid_depth(depth)
+    return {
+        "image1": raw["image1"].astype(np.float32) / 255.0 - 0.5,
+        "image2": raw["image2"].astype(np.float32) / 255.0 - 0.5,
+        "flow": estimated_flow if flow_source == "estimated" else gt_flow.copy(),
+        "depth": np.where(depth_valid, depth, 0.0).astype(np.float32),
+        "depth_valid": depth_valid,
+        "intrinsics1": intrinsics1,
+        "intrinsics2": intrinsics2,
+        "rotation": rotation,
+        "translation": translation,
+        "gt_flow": gt_flow,
+        "gt_flow_valid": gt_flow_valid,
+        "id": raw["id"],
+    }
+
+
+# ------------------------------------------------------------------------- augmentation
+
+
+def _flip_frame(example: dict[str, Any], axes: tuple[int, ...]) -> dict[str, Any]:
+    """Flips the image along `axes` (0 = v, 1 = u) and keeps the geometry consistent.
+
+    Flipping pixel axis u maps u -> W - 1 - u, the normalised principal point
+    cx/W -> 1 - cx/W and the camera frame's x axis -> -x (likewise v, cy, y). With
+    the frame change S = diag(+-1, +-1, 1) applied to both cameras, X2 = R X1 + t
+    becomes S X2 = (S R S)(S X1) + S t; flow vectors change sign along flipped axes.
+    """
+    flipped = dict(example)
+    frame_signs = np.ones(3, np.float32)
+    flow_signs = np.ones(2, np.float32)
+    for axis in axes:
+        frame_signs[1 - axis] = -1.0  # pixel axis 0 (v) is camera y, axis 1 (u) is camera x
+        flow_signs[1 - axis] = -1.0  # flow channel 0 is u, 1 is v
+    for key in _SPATIAL_KEYS + _FLOW_KEYS:
+        if key in example:
+            flipped[key] = np.ascontiguousarray(np.flip(example[key], axis=axes))
+    for key in _FLOW_KEYS:
+        if key in example:
+            flipped[key] = flipped[key] * flow_signs
+    for key in ("intrinsics1", "intrinsics2"):
+        intrinsics = np.array(example[key], np.float32)
+        for axis in axes:
+            principal_index = 3 - axis  # cx/W at index 2 (axis 1), cy/H at index 3 (axis 0)
+            intrinsics[principal_index] = 1.0 - intrinsics[principal_index]
+        flipped[key] = intrinsics
+    flip = np.diag(frame_signs)
+    flipped["rotation"] = (flip @ example["rotation"] @ flip).astype(np.float32)
+    flipped["translation"] = (frame_signs * example["translation"]).astype(np.float32)
+    return flipped
+
+
+def rotate_180(example: dict[str, Any]) -> dict[str, Any]:
+    """Rotates an example by 180 degrees: images, maps, flow vectors, intrinsics and pose.
+
+    u -> W - 1 - u, v -> H - 1 - v, (cx/W, cy/H) -> (1 - cx/W, 1 - cy/H), flow -> -flow,
+    R -> S R S and t -> S t with S = diag(-1, -1, 1).
+    """
+    return _flip_frame(example, (0, 1))
+
+
+def mirror_x(example: dict[str, Any]) -> dict[str, Any]:
+    """Mirrors an example along x: u -> W - 1 - u, cx/W -> 1 - cx/W, flow_u -> -flow_u,
+    R -> M R M and t -> M t with M = diag(-1, 1, 1)."""
+    return _flip_frame(example, (1,))
+
+
+# ------------------------------------------------------------------ scale and sparsity
+
+
+def normalise_scale(example: dict[str, Any]) -> dict[str, Any]:
+    """Scales depth and translation so that ||translation|| = 1 (flow is scale-free).
+
+    Raises:
+      ValueError: naming the example id when the translation is (nearly) zero, since
+        such a pair carries no depth scale.
+    """
+    translation = np.asarray(example["translation"], np.float64)
+    norm = float(np.linalg.norm(translation))
+    if not np.isfinite(norm) or norm < _MIN_TRANSLATION_NORM:
+        raise ValueError(
+            f"example {example.get('id')!r}: translation {translation.tolist()} has norm "
+            f"{norm:.3g}; depth cannot be normalised by it"
+        )
+    normalised = dict(example)
+    normalised["translation"] = (translation / norm).astype(np.float32)
+    normalised["depth"] = (np.asarray(example["depth"], np.float64) / norm).astype(np.float32)
+    return normalised
+
+
+def sample_sparse_mask(
+    depth_valid: np.ndarray, num_pixels: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Chooses the supervised pixels among the valid ones.
+
+    Args:
+      depth_valid: [H, W] bool.
+      num_pixels: k >= 0; 0 means dense supervision (every valid pixel).
+      rng: the generator the pixels are drawn from.
+
+    Returns:
+      [H, W] bool with exactly k True pixels, all valid (all valid pixels if fewer
+      than k exist).
+    """
+    if num_pixels < 0:
+        raise ValueError(f"num_pixels must be >= 0 (0 = dense), got {num_pixels}")
+    depth_valid = np.asarray(depth_valid, bool)
+    valid_indices = np.flatnonzero(depth_valid)
+    if num_pixels == 0 or num_pixels >= valid_indices.size:
+        return depth_valid.copy()
+    chosen = rng.choice(valid_indices, size=num_pixels, replace=False)
+    mask = np.zeros(depth_valid.size, bool)
+    mask[chosen] = True
+    return mask.reshape(depth_valid.shape)
+
+
+def stable_id_hash(example_id: str) -> int:
+    """A 64-bit hash of an example id that is the same in every process and run."""
+    return int.from_bytes(hashlib.blake2b(example_id.encode(), digest_size=8).digest(), "little")
+
+
+def example_rng(seed: int, example_id: str, epoch: int, stream: int) -> np.random.Generator:
+    """The generator of one example, epoch and stream (augmentation or sparse sampling)."""
+    sequence = np.random.SeedSequence(
+        entropy=[seed, stable_id_hash(example_id), epoch], spawn_key=(stream,)
+    )
+    return np.random.default_rng(sequence)
+
+
+def prepare_example(
+    record: dict[str, Any],
+    *,
+    epoch: int,
+    seed: int,
+    gt_pixels: int,
+    flow_source: str = "estimated",
+    augment: bool = True,
+    fixed_sparse_pixels: bool = False,
+    where: str = "",
+) -> dict[str, Any]:
+    """A stored record -> one example of the contract: decode, augment, normalise, sparsify.
+
+    Args:
+      record: a record from a data source.
+      epoch: how many times this process has gone through its shard before.
+      seed: the run's data seed.
+      gt_pixels: supervised pixels per example (0 = dense).
+      flow_source: "estimated" or "gt" (see `decode_example`).
+      augment: rotate 180 degrees (p = 0.5), then mirror along x (p = 0.5).
+      fixed_sparse_pixels: draw the same supervised pixels in every epoch (the epoch is
+        dropped from their seed), as for a robot that measured each frame once.
+      where: names the record in errors.
+
+    Returns:
+      the example dict of the contract, with `sparse_mask` [H, W] bool.
+    """
+    example = decode_example(record, flow_source=flow_source, where=where)
+    if augment:
+        augment_rng = example_rng(seed, example["id"], epoch, _AUGMENT_STREAM)
+        do_rotate, do_mirror = augment_rng.random(2) < 0.5
+        if do_rotate:
+            example = rotate_180(example)
+        if do_mirror:
+            example = mirror_x(example)
+    example = normalise_scale(example)
+    sparse_epoch = 0 if fixed_sparse_pixels else epoch
+    sparse_rng = example_rng(seed, example["id"], sparse_epoch, _SPARSE_STREAM)
+    example["sparse_mask"] = sample_sparse_mask(example["depth_valid"], gt_pixels, sparse_rng)
+    return example
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+class _RecordReader:
+    """Reads records by index and names each by file and index for error messages.
+
+    Picklable (grain workers receive a copy) as long as the source is.
+    """
+
+    def __init__(self, source: Sequence[Any]):
+        self.source = source
+        self._files: list[tuple[int, str, int]] = []  # (first index, file name, skip)
+        self._describe_files()
+
+    def _describe_files(self) -> None:
+        """Collects the source's files when it is a TFDS data source (others: index only)."""
+        try:
+            info = self.source.dataset_info
+            instructions = info.splits[self.source.split].file_instructions
+        except Exception:  # any source without TFDS metadata
+            return
+        first = 0
+        for instruction in instructions:
+            take = instruction.take
+            if take is None or take < 0:
+                take = instruction.examples_in_shard - instruction.skip
+            self._files.append((first, str(instruction.filename), instruction.skip))
+            first += take
+
+    def where(self, index: int) -> str:
+        """'file <name>, record <i> (index <j> of <source>)' or 'record <j> of <source>'."""
+        name = getattr(self.source, "split", None) or type(self.source).__name__
+        for first, filename, skip in reversed(self._files):
+            if index >= first:
+                return f"file {filename}, record {index - first + skip} (index {index} of {name})"
+        return f"record {index} of {name}"
+
+    def read(self, index: int) -> tuple[dict[str, Any], str]:
+        where = self.where(index)
+        try:
+            record = self.source[index]
+        except Exception as error:  # TFDS and array_record raise many kinds
+            raise ValueError(f"{where}: cannot read the record ({error})") from error
+        return record, where
+
+
+def _check_sharding(num_examples: int, process_index: int, process_count: int) -> None:
+    if process_count < 1 or not 0 <= process_index < process_count:
+        raise ValueError(
+            f"process_index {process_index} is not in [0, process_count={process_count})"
+        )
+    if num_examples == 0:
+        raise ValueError("the data source is empty")
+
+
+def _shard_indices(num_examples: int, process_index: int, process_count: int) -> grain.MapDataset:
+    """This process's record indices: process_index, process_index + process_count, ..."""
+    return grain.MapDataset.range(num_examples)[process_index::process_count]
+
+
+def _enable_grain_workers() -> None:
+    """grain 0.2 reads its absl flags in worker start-up; give it their defaults.
+
+    A launcher that parsed flags (absl.app.run) is unaffected.
+    """
+    from absl import flags
+
+    if not flags.FLAGS.is_parsed():
+        flags.FLAGS.mark_as_parsed()
+
+
+class _PrepareTrainExample:
+    """The training map (index in the repeated shard, record index) -> example.
+
+    A class rather than a closure so that grain can pickle it into worker processes.
+    """
+
+    def __init__(self, reader: _RecordReader, shard_size: int, **options: Any):
+        self.reader = reader
+        self.shard_size = shard_size
+        self.options = options
+
+    def __call__(self, position: int, record_index: int) -> dict[str, Any]:
+        record, where = self.reader.read(int(record_index))
+        epoch = position // self.shard_size
+        return prepare_example(record, epoch=epoch, where=where, **self.options)
+
+
+def train_dataset(
+    source: Sequence[Any],
+    *,
+    batch_size: int,
+    seed: int,
+    gt_pixels: int,
+    flow_source: str = "estimated",
+    augment: bool = True,
+    fixed_sparse_pixels: bool = False,
+    worker_count: int = 0,
+    process_index: int = 0,
+    process_count: int = 1,
+) -> grain.IterDataset:
+    """The infinite training stream of this process.
+
+    Args:
+      source: random-access records (`len`, `__getitem__`), e.g.
+        `builder.as_data_source("train")`.
+      batch_size: examples per batch of THIS process (global batch // process_count).
+      seed: data seed in [0, 2**32): shuffle, augmentation and sparse sampling.
+      gt_pixels: supervised pixels per example (1, 4, 16, 64, ...; 0 = dense).
+      flow_source: "estimated" or "gt" flow as the network's input.
+      augment: rotate-180 / mirror-x augmentation.
+      fixed_sparse_pixels: the same supervised pixels in every epoch.
+      worker_count: grain worker processes (0 = in the calling process). The batch
+        sequence is deterministic for a given worker count.
+      process_index, process_count: this process's shard is records
+        `process_index::process_count`; the shards are disjoint and cover the split.
+
+    Returns:
+      a grain IterDataset of batches: the example dicts with a leading [batch_size] axis
+      (numpy arrays; "id" an array of str). `iter()` gives a grain DatasetIterator whose
+      `get_state()` is JSON-serialisable and whose `set_state()` resumes the same batches.
+    """
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if not 0 <= seed < 2**32:
+        raise ValueError(f"seed must be in [0, 2**32), got {seed}")
+    if gt_pixels < 0:
+        raise ValueError(f"gt_pixels must be >= 0 (0 = dense), got {gt_pixels}")
+    if flow_source not in FLOW_SOURCES:
+        raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
+    if worker_count < 0:
+        raise ValueError(f"worker_count must be >= 0, got {worker_count}")
+    _check_sharding(len(source), process_index, process_count)
+
+    shard = _shard_indices(len(source), process_index, process_count)
+    if len(shard) == 0:
+        raise ValueError(
+            f"process {process_index} of {process_count} gets no records of a source "
+            f"with {len(source)}"
+        )
+    prepare = _PrepareTrainExample(
+        _RecordReader(source),
+        len(shard),
+        seed=seed,
+        gt_pixels=gt_pixels,
+        flow_source=flow_source,
+        augment=augment,
+        fixed_sparse_pixels=fixed_sparse_pixels,
+    )
+    # Shuffle then repeat: grain reshuffles with seed + epoch in every epoch.
+    dataset = (
+        shard.shuffle(seed=seed)
+        .repeat(None)
+        .map_with_index(prepare)
+        .to_iter_dataset(
+            grain.ReadOptions(
+                num_threads=_READ_THREADS, prefetch_buffer_size=_PREFETCH_BATCHES * batch_size
+            )
+        )
+        .batch(batch_size, drop_remainder=True)
+    )
+    if worker_count > 0:
+        _enable_grain_workers()
+        dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count))
+    return dataset
+
+
+# ------------------------------------------------------------------------- evaluation
+
+
+def num_eval_batches(num_examples: int, batch_size: int, process_count: int = 1) -> int:
+    """Batches every process yields in one evaluation pass (the largest shard decides)."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    largest_shard = math.ceil(num_examples / process_count)
+    return math.ceil(largest_shard / batch_size)
+
+
+class _PrepareEvalExample:
+    """(record index, is real) -> unaugmented example with dense mask and example_mask."""
+
+    def __init__(self, reader: _RecordReader, flow_source: str):
+        self.reader = reader
+        self.flow_source = flow_source
+
+    def __call__(self, entry: tuple[int, bool]) -> dict[str, Any]:
+        record_index, is_real = entry
+        record, where = self.reader.read(int(record_index))
+        example = prepare_example(
+            record,
+            epoch=0,
+            seed=0,
+            gt_pixels=0,
+            flow_source=self.flow_source,
+            augment=False,
+            where=where,
+        )
+        example["example_mask"] = np.bool_(is_real)
+        return example
+
+
+def eval_batches(
+    source: Sequence[Any],
+    *,
+    batch_size: int,
+    flow_source: str = "estimated",
+    process_index: int = 0,
+    process_count: int = 1,
+) -> Iterator[dict[str, Any]]:
+    """One pass over this process's shard: no augmentation, dense `sparse_mask`.
+
+    Every batch has `batch_size` rows and an `example_mask` [B] bool; the last batch is
+    padded with copies of a real example (mask False), and every process yields
+    `num_eval_batches(len(source), batch_size, process_count)` batches, so collective
+    evaluation steps stay in lockstep.
+
+    Yields:
+      batch dicts of the example contract plus `example_mask`.
+    """
+    if flow_source not in FLOW_SOURCES:
+        raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
+    _check_sharding(len(source), process_index, process_count)
+    num_batches = num_eval_batches(len(source), batch_size, process_count)
+    shard = list(range(len(source))[process_index::process_count])
+    # A process whose shard is empty still pads with a real example (the split's first).
+    padding_index = shard[0] if shard else 0
+    entries = [(index, True) for index in shard]
+    entries += [(padding_index, False)] * (num_batches * batch_size - len(entries))
+    dataset = (
+        grain.MapDataset.source(entries)
+        .map(_PrepareEvalExample(_RecordReader(source), flow_source))
+        .batch(batch_size)
+    )
+    yield from dataset
