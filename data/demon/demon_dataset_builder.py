@@ -1,0 +1,219 @@
+"""TFDS builder of DeMoN's HDF5 benchmarks: `demon/scenes11`, `sun3d`, `rgbd` and `custom`.
+
+Every pair becomes a `gld.records` record at 256x192 (images INTER_AREA, depth
+resized without mixing valid and invalid pixels, normalised intrinsics, raw metric
+depth and the unnormalised relative pose, DIS flow and ground-truth flow).
+Damaged pairs are skipped and counted by reason; the report is printed and stored
+in the dataset's metadata (`builder.info.metadata["build_report"]`).
+
+    data.prepare("demon/sun3d", data_dir, manual_dir="~/demon", strict=True)
+
+Builder keyword arguments: `strict` (fail at the first damaged pair),
+`max_bad_fraction` (fail when more of a split's pairs are damaged, default 0.05),
+`verify_checksums` (check files against their published MD5 sums, default True),
+`flow_estimator` (a `gld.flow.ESTIMATORS` name) and `min_relative_baseline`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import tensorflow_datasets as tfds
+
+from data.demon import checksums, pairs
+from gld import flow as flow_lib
+from gld import records
+
+_LOGGER = logging.getLogger(__name__)
+
+_DEMON_URL = "https://lmb.informatik.uni-freiburg.de/data/demon/"
+
+MANUAL_DOWNLOAD_INSTRUCTIONS = f"""\
+Put DeMoN's HDF5 files (Ummenhofer et al., CVPR 2017; research use only) in the
+manual directory, e.g. `data.prepare("demon/sun3d", manual_dir=DIR)` or
+`python -m experiments.train --dataset=demon/sun3d --manual_dir=DIR`.
+They come from {_DEMON_URL} (DeMoN's datasets/download_testdata.sh and
+download_traindata.sh fetch and unpack them):
+
+  testdata/<name>_test.tgz   -> scenes11_test.h5, sun3d_test.h5, rgbd_test.h5
+  traindata/scenes11_train.tgz -> scenes11_train.h5
+  traindata/sun3d_train.tgz    -> sun3d_train_0.01m_to_0.1m.h5, sun3d_train_0.1m_to_0.2m.h5,
+                                  sun3d_train_0.2m_to_0.4m.h5, sun3d_train_0.4m_to_0.8m.h5,
+                                  sun3d_train_0.8m_to_1.6m.h5, sun3d_train_1.6m_to_infm.h5
+  traindata/rgbd_bugfix_train.tgz -> rgbd_bugfix_10_to_20_3d_train.h5,
+                                  rgbd_bugfix_10_to_20_handheld_train.h5,
+                                  rgbd_bugfix_20_to_inf_3d_train.h5,
+                                  rgbd_bugfix_20_to_inf_handheld_train.h5
+  traindata/rgbd_train.tgz     -> rgbd_10_to_20_simple_train.h5, rgbd_20_to_inf_simple_train.h5
+                                  (only these two; its other rgbd_*_train.h5 files leaked
+                                  test samples and are refused)
+
+Each config needs all files of a split; a split with none of its files is left out
+(e.g. test files only, for evaluation). Files are checked against DeMoN's published
+MD5 sums (traindata.md5, testdata.md5); pass verify_checksums=False to skip.
+
+Config `custom` reads a robot's own recordings written by `python -m data.demon.convert`:
+`custom_train.h5` / `custom_test.h5`, or several recordings named
+`custom_train_<recording>.h5` / `custom_test_<recording>.h5`.
+"""
+
+
+@dataclasses.dataclass(kw_only=True)
+class DemonConfig(tfds.core.BuilderConfig):
+    """Which files of the manual directory make each split (glob patterns when `custom`)."""
+
+    train_files: tuple[str, ...] = ()
+    test_files: tuple[str, ...] = ()
+    globs: bool = False
+
+
+_SUN3D_TRAIN = tuple(
+    f"sun3d_train_{band}.h5"
+    for band in ("0.01m_to_0.1m", "0.1m_to_0.2m", "0.2m_to_0.4m", "0.4m_to_0.8m")
+) + ("sun3d_train_0.8m_to_1.6m.h5", "sun3d_train_1.6m_to_infm.h5")
+_RGBD_TRAIN = (
+    "rgbd_bugfix_10_to_20_3d_train.h5",
+    "rgbd_bugfix_10_to_20_handheld_train.h5",
+    "rgbd_bugfix_20_to_inf_3d_train.h5",
+    "rgbd_bugfix_20_to_inf_handheld_train.h5",
+    "rgbd_10_to_20_simple_train.h5",
+    "rgbd_20_to_inf_simple_train.h5",
+)
+
+
+class Builder(tfds.core.GeneratorBasedBuilder):
+    """DeMoN's Scenes11, SUN3D and RGB-D SLAM benchmarks, and converted recordings."""
+
+    VERSION = tfds.core.Version("1.0.0")
+    RELEASE_NOTES = {"1.0.0": "Records at 256x192 with DIS flow and ground-truth flow."}
+    MANUAL_DOWNLOAD_INSTRUCTIONS = MANUAL_DOWNLOAD_INSTRUCTIONS
+    BUILDER_CONFIGS = [
+        DemonConfig(
+            name="scenes11",
+            description="Synthetic ShapeNet scenes (DeMoN's Scenes11).",
+            train_files=("scenes11_train.h5",),
+            test_files=("scenes11_test.h5",),
+        ),
+        DemonConfig(
+            name="sun3d",
+            description="Indoor SUN3D sequences, DeMoN's baseline bands.",
+            train_files=_SUN3D_TRAIN,
+            test_files=("sun3d_test.h5",),
+        ),
+        DemonConfig(
+            name="rgbd",
+            description="TUM RGB-D SLAM sequences (bugfix training files).",
+            train_files=_RGBD_TRAIN,
+            test_files=("rgbd_test.h5",),
+        ),
+        DemonConfig(
+            name="custom",
+            description="A robot's recordings converted by `python -m data.demon.convert`.",
+            train_files=("custom_train.h5", "custom_train_*.h5"),
+            test_files=("custom_test.h5", "custom_test_*.h5"),
+            globs=True,
+        ),
+    ]
+
+    def __init__(
+        self,
+        *,
+        strict: bool = False,
+        max_bad_fraction: float = 0.05,
+        verify_checksums: bool = True,
+        flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR,
+        min_relative_baseline: float = 1e-4,
+        **kwargs,
+    ):
+        if not 0.0 <= max_bad_fraction <= 1.0:
+            raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
+        if flow_estimator not in flow_lib.ESTIMATORS:
+            raise ValueError(
+                f"unknown flow_estimator {flow_estimator!r}; valid: {sorted(flow_lib.ESTIMATORS)}"
+            )
+        self._strict = strict
+        self._max_bad_fraction = max_bad_fraction
+        self._verify_checksums = verify_checksums
+        self._flow_estimator = flow_estimator
+        self._min_relative_baseline = min_relative_baseline
+        super().__init__(**kwargs)
+
+    def _info(self) -> tfds.core.DatasetInfo:
+        return tfds.core.DatasetInfo(
+            builder=self,
+            description=__doc__,
+            features=records.features(pairs.HEIGHT, pairs.WIDTH),
+            homepage="https://github.com/lmb-freiburg/demon",
+            metadata=tfds.core.MetadataDict(),
+        )
+
+    def _split_files(self, manual_dir: Path) -> dict[str, list[Path]]:
+        """Split -> files present in the manual directory (splits without files left out)."""
+        config: DemonConfig = self.builder_config
+        if config.name == "rgbd":
+            for leaky in sorted(manual_dir.glob("rgbd_*_train.h5")):
+                if not checksums.is_leaky_rgbd_file(leaky.name):
+                    continue
+                fixed = leaky.name.replace("rgbd_", "rgbd_bugfix_", 1)
+                if not (manual_dir / fixed).exists():
+                    raise ValueError(checksums.leaky_file_message(leaky))
+                _LOGGER.warning("ignoring %s: %s", leaky, checksums.leaky_file_message(leaky))
+        found: dict[str, list[Path]] = {}
+        for split, names in (("train", config.train_files), ("test", config.test_files)):
+            if config.globs:
+                paths = sorted({path for name in names for path in manual_dir.glob(name)})
+                if paths:
+                    found[split] = paths
+                continue
+            missing = [name for name in names if not (manual_dir / name).is_file()]
+            if len(missing) == len(names):
+                _LOGGER.warning(
+                    "demon/%s: no %s files in %s; the %s split is left out",
+                    config.name,
+                    split,
+                    manual_dir,
+                    split,
+                )
+                continue
+            if missing:
+                raise FileNotFoundError(
+                    f"demon/{config.name} {split} split: missing {missing} in {manual_dir}.\n"
+                    + MANUAL_DOWNLOAD_INSTRUCTIONS
+                )
+            found[split] = [manual_dir / name for name in names]
+        if not found:
+            expected = list(config.train_files) + list(config.test_files)
+            raise FileNotFoundError(
+                f"demon/{config.name}: none of {expected} in {manual_dir}.\n"
+                + MANUAL_DOWNLOAD_INSTRUCTIONS
+            )
+        return found
+
+    def _split_generators(self, dl_manager: tfds.download.DownloadManager):
+        split_files = self._split_files(Path(dl_manager.manual_dir))
+        for paths in split_files.values():
+            for path in paths:
+                if checksums.is_leaky_rgbd_file(path.name):
+                    raise ValueError(checksums.leaky_file_message(path))
+                if self._verify_checksums:
+                    checksums.verify(path)
+        return {
+            split: self._generate_examples(paths, split) for split, paths in split_files.items()
+        }
+
+    def _generate_examples(self, paths: list[Path], split: str):
+        report = pairs.BuildReport(split)
+        for example_id, example in pairs.generate(
+            paths,
+            split,
+            strict=self._strict,
+            max_bad_fraction=self._max_bad_fraction,
+            flow_estimator=self._flow_estimator,
+            min_relative_baseline=self._min_relative_baseline,
+            report=report,
+        ):
+            yield example_id, records.encode(example)
+        print(report.format(), flush=True)
+        self.info.metadata.setdefault("build_report", {})[split] = report.as_dict()

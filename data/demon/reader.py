@@ -1,0 +1,346 @@
+"""A pure-Python reader of DeMoN's multi-view HDF5 files (h5py, lz4 block, OpenCV WebP).
+
+Layout (see DeMoN's `multivih5datareaderop`): every top-level group not starting
+with `.` is a scene; `/<scene>/frames/t0/v<k>/{image,depth,camera}` are its views
+and the `t0` attribute `viewpoint_pairs` lists the view pairs to use.
+
+Conventions of the stored camera, as DeMoN's own reader interprets it:
+
+* `camera` holds `[fx, fy, skew, cx, cy, R (column-major), t]` with
+  `X_cam = R X_world + t`.
+* K is in pixels of the view's image with the origin at the top-left *corner*
+  (DeMoN's reader puts pixel (x, y) at `(x + 0.5, y + 0.5)`), which is exactly
+  gld's normalised-intrinsics convention once divided by the image size, so the
+  normalised intrinsics are `[fx/W, fy/H, cx/W, cy/H]` of the stored values.
+  Skew is dropped (gld's cameras have none; DeMoN's files store 0).
+* `ray_length` depth is converted to camera z: `z = r / ||K^-1 [x + 0.5, y + 0.5, 1]||`.
+
+Damage in a view raises `DamagedDataError` carrying a `reason` from `REASONS`, so a
+builder can skip the affected pair, count it and go on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import cv2
+import h5py
+import lz4.block
+import numpy as np
+
+from gld import geometry
+
+# Why a pair (or a whole scene group) could not be used.
+REASONS = (
+    "corrupt_image",  # missing image dataset, wrong format, undecodable WebP
+    "corrupt_depth",  # missing depth dataset, wrong format or metric, undecodable LZ4
+    "wrong_extents",  # extents missing or not matching the decompressed depth
+    "invalid_depth",  # a depth map without a single finite, positive value
+    "missing_camera",  # no camera dataset
+    "bad_camera",  # camera values not finite, not 17, no proper rotation, focal <= 0
+    "zero_translation",  # no baseline: scale normalisation would divide by zero
+    "too_few_views",  # a scene group with fewer than two viewpoints
+    "bad_viewpoint_pairs",  # viewpoint_pairs malformed or naming a missing view
+    "unreadable_group",  # HDF5 error while reading the group
+)
+
+SPLITS = ("train", "test")
+
+
+class DamagedDataError(ValueError):
+    """A view, pair or scene group that cannot be used; `reason` is one of `REASONS`."""
+
+    def __init__(self, reason: str, where: str, detail: str):
+        if reason not in REASONS:
+            raise ValueError(f"unknown damage reason {reason!r}; valid: {REASONS}")
+        super().__init__(f"{where}: {reason}: {detail}")
+        self.reason = reason
+        self.where = where
+        self.detail = detail
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    """One decoded viewpoint at the file's resolution.
+
+    Attributes:
+      image: [H, W, 3] uint8 RGB.
+      depth: [h, w] float32 camera-z depth, 0 where invalid (usually h, w = H, W).
+      intrinsics: [4] float64 normalised `[fx/W, fy/H, cx/W, cy/H]`.
+      rotation, translation: [3, 3], [3] float64 world-to-camera: X_cam = R X_world + t.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    intrinsics: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+
+
+def _text(value: Any) -> str:
+    """An HDF5 string attribute (bytes, numpy bytes or str) as str."""
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value[()]
+    if isinstance(value, bytes | np.bytes_):
+        return bytes(value).decode("ascii", errors="replace")
+    return str(value)
+
+
+def decode_image(data: bytes, where: str = "image") -> np.ndarray:
+    """WebP (or any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB."""
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DamagedDataError("corrupt_image", where, f"undecodable image ({len(data)} bytes)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def decode_depth(data: bytes, extents: Any, where: str = "depth") -> np.ndarray:
+    """An LZ4-block buffer of row-major float16 -> [height, width] float32 (raw values).
+
+    Args:
+      data: the compressed bytes.
+      extents: [height, width] from the dataset's `extents` attribute.
+      where: names the dataset in errors.
+
+    Raises:
+      DamagedDataError: `wrong_extents` when the buffer decodes to another size,
+        `corrupt_depth` when it does not decode at all (e.g. truncated).
+    """
+    extents = np.asarray(extents).reshape(-1)
+    if extents.size != 2 or not np.issubdtype(extents.dtype, np.integer) or np.any(extents <= 0):
+        raise DamagedDataError("wrong_extents", where, f"extents {extents.tolist()} not [H, W] > 0")
+    height, width = int(extents[0]), int(extents[1])
+    expected = 2 * height * width
+    try:
+        raw = lz4.block.decompress(data, uncompressed_size=expected)
+    except lz4.block.LZ4BlockError:
+        # A bigger buffer tells a valid stream of another size from a broken one
+        # (an LZ4 block expands at most ~255 times).
+        try:
+            raw = lz4.block.decompress(data, uncompressed_size=255 * len(data) + 64)
+        except lz4.block.LZ4BlockError:
+            raise DamagedDataError(
+                "corrupt_depth", where, f"LZ4 block of {len(data)} bytes does not decode"
+            ) from None
+    if len(raw) != expected:
+        raise DamagedDataError(
+            "wrong_extents",
+            where,
+            f"extents {[height, width]} need {expected} bytes, buffer decodes to {len(raw)}",
+        )
+    return np.frombuffer(raw, np.float16).reshape(height, width).astype(np.float32)
+
+
+def parse_camera(values: Any, where: str = "camera") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """DeMoN's 17 camera values -> (K [3, 3], R [3, 3], t [3]), float64.
+
+    `[fx, fy, skew, cx, cy, r11, r21, r31, r12, r22, r32, r13, r23, r33, tx, ty, tz]`:
+    R is stored column-major; X_cam = R X_world + t.
+    """
+    values = np.asarray(values, np.float64).reshape(-1)
+    if values.size != 17:
+        raise DamagedDataError("bad_camera", where, f"expected 17 values, got {values.size}")
+    if not np.all(np.isfinite(values)):
+        raise DamagedDataError("bad_camera", where, f"non-finite values {values.tolist()}")
+    fx, fy, skew, cx, cy = values[:5]
+    if fx <= 0 or fy <= 0:
+        raise DamagedDataError("bad_camera", where, f"focal lengths fx={fx}, fy={fy} not > 0")
+    camera_matrix = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    rotation = values[5:14].reshape(3, 3).T  # column-major storage
+    orthonormality = np.abs(rotation @ rotation.T - np.eye(3)).max()
+    if orthonormality > 1e-3 or np.linalg.det(rotation) < 0:
+        raise DamagedDataError(
+            "bad_camera", where, f"not a rotation (|R R^T - I| = {orthonormality:.2g})"
+        )
+    return camera_matrix, rotation, values[14:17].copy()
+
+
+def normalised_intrinsics(camera_matrix: np.ndarray, height: int, width: int) -> np.ndarray:
+    """DeMoN's corner-origin K of a [height, width] image -> normalised [4] (skew dropped)."""
+    # gld.geometry works in pixel-index coordinates (pixel centres at integers).
+    pixel_index_matrix = camera_matrix - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    return np.asarray(geometry.normalised_intrinsics(pixel_index_matrix, height, width))
+
+
+def ray_length_to_camera_z(ray_length: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """Distance along each pixel's ray [H, W] -> camera-z depth [H, W].
+
+    Args:
+      ray_length: [H, W] distances from the camera centre.
+      intrinsics: [4] normalised intrinsics of the camera.
+    """
+    height, width = ray_length.shape
+    camera_matrix = geometry.intrinsics_matrix(np.asarray(intrinsics, np.float64), height, width)
+    ray_norm = np.linalg.norm(
+        geometry.backproject(np.ones((height, width)), camera_matrix), axis=-1
+    )
+    return (ray_length / ray_norm).astype(np.float32)
+
+
+def _dataset(group: h5py.Group, name: str, reason: str, where: str) -> h5py.Dataset:
+    item = group.get(name)
+    if not isinstance(item, h5py.Dataset):
+        raise DamagedDataError(reason, f"{where}/{name}", "dataset missing")
+    return item
+
+
+def read_view(view_group: h5py.Group, where: str) -> View:
+    """Reads and validates `/<scene>/frames/t0/v<k>` -> View (depth converted to camera z).
+
+    Raises:
+      DamagedDataError naming `where` and the reason.
+    """
+    image_dataset = _dataset(view_group, "image", "corrupt_image", where)
+    image_format = _text(image_dataset.attrs.get("format", "webp"))
+    if image_format != "webp":
+        raise DamagedDataError("corrupt_image", f"{where}/image", f"format {image_format!r}")
+    image = decode_image(image_dataset[()].tobytes(), f"{where}/image")
+
+    camera_dataset = _dataset(view_group, "camera", "missing_camera", where)
+    camera_format = _text(camera_dataset.attrs.get("format", "pinhole"))
+    if camera_format != "pinhole":
+        raise DamagedDataError("bad_camera", f"{where}/camera", f"format {camera_format!r}")
+    camera_matrix, rotation, translation = parse_camera(camera_dataset[()], f"{where}/camera")
+    intrinsics = normalised_intrinsics(camera_matrix, *image.shape[:2])
+
+    depth_dataset = _dataset(view_group, "depth", "corrupt_depth", where)
+    depth_where = f"{where}/depth"
+    depth_format = _text(depth_dataset.attrs.get("format", "lz4half"))
+    if depth_format != "lz4half":
+        raise DamagedDataError("corrupt_depth", depth_where, f"format {depth_format!r}")
+    if "extents" not in depth_dataset.attrs:
+        raise DamagedDataError("wrong_extents", depth_where, "no extents attribute")
+    depth = decode_depth(depth_dataset[()].tobytes(), depth_dataset.attrs["extents"], depth_where)
+    metric = _text(depth_dataset.attrs.get("depth_metric", "camera_z"))
+    valid = geometry.valid_depth(depth)
+    depth = np.where(valid, depth, 0.0).astype(np.float32)
+    if metric == "ray_length":
+        depth = np.where(valid, ray_length_to_camera_z(depth, intrinsics), 0.0)
+    elif metric != "camera_z":
+        raise DamagedDataError("corrupt_depth", depth_where, f"unknown depth_metric {metric!r}")
+    if not valid.any():
+        raise DamagedDataError(
+            "invalid_depth", depth_where, "no finite, positive value (all NaN, inf or <= 0)"
+        )
+    return View(image, depth.astype(np.float32), intrinsics, rotation, translation)
+
+
+def scene_groups(h5_file: h5py.File) -> list[str]:
+    """Names of the scene groups, sorted; reserved `.`-groups are not scenes."""
+    return sorted(name for name in h5_file.keys() if not name.startswith("."))
+
+
+def view_count(t0_group: h5py.Group) -> int:
+    """Number of consecutive viewpoints v0, v1, ... in a `frames/t0` group."""
+    count = 0
+    while f"v{count}" in t0_group:
+        count += 1
+    return count
+
+
+def viewpoint_pairs(t0_group: h5py.Group, split: str, where: str = "t0") -> list[tuple[int, int]]:
+    """The view pairs of a scene, as DeMoN's reader selects them.
+
+    train: every pair listed in `viewpoint_pairs` (all ordered pairs if absent);
+    test: exactly the first listed pair ((0, 1) if absent).
+
+    Raises:
+      DamagedDataError (`too_few_views`, `bad_viewpoint_pairs`).
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    num_views = view_count(t0_group)
+    if num_views < 2:
+        raise DamagedDataError("too_few_views", where, f"{num_views} viewpoint(s)")
+    if "viewpoint_pairs" in t0_group.attrs:
+        flat = np.asarray(t0_group.attrs["viewpoint_pairs"]).reshape(-1)
+        if flat.size == 0 or flat.size % 2 or not np.issubdtype(flat.dtype, np.integer):
+            raise DamagedDataError(
+                "bad_viewpoint_pairs",
+                where,
+                f"viewpoint_pairs {flat.tolist()} is not [i j i j ...]",
+            )
+        pairs = [(int(first), int(second)) for first, second in flat.reshape(-1, 2)]
+    else:
+        pairs = [(i, j) for i in range(num_views) for j in range(num_views) if i != j]
+    return pairs[:1] if split == "test" else pairs
+
+
+class DemonFile:
+    """An open DeMoN HDF5 file: scene groups, their view pairs and decoded views.
+
+    Use as a context manager. Views are decoded on demand and cached per scene,
+    so a training group with many pairs decodes each view once.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"DeMoN file {self.path} does not exist")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as error:
+            raise ValueError(f"{self.path} is not a readable HDF5 file: {error}") from None
+        self._cache_group: str | None = None
+        self._cache: dict[int, View | DamagedDataError] = {}
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> DemonFile:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def groups(self) -> list[str]:
+        """Scene group names, sorted, without reserved `.`-groups."""
+        return scene_groups(self._file)
+
+    def _t0(self, group: str) -> h5py.Group:
+        t0 = self._file.get(f"{group}/frames/t0")
+        if not isinstance(t0, h5py.Group):
+            raise DamagedDataError("too_few_views", f"{self.name}/{group}", "no frames/t0 group")
+        return t0
+
+    def pairs(self, group: str, split: str) -> list[tuple[int, int]]:
+        """The view pairs of a scene group for a split (see `viewpoint_pairs`)."""
+        where = f"{self.name}/{group}"
+        try:
+            return viewpoint_pairs(self._t0(group), split, where)
+        except (OSError, KeyError, RuntimeError) as error:
+            raise DamagedDataError("unreadable_group", where, str(error)) from None
+
+    def view(self, group: str, index: int) -> View:
+        """View `v<index>` of a scene group; damage raises DamagedDataError (also when cached)."""
+        if group != self._cache_group:
+            self._cache_group, self._cache = group, {}
+        if index not in self._cache:
+            self._cache[index] = self._read_view(group, index)
+        result = self._cache[index]
+        if isinstance(result, DamagedDataError):
+            raise result
+        return result
+
+    def _read_view(self, group: str, index: int) -> View | DamagedDataError:
+        where = f"{self.name}/{group}/frames/t0/v{index}"
+        try:
+            view_group = self._t0(group).get(f"v{index}")
+            if not isinstance(view_group, h5py.Group):
+                return DamagedDataError("bad_viewpoint_pairs", where, "no such viewpoint")
+            return read_view(view_group, where)
+        except DamagedDataError as error:
+            return error
+        except (OSError, KeyError, RuntimeError) as error:
+            return DamagedDataError("unreadable_group", where, str(error))
+
+
+def example_id(file_name: str, group: str, pair: tuple[int, int]) -> str:
+    """`"<file name>/<group>/<i>-<j>"`, the id that traces an example back to its source."""
+    return f"{file_name}/{group}/{pair[0]}-{pair[1]}"

@@ -1,0 +1,362 @@
+"""Tests of data/demon: reader, pair generation, damage handling, checksums and the builder.
+
+The DeMoN files are written by `demon_files` (h5py, lz4, OpenCV) independently of
+the reader, then every field read back is compared with what was written.
+"""
+
+from __future__ import annotations
+
+import demon_files
+import h5py
+import numpy as np
+import pytest
+
+import data
+from data.demon import checksums, pairs, reader
+from gld import records
+
+HEIGHT, WIDTH = pairs.HEIGHT, pairs.WIDTH
+
+
+def float16_close(actual, expected):
+    """Depth round trips through float16: ~1e-3 relative precision."""
+    np.testing.assert_allclose(actual, expected, rtol=1e-3, atol=0)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(7)
+
+
+def write_file(path, scenes):
+    """scenes: list of (name, views, viewpoint_pairs[, view_options])."""
+    with h5py.File(path, "w") as h5_file:
+        h5_file.create_group(".config")
+        for scene in scenes:
+            demon_files.write_scene(h5_file, *scene)
+    return path
+
+
+# --- reader -------------------------------------------------------------------------------
+
+
+def test_view_fields_read_back(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    path = write_file(tmp_path / "scenes.h5", [("s", views, (0, 1))])
+    with reader.DemonFile(path) as demon_file:
+        for index, written in enumerate(views):
+            view = demon_file.view("s", index)
+            np.testing.assert_array_equal(view.image, written["image"])
+            float16_close(view.depth, written["depth"])
+            k = written["camera_matrix"]
+            np.testing.assert_allclose(
+                view.intrinsics,
+                [k[0, 0] / WIDTH, k[1, 1] / HEIGHT, k[0, 2] / WIDTH, k[1, 2] / HEIGHT],
+            )
+            np.testing.assert_allclose(view.rotation, written["rotation"], atol=1e-12)
+            np.testing.assert_allclose(view.translation, written["translation"])
+
+
+def test_camera_rotation_is_column_major():
+    rotation = demon_files.rotation_about([1.0, 2.0, 0.5], 30.0)
+    assert not np.allclose(rotation, rotation.T)
+    values = demon_files.camera_values(np.diag([100.0, 120.0, 1.0]), rotation, [1.0, 2.0, 3.0])
+    camera_matrix, parsed_rotation, translation = reader.parse_camera(values)
+    np.testing.assert_allclose(parsed_rotation, rotation)
+    np.testing.assert_allclose(translation, [1.0, 2.0, 3.0])
+    assert camera_matrix[0, 0] == 100.0 and camera_matrix[1, 1] == 120.0
+
+
+def test_ray_length_depth_becomes_camera_z(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    path = write_file(
+        tmp_path / "ray.h5", [("s", views, (0, 1), {0: {"depth_metric": "ray_length"}})]
+    )
+    with reader.DemonFile(path) as demon_file:
+        ray_view = demon_file.view("s", 0)
+    # Off-centre pixels have rays much longer than z: the conversion must divide them out.
+    assert demon_files.ray_norms(views[0]["camera_matrix"], HEIGHT, WIDTH).max() > 1.2
+    float16_close(ray_view.depth, views[0]["depth"])
+
+
+def test_viewpoint_pairs_train_all_test_first(tmp_path, rng):
+    views = demon_files.moving_views(rng, 3, 12, 16)
+    path = write_file(
+        tmp_path / "pairs.h5",
+        [("listed", views, (0, 1, 0, 2, 2, 1)), ("unlisted", views, None)],
+    )
+    with reader.DemonFile(path) as demon_file:
+        assert demon_file.pairs("listed", "train") == [(0, 1), (0, 2), (2, 1)]
+        assert demon_file.pairs("listed", "test") == [(0, 1)]
+        assert demon_file.pairs("unlisted", "train") == [
+            (0, 1),
+            (0, 2),
+            (1, 0),
+            (1, 2),
+            (2, 0),
+            (2, 1),
+        ]
+        assert demon_file.pairs("unlisted", "test") == [(0, 1)]
+
+
+def test_reserved_groups_skipped_and_sorted(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, 12, 16)
+    path = write_file(tmp_path / "groups.h5", [("zeta", views), ("alpha", views)])
+    with h5py.File(path, "a") as h5_file:
+        demon_files.write_scene(h5_file, ".hidden", views)
+    with reader.DemonFile(path) as demon_file:
+        assert demon_file.groups() == ["alpha", "zeta"]
+
+
+def test_missing_file_names_path(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothing.h5"):
+        reader.DemonFile(tmp_path / "nothing.h5")
+
+
+# --- resizing and records -------------------------------------------------------------------
+
+
+def test_records_fields_and_relative_pose(tmp_path, rng):
+    views = demon_files.moving_views(rng, 3, HEIGHT, WIDTH)
+    path = write_file(tmp_path / "pose.h5", [("s", views, (0, 2, 1, 0))])
+    examples = dict(pairs.generate([path], "train"))
+    assert sorted(examples) == ["pose.h5/s/0-2", "pose.h5/s/1-0"]
+    example = examples["pose.h5/s/0-2"]
+    first, second = views[0], views[2]
+    np.testing.assert_array_equal(example["image1"], first["image"])
+    np.testing.assert_array_equal(example["image2"], second["image"])
+    float16_close(example["depth1"], first["depth"])
+    float16_close(example["depth2"], second["depth"])
+    # A world point seen from both cameras: X2 = R X1 + t must hold for the stored pose.
+    world_points = rng.normal(size=(5, 3))
+    in_first = world_points @ first["rotation"].T + first["translation"]
+    in_second = world_points @ second["rotation"].T + second["translation"]
+    predicted = in_first @ example["rotation"].T.astype(np.float64) + example["translation"]
+    np.testing.assert_allclose(predicted, in_second, atol=1e-5)
+    # Raw scale: the pipeline normalises ||t|| = 1 later, so the record keeps the baseline.
+    camera_centres = [-v["rotation"].T @ v["translation"] for v in (first, second)]
+    np.testing.assert_allclose(
+        np.linalg.norm(example["translation"]),
+        np.linalg.norm(camera_centres[1] - camera_centres[0]),
+        rtol=1e-5,
+    )
+    assert example["flow"].shape == (HEIGHT, WIDTH, 2)
+    assert example["gt_flow"].shape == (HEIGHT, WIDTH, 2)
+    assert example["gt_flow_valid"].mean() > 0.3
+    records.encode(example)  # accepted by the shared record format
+
+
+def test_resize_to_256x192_rescales_intrinsics_and_depth(tmp_path, rng):
+    height, width = 2 * HEIGHT, 2 * WIDTH
+    views = demon_files.moving_views(rng, 2, height, width)
+    views[0]["depth"][:40, :60] = np.nan  # invalid corner, must stay invalid
+    path = write_file(tmp_path / "big.h5", [("s", views, (0, 1))])
+    ((_, example),) = pairs.generate([path], "test")
+    k = views[0]["camera_matrix"]
+    np.testing.assert_allclose(
+        example["intrinsics1"],
+        [k[0, 0] / width, k[1, 1] / height, k[0, 2] / width, k[1, 2] / height],
+        rtol=1e-6,
+    )
+    # INTER_AREA at 2x is the mean of each 2x2 block.
+    block_mean = views[0]["image"].reshape(HEIGHT, 2, WIDTH, 2, 3).astype(float).mean(axis=(1, 3))
+    assert np.abs(example["image1"] - block_mean).max() <= 1.0
+    # Nearest sampling: every output depth is one input depth (2x: the block's lower-right pixel).
+    expected = np.nan_to_num(views[0]["depth"].astype(np.float16).astype(np.float32))[1::2, 1::2]
+    np.testing.assert_array_equal(example["depth1"], expected)
+    assert np.all(example["depth1"][:20, :30] == 0)
+
+
+def test_resize_keeps_a_single_sparse_reading():
+    depth = np.zeros((480, 640), np.float32)
+    depth[101, 333] = 4.5  # the one pixel a range sensor sees
+    resized = pairs.resize_depth(depth, HEIGHT, WIDTH)
+    assert np.count_nonzero(resized) == 1
+    row, col = np.argwhere(resized)[0]
+    assert (row, col) == (int(101.5 * 0.4), int(333.5 * 0.4))
+    assert resized[row, col] == 4.5
+
+
+def test_resize_never_mixes_depths():
+    depth = np.where(np.arange(640)[None, :] < 321, 1.0, 9.0) * np.ones((480, 1))
+    depth[::7, ::5] = np.nan
+    resized = pairs.resize_depth(depth.astype(np.float32), HEIGHT, WIDTH)
+    assert set(np.unique(resized)) <= {0.0, 1.0, 9.0}
+
+
+# --- damage ---------------------------------------------------------------------------------
+
+
+def _damage(kind, views, rng):
+    """(scene views, viewpoint_pairs, view_options) of a scene with one kind of damage."""
+    options = {}
+    if kind == "corrupt_image":
+        options = {1: {"image_data": demon_files.webp_bytes(views[1]["image"])[:60]}}
+    elif kind == "truncated_lz4":
+        options = {0: {"depth_data": demon_files.lz4_depth_bytes(views[0]["depth"])[:-40]}}
+    elif kind == "wrong_extents":
+        options = {0: {"extents": [HEIGHT + 1, WIDTH]}}
+    elif kind in ("nan_depth", "inf_depth", "negative_depth"):
+        value = {"nan_depth": np.nan, "inf_depth": np.inf, "negative_depth": -2.0}[kind]
+        views = [dict(views[0], depth=np.full_like(views[0]["depth"], value)), views[1]]
+    elif kind == "missing_camera":
+        options = {1: {"camera": False}}
+    elif kind == "bad_camera":
+        views = [dict(views[0], rotation=2.0 * views[0]["rotation"]), views[1]]
+    elif kind == "zero_translation":
+        views = [
+            views[0],
+            dict(views[1], rotation=views[0]["rotation"], translation=views[0]["translation"]),
+        ]
+    elif kind == "one_view":
+        views = views[:1]
+    elif kind == "bad_pairs":
+        return views, (0, 5), options
+    return views, (0, 1), options
+
+
+DAMAGE_REASONS = {
+    "corrupt_image": "corrupt_image",
+    "truncated_lz4": "corrupt_depth",
+    "wrong_extents": "wrong_extents",
+    "nan_depth": "invalid_depth",
+    "inf_depth": "invalid_depth",
+    "negative_depth": "invalid_depth",
+    "missing_camera": "missing_camera",
+    "bad_camera": "bad_camera",
+    "zero_translation": "zero_translation",
+    "one_view": "too_few_views",
+    "bad_pairs": "bad_viewpoint_pairs",
+}
+
+
+@pytest.mark.parametrize("kind", sorted(DAMAGE_REASONS))
+def test_damaged_pair_skipped_and_counted(tmp_path, rng, kind):
+    good = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    damaged = _damage(kind, demon_files.moving_views(rng, 2, HEIGHT, WIDTH), rng)
+    path = write_file(tmp_path / "damaged.h5", [("a_good", good), ("b_bad", *damaged)])
+    report = pairs.BuildReport("test")
+    ids = [
+        example_id
+        for example_id, _ in pairs.generate([path], "test", max_bad_fraction=0.5, report=report)
+    ]
+    assert ids == ["damaged.h5/a_good/0-1"]
+    assert report.as_dict()["files"]["damaged.h5"] == {
+        "written": 1,
+        "skipped": {DAMAGE_REASONS[kind]: 1},
+    }
+    assert "b_bad" in report.first_errors[0]
+
+
+def test_strict_fails_at_first_damaged_pair(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    scenes = [("a", *_damage("corrupt_image", views, rng)), ("b", views)]
+    scenes.append(("c", *_damage("truncated_lz4", views, rng)))
+    path = write_file(tmp_path / "strict.h5", scenes)
+    written = []
+    with pytest.raises(reader.DamagedDataError, match="strict.h5/a/0-1") as error:
+        for example_id, _ in pairs.generate([path], "test", strict=True):
+            written.append(example_id)
+    assert error.value.reason == "corrupt_image"
+    assert written == []
+
+
+def test_bad_share_above_threshold_fails_the_build(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    scenes = [(name, views) for name in ("a", "b", "c")]
+    scenes.append(("d", *_damage("missing_camera", views, rng)))
+    path = write_file(tmp_path / "share.h5", scenes)
+    assert len(list(pairs.generate([path], "test", max_bad_fraction=0.25))) == 3
+    with pytest.raises(ValueError, match="1 of 4 planned pairs are damaged"):
+        list(pairs.generate([path], "test", max_bad_fraction=0.2))
+
+
+def test_damaged_view_skips_only_its_pairs(tmp_path, rng):
+    views = demon_files.moving_views(rng, 3, HEIGHT, WIDTH)
+    options = {2: {"image_data": b"not a webp"}}
+    path = write_file(tmp_path / "train.h5", [("s", views, (0, 1, 0, 2, 2, 1, 1, 0), options)])
+    report = pairs.BuildReport("train")
+    ids = [i for i, _ in pairs.generate([path], "train", max_bad_fraction=0.5, report=report)]
+    assert ids == ["train.h5/s/0-1", "train.h5/s/1-0"]
+    assert report.skipped == {"train.h5": {"corrupt_image": 2}}
+
+
+# --- checksums and leaky files --------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "name, leaky",
+    [
+        ("rgbd_10_to_20_3d_train.h5", True),
+        ("rgbd_20_to_inf_handheld_train.h5", True),
+        ("rgbd_bugfix_10_to_20_3d_train.h5", False),
+        ("rgbd_10_to_20_simple_train.h5", False),
+        ("rgbd_test.h5", False),
+    ],
+)
+def test_leaky_rgbd_names(name, leaky):
+    assert checksums.is_leaky_rgbd_file(name) == leaky
+
+
+def test_checksum_mismatch_and_unknown_files(tmp_path):
+    known = tmp_path / "sun3d_test.h5"
+    known.write_bytes(b"not the published file")
+    with pytest.raises(ValueError, match="MD5"):
+        checksums.verify(known)
+    unknown = tmp_path / "custom_train.h5"
+    unknown.write_bytes(b"anything")
+    checksums.verify(unknown)  # no published sum: not checked
+    assert checksums.md5(unknown) == "f0e166dc34d14d6c228ffac576c9a43c"
+
+
+# --- builder --------------------------------------------------------------------------------
+
+
+def test_builder_refuses_leaky_rgbd_files(tmp_path, rng):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(rng, 2, 12, 16)
+    write_file(manual_dir / "rgbd_test.h5", [("s", views)])
+    write_file(manual_dir / "rgbd_10_to_20_3d_train.h5", [("s", views)])
+    with pytest.raises(ValueError, match="leak|contain samples of rgbd_test"):
+        data.prepare("demon/rgbd", tmp_path / "datasets", manual_dir, verify_checksums=False)
+
+
+def test_builder_requires_every_file_of_a_split(tmp_path, rng):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    write_file(
+        manual_dir / "sun3d_train_0.1m_to_0.2m.h5",
+        [("s", demon_files.moving_views(rng, 2, 12, 16))],
+    )
+    with pytest.raises(FileNotFoundError, match="sun3d_train_0.01m_to_0.1m.h5"):
+        data.prepare("demon/sun3d", tmp_path / "datasets", manual_dir, verify_checksums=False)
+
+
+def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    scenes = [("a", views), ("b", *_damage("truncated_lz4", views, rng)), ("c", views[::-1])]
+    write_file(manual_dir / "scenes11_test.h5", scenes)
+    builder = data.prepare(
+        "demon/scenes11",
+        tmp_path / "datasets",
+        manual_dir,
+        verify_checksums=False,
+        max_bad_fraction=0.5,
+    )
+    assert list(builder.info.splits) == ["test"]  # no training files: split left out
+    source = builder.as_data_source(split="test")
+    examples = {}
+    for index in range(len(source)):
+        example = records.decode(source[index])
+        examples[example["id"]] = example
+    assert sorted(examples) == ["scenes11_test.h5/a/0-1", "scenes11_test.h5/c/0-1"]
+    np.testing.assert_array_equal(examples["scenes11_test.h5/c/0-1"]["image1"], views[1]["image"])
+    float16_close(examples["scenes11_test.h5/a/0-1"]["depth1"], views[0]["depth"])
+    report = builder.info.metadata["build_report"]["test"]
+    assert report["files"]["scenes11_test.h5"] == {"written": 2, "skipped": {"corrupt_depth": 1}}
+    assert (
+        "scenes11_test.h5: 2 pairs written, 1 skipped (corrupt_depth: 1)" in capsys.readouterr().out
+    )
