@@ -1,0 +1,62 @@
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gld import losses
+
+
+def _batch(depth, mask, image=None):
+    height, width = depth.shape[-2:]
+    image = np.zeros((1, height, width, 3), np.float32) if image is None else image
+    return {"depth": depth[None], "sparse_mask": mask[None], "image1": image}
+
+
+def test_loss_is_zero_when_the_prediction_is_the_ground_truth_and_constant():
+    depth = np.full((4, 5), 2.0, np.float32)
+    mask = np.zeros((4, 5), bool)
+    mask[1, 2] = True
+    outputs = {"inv_depth": jnp.full((1, 4, 5), 0.5)}
+    loss, terms = losses.total_loss(outputs, _batch(depth, mask))
+    assert float(loss) == pytest.approx(0.0)
+    assert float(terms["smoothness"]) == pytest.approx(0.0)
+
+
+def test_sparse_l1_by_hand():
+    prediction = jnp.array([[[0.5, 0.1], [0.2, 0.3]]])
+    target = jnp.array([[[0.25, 9.0], [0.4, 9.0]]])
+    mask = jnp.array([[[True, False], [True, False]]])
+    # (|0.5 - 0.25| + |0.2 - 0.4|) / 2 supervised pixels
+    assert float(losses.sparse_l1(prediction, target, mask)) == pytest.approx(0.225)
+    assert float(losses.sparse_l1(prediction, target, jnp.zeros_like(mask))) == 0.0
+
+
+def test_edge_aware_smoothness_by_hand():
+    inv_depth = jnp.array([[[0.0, 1.0], [0.0, 1.0]]])
+    flat = jnp.zeros((1, 2, 2, 3))
+    # both rows step by 1 in x (mean over the [1, 2, 1] difference map), no change in y
+    assert float(losses.edge_aware_smoothness(inv_depth, flat)) == pytest.approx(1.0)
+    edge = flat.at[:, :, 1, :].set(1.0)  # an image edge where depth jumps: penalty * e^-1
+    assert float(losses.edge_aware_smoothness(inv_depth, edge)) == pytest.approx(np.exp(-1))
+    vertical = jnp.swapaxes(inv_depth, 1, 2)
+    assert float(losses.edge_aware_smoothness(vertical, flat)) == pytest.approx(1.0)
+
+
+def test_weights_and_target_inversion():
+    depth = np.full((2, 2), 4.0, np.float32)
+    mask = np.array([[True, False], [False, False]])
+    outputs = {"inv_depth": jnp.full((1, 2, 2), 0.5)}
+    weights = losses.LossWeights(depth=3.0, smoothness=0.0)
+    loss, terms = losses.total_loss(outputs, _batch(depth, mask), weights)
+    assert float(terms["depth_l1"]) == pytest.approx(0.25)
+    assert float(loss) == pytest.approx(0.75)
+
+
+def test_pyramid_levels_add_their_own_error():
+    depth = np.full((4, 4), 2.0, np.float32)
+    mask = np.ones((4, 4), bool)
+    exact = {"inv_depth": jnp.full((1, 4, 4), 0.5)}
+    with_coarse = dict(exact, inv_depth_pyramid=(jnp.full((1, 2, 2), 0.7),))
+    _, terms = losses.total_loss(with_coarse, _batch(depth, mask))
+    assert float(terms["depth_l1"]) == pytest.approx(0.1)  # (0 + 0.2) / 2 scales
+    _, terms = losses.total_loss(exact, _batch(depth, mask))
+    assert float(terms["depth_l1"]) == pytest.approx(0.0)
