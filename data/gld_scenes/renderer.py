@@ -532,7 +532,7 @@ def cast(
     depth, surface = None, None
     for axis in range(3):
         component = directions[..., axis]
-        positive = component > 0
+        positive = component >= 0  # a zero component gets +inf distance, never -inf
         bound = np.where(positive, room[axis], np.float32(0.0))
         distance = (bound - origin[axis]) * _safe_reciprocal(component)
         face = (2 * axis + positive).astype(np.int32)
