@@ -96,7 +96,7 @@ def source(scenes) -> list[dict]:
 
 def photometric_error(example: dict) -> float:
     """Mean |image1 - image2 warped by gt_flow| over valid, well-inside pixels."""
-    grid = geometry.pixel_grid(HEIGHT, WIDTH)
+    grid = geometry.pixel_grid(*example["depth"].shape)
     warped, inside = geometry.sample_bilinear(example["image2"], grid + example["gt_flow"])
     mask = example["gt_flow_valid"] & inside
     assert mask.sum() > 0.1 * mask.size
@@ -105,8 +105,9 @@ def photometric_error(example: dict) -> float:
 
 def triangulation_error(example: dict) -> float:
     """Max relative error of depth triangulated from gt_flow with the example's pose."""
-    camera1 = geometry.intrinsics_matrix(example["intrinsics1"].astype(np.float64), HEIGHT, WIDTH)
-    camera2 = geometry.intrinsics_matrix(example["intrinsics2"].astype(np.float64), HEIGHT, WIDTH)
+    size = example["depth"].shape
+    camera1 = geometry.intrinsics_matrix(example["intrinsics1"].astype(np.float64), *size)
+    camera2 = geometry.intrinsics_matrix(example["intrinsics2"].astype(np.float64), *size)
     depth = geometry.triangulate_depth(
         example["gt_flow"].astype(np.float64),
         camera1,
@@ -499,3 +500,91 @@ def test_bad_arguments_are_rejected(source):
         )
     with pytest.raises(ValueError, match="empty"):
         list(input_pipeline.eval_batches([], batch_size=1))
+
+
+# ------------------------------------------------------- integration with gld_scenes/tiny
+
+
+@pytest.fixture(scope="module")
+def tiny_builder(tmp_path_factory):
+    data = pytest.importorskip("data")
+    return data.prepare("gld_scenes/tiny", tmp_path_factory.mktemp("datasets"))
+
+
+def _flow_error(example: dict) -> float:
+    """Mean end-point error of the estimated flow against gt_flow on valid pixels."""
+    difference = np.linalg.norm(example["flow"] - example["gt_flow"], axis=-1)
+    return float(difference[example["gt_flow_valid"]].mean())
+
+
+def test_gld_scenes_geometry_survives_every_augmentation(tiny_builder):
+    source = tiny_builder.as_data_source("train")
+    for index in range(4):
+        example = input_pipeline.decode_example(source[index], where=f"train[{index}]")
+        reference_photometric = photometric_error(example)
+        reference_flow_error = _flow_error(example)
+        assert reference_photometric < 0.03
+        for name, augmentation in AUGMENTATIONS.items():
+            augmented = augmentation(example)
+            # Flips permute pixels exactly, so every check is unchanged, not merely small.
+            assert photometric_error(augmented) == pytest.approx(reference_photometric, abs=1e-4)
+            assert triangulation_error(augmented) < 1e-3, name
+            assert _flow_error(augmented) == pytest.approx(reference_flow_error, rel=1e-4), name
+        # Moving the estimated flow without transforming its vectors would be caught.
+        unrotated_vectors = dict(rotated := input_pipeline.rotate_180(example))
+        unrotated_vectors["flow"] = -rotated["flow"]
+        assert _flow_error(unrotated_vectors) > 1.5 * reference_flow_error
+
+
+def test_gld_scenes_train_and_eval(tiny_builder):
+    train = tiny_builder.as_data_source("train")
+    ids_by_process = []
+    for process_index in range(2):
+        iterator = iter(
+            input_pipeline.train_dataset(
+                train,
+                batch_size=4,
+                seed=1,
+                gt_pixels=64,
+                process_index=process_index,
+                process_count=2,
+            )
+        )
+        batches = _take(iterator, len(train) // 2 // 4)  # one epoch of this shard
+        batch = batches[0]
+        assert batch["image1"].shape == (4, 48, 64, 3) and batch["flow"].shape == (4, 48, 64, 2)
+        np.testing.assert_array_equal(batch["sparse_mask"].sum(axis=(1, 2)), 64)
+        assert not np.any(batch["sparse_mask"] & ~batch["depth_valid"])
+        ids_by_process.append({str(i) for b in batches for i in b["id"]})
+    assert len(ids_by_process[0]) == len(ids_by_process[1]) == len(train) // 2
+    assert not ids_by_process[0] & ids_by_process[1]
+
+    test = tiny_builder.as_data_source("test")
+    batches = list(input_pipeline.eval_batches(test, batch_size=5))
+    assert len(batches) == input_pipeline.num_eval_batches(len(test), 5, 1) == 4
+    real = [str(i) for b in batches for i in b["id"][b["example_mask"]]]
+    assert len(real) == len(set(real)) == len(test)
+    assert batches[-1]["example_mask"].tolist() == [True] + [False] * 4
+
+
+class _CorruptingSource:
+    """A TFDS data source whose record `bad_index` has an unreadable image."""
+
+    def __init__(self, source, bad_index: int):
+        self.source, self.bad_index = source, bad_index
+        self.dataset_info, self.split = source.dataset_info, source.split
+
+    def __len__(self):
+        return len(self.source)
+
+    def __getitem__(self, index):
+        record = self.source[index]
+        return dict(record, image1=b"\x89PNG broken") if index == self.bad_index else record
+
+
+def test_gld_scenes_corrupt_record_names_file_and_index(tiny_builder):
+    source = _CorruptingSource(tiny_builder.as_data_source("test"), bad_index=6)
+    with pytest.raises(
+        ValueError, match=r"gld_scenes-test\.array_record-00000-of-00001, record 6 .*image1"
+    ):
+        list(input_pipeline.eval_batches(source, batch_size=4))
