@@ -478,7 +478,9 @@ def ray_directions(camera: Camera, height: int, width: int, pixels: np.ndarray |
     inverse_k = np.linalg.inv(camera_matrix)
     world_from_pixel = (camera.rotation.T @ inverse_k).astype(np.float32)
     homogeneous = np.concatenate([pixels, np.ones_like(pixels[..., :1])], -1).astype(np.float32)
-    return homogeneous @ world_from_pixel.T
+    # A 2-D matmul (BLAS) is much faster than a batched one over [H, W].
+    directions = homogeneous.reshape(-1, 3) @ world_from_pixel.T
+    return directions.reshape(homogeneous.shape)
 
 
 def _object_screen_box(
@@ -575,8 +577,7 @@ def shade(
     """
     height, width = depth.shape
     points = (camera.center.astype(np.float32) + depth[..., None] * directions).reshape(-1, 3)
-    normals = np.empty_like(points)
-    albedo = np.empty_like(points)
+    image = np.empty_like(points)
     # Group pixels by surface with one (radix) sort instead of a boolean mask per surface.
     flat_surface = surface.ravel().astype(np.uint8)
     order = np.argsort(flat_surface, kind="stable")
@@ -584,24 +585,26 @@ def shade(
     ends = np.cumsum(counts)
     for surface_id in np.flatnonzero(counts):
         pixels = order[ends[surface_id] - counts[surface_id] : ends[surface_id]]
+        surface_points = points[pixels]
+        to_light = scene.light_position - surface_points
+        light_distance = np.sqrt(np.einsum("nc,nc->n", to_light, to_light))
         if surface_id < ROOM_SURFACES:
-            normals[pixels] = scene.room_normals(surface_id)
+            axis, sign = surface_id // 2, (1.0 if surface_id % 2 == 0 else -1.0)
+            along_normal = sign * to_light[:, axis]  # the inward normal is an axis
             material = scene.room_materials[surface_id]
-            texture_points = points[pixels] if material.kind != "plain" else None
+            texture_points = surface_points
         else:
             obj = scene.objects[surface_id - ROOM_SURFACES]
-            normals[pixels], texture_points = obj.normals(points[pixels])
+            normals, texture_points = obj.normals(surface_points)
+            along_normal = np.einsum("nc,nc->n", normals, to_light)
             material = obj.material
+        diffuse = np.maximum(along_normal / light_distance, 0.0)
+        intensity = (scene.ambient + (1.0 - scene.ambient) * diffuse)[:, None]
         if material.kind == "plain":
-            albedo[pixels] = material.color_a
+            image[pixels] = material.color_a * intensity
         else:
-            albedo[pixels] = material.albedo(texture_points)
-    to_light = scene.light_position - points
-    cosine = np.einsum("nc,nc->n", normals, to_light) / np.sqrt(
-        np.einsum("nc,nc->n", to_light, to_light)
-    )
-    intensity = scene.ambient + (1.0 - scene.ambient) * np.maximum(cosine, 0.0)
-    return (albedo * intensity[:, None]).reshape(height, width, 3)
+            image[pixels] = material.albedo(texture_points) * intensity
+    return image.reshape(height, width, 3)
 
 
 def render_view(
