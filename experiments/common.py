@@ -25,8 +25,13 @@ def define_distributed_flags() -> None:
     flags.DEFINE_integer("process_id", 0, "This process's index.")
 
 
-def initialise_distributed() -> None:
-    """Starts multi-process JAX when --num_processes > 1 (before any device is touched)."""
+def initialise() -> None:
+    """Quiet library logs (unless --verbosity is given) and start multi-process JAX when
+    --num_processes > 1 (before any device is touched)."""
+    from absl import logging
+
+    if not FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)
     if FLAGS.num_processes > 1:
         import jax
 

@@ -71,7 +71,7 @@ def model_config_from_flags() -> dict:
 
 def main(argv):
     del argv
-    common.initialise_distributed()
+    common.initialise()
     from gld import train
 
     builder = common.prepare_dataset()
@@ -110,10 +110,16 @@ def main(argv):
         builder.as_data_source("test"),
     )
     if FLAGS.final_eval:
-        from experiments import evaluate
+        from gld import evaluation
 
-        evaluate.evaluate_workdir(
-            FLAGS.workdir, builder, num_figures=FLAGS.num_figures, with_dataset_mean=True
+        evaluation.evaluate_workdir(
+            FLAGS.workdir,
+            builder.as_data_source("test"),
+            train_source=builder.as_data_source("train"),
+            dataset=builder.info.full_name,
+            height=height,
+            width=width,
+            num_figures=FLAGS.num_figures,
         )
 
 

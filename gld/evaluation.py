@@ -166,3 +166,120 @@ def render_examples(
         plt.close(figure)
         paths.append(path)
     return paths
+
+
+def _training_batches(train_source, flow: str):
+    return input_pipeline.eval_batches(train_source, batch_size=16, flow_source=flow)
+
+
+def fit_classical(name: str, train_source, flow: str = "estimated"):
+    """A classical baseline by name, fitted on the training split when it needs to be."""
+    from gld.baselines import classical
+
+    if name not in classical.CLASSICAL:
+        raise ValueError(f"unknown classical method {name!r}; valid: {sorted(classical.CLASSICAL)}")
+    method = classical.CLASSICAL[name]()
+    if method.needs_training_data:
+        method.fit(
+            {key: batch[key][batch["example_mask"]] for key in ("depth", "depth_valid")}
+            for batch in _training_batches(train_source, flow)
+        )
+    return method
+
+
+def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow: str, split: str):
+    return [
+        input_pipeline.prepare_example(
+            source[index],
+            epoch=0,
+            seed=seed,
+            gt_pixels=gt_pixels,
+            flow_source=flow,
+            augment=False,
+            fixed_sparse_pixels=True,
+            where=f"{split}[{index}]",
+        )
+        for index in range(min(count, len(source)))
+    ]
+
+
+def evaluate_workdir(
+    workdir: str | Path,
+    source,
+    *,
+    train_source=None,
+    dataset: str = "",
+    height: int,
+    width: int,
+    split: str = "test",
+    num_figures: int = 8,
+    with_dataset_mean: bool = True,
+    batch_size: int = 16,
+    max_examples: int = 0,
+    step: int | None = None,
+    classical_method: str | None = None,
+    flow: str | None = None,
+    print_fn: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Evaluates a workdir's trained model (or a classical method) on `source`.
+
+    Writes <workdir>/eval (see `write_report` and `render_examples`); the dataset-mean
+    baseline, fitted on `train_source`, is evaluated alongside when asked.
+    """
+    from gld import train
+
+    results, info = {}, {"dataset": dataset, "split": split}
+    if classical_method:
+        flow = flow or "estimated"
+        method = fit_classical(classical_method, train_source, flow)
+        results[classical_method] = evaluate_predictor(
+            method.predict,
+            source,
+            batch_size=batch_size,
+            flow=flow,
+            max_examples=max_examples,
+            progress=True,
+        )
+        predict_depth = lambda batch: method.predict(batch)["depth"]  # noqa: E731
+        gt_pixels, seed = 1, 0
+        info.update(model=classical_method, flow=flow)
+    else:
+        model, variables, config = train.load_trained(workdir, step=step)
+        flow = flow or config.flow
+        results[config.model] = train.evaluate_source(
+            model,
+            variables,
+            source,
+            batch_size=batch_size,
+            flow=flow,
+            max_examples=max_examples,
+            progress=True,
+        )
+        apply = jax.jit(lambda v, b: model.apply(v, b["image1"], b["image2"], b["flow"]))
+        predict_depth = lambda batch: apply(variables, batch)["depth"]  # noqa: E731
+        gt_pixels, seed = config.gt_pixels, config.seed
+        manager = train.checkpoint_manager(workdir)
+        info.update(
+            model=config.model,
+            gt_pixels=config.gt_pixels,
+            flow=flow,
+            step=int(manager.latest_step() if step is None else step),
+        )
+        manager.close()
+    if with_dataset_mean and train_source is not None and jax.process_index() == 0:
+        mean = fit_classical("dataset_mean", train_source, flow)
+        results["dataset_mean"] = evaluate_predictor(
+            mean.predict, source, batch_size=batch_size, flow=flow, max_examples=max_examples
+        )
+        info["dataset_mean_inv_depth"] = mean.inv_depth
+    if jax.process_index() != 0:
+        return {}
+    out_dir = Path(workdir) / "eval"
+    report = write_report(out_dir, results, height=height, width=width, info=info)
+    if num_figures:
+        examples = _figure_examples(source, num_figures, gt_pixels, seed, flow, split)
+        batch = {k: np.stack([e[k] for e in examples]) for k in ("image1", "image2", "flow")}
+        predictions = np.asarray(predict_depth(batch))
+        render_examples(out_dir / "figures", examples, list(predictions))
+    print_fn((out_dir / "table.md").read_text())
+    return report
