@@ -440,9 +440,11 @@ def train_dataset(
         augment=augment,
         fixed_sparse_pixels=fixed_sparse_pixels,
     )
-    # Shuffle then repeat: grain reshuffles with seed + epoch in every epoch.
+    # Shuffle then repeat: grain reshuffles with shuffle_seed + epoch in every epoch. The
+    # seed is scrambled so that run seeds s and s + 1 do not share shifted permutations.
+    shuffle_seed = int(np.random.SeedSequence(seed).generate_state(1)[0])
     dataset = (
-        shard.shuffle(seed=seed)
+        shard.shuffle(seed=shuffle_seed)
         .repeat(None)
         .map_with_index(prepare)
         .to_iter_dataset(
