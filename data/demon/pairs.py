@@ -49,21 +49,27 @@ def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
     if (source_height, source_width) == (height, width):
         return depth
     resized = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
-    rows, cols = np.nonzero(valid)
-    # Output pixel containing each valid input pixel's centre, and the distance to its centre.
-    target_x = (cols + 0.5) * (width / source_width)
-    target_y = (rows + 0.5) * (height / source_height)
-    target_col = np.minimum(target_x.astype(np.int64), width - 1)
-    target_row = np.minimum(target_y.astype(np.int64), height - 1)
-    target = target_row * width + target_col
-    holes = resized.reshape(-1)[target] <= 0
-    if holes.any():
-        distance = (target_x - target_col - 0.5) ** 2 + (target_y - target_row - 0.5) ** 2
-        order = np.lexsort((distance[holes], target[holes]))
-        hole_targets = target[holes][order]
-        first = np.unique(hole_targets, return_index=True)[1]
-        values = depth[rows[holes][order][first], cols[holes][order][first]]
-        resized.reshape(-1)[hole_targets[first]] = values
+    holes = resized <= 0
+    if not holes.any():
+        return resized
+    # Output pixel containing each input pixel's centre, per axis.
+    row_target = np.minimum(
+        ((np.arange(source_height) + 0.5) * (height / source_height)), height - 1e-6
+    )
+    col_target = np.minimum(
+        ((np.arange(source_width) + 0.5) * (width / source_width)), width - 1e-6
+    )
+    row_index, col_index = row_target.astype(np.int64), col_target.astype(np.int64)
+    rows, cols = np.nonzero(valid & holes[row_index[:, None], col_index[None, :]])
+    if rows.size == 0:
+        return resized
+    target = row_index[rows] * width + col_index[cols]
+    distance = (row_target[rows] - row_index[rows] - 0.5) ** 2 + (
+        col_target[cols] - col_index[cols] - 0.5
+    ) ** 2
+    order = np.lexsort((distance, target))
+    first = order[np.unique(target[order], return_index=True)[1]]
+    resized.reshape(-1)[target[first]] = depth[rows[first], cols[first]]
     return resized
 
 
