@@ -55,7 +55,8 @@ class SceneSettings:
       max_flow_fraction: the 99th percentile of the true flow magnitude is kept
         below this fraction of the image width (40 px at 256x192) by shrinking
         the motion.
-      min_objects, max_objects: number of objects in the room (inclusive).
+      min_objects, max_objects: number of objects drawn (inclusive); an object that
+        would come too close to the first camera is dropped.
     """
 
     height: int = 192
@@ -79,7 +80,7 @@ class SceneSettings:
                 f"need 0 < min_translation <= max_translation, got "
                 f"{self.min_translation}, {self.max_translation}"
             )
-        if not 0 <= self.min_objects <= self.max_objects:
+        if not 0 <= self.min_objects <= self.max_objects <= 200:
             raise ValueError(
                 f"need 0 <= min_objects <= max_objects, got {self.min_objects}, {self.max_objects}"
             )
@@ -269,19 +270,17 @@ def _intersect_cylinder(
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A room `[0, room_size]` (metres, y up) with objects and a light."""
+    """A room `[0, room_size]` (metres, y up) with objects and a point light.
+
+    Room face f (surface id f in `cast`) is the wall at the low (f even) or high (f odd)
+    end of axis f // 2; its inward normal is +/- that axis.
+    """
 
     room_size: np.ndarray
     room_materials: tuple[Material, ...]
     objects: tuple[SceneObject, ...]
     light_position: np.ndarray
     ambient: float
-
-    def room_normals(self, face: int) -> np.ndarray:
-        """Inward unit normal of room face `face` (0/1: x = 0 / max, 2/3: y, 4/5: z)."""
-        normal = np.zeros(3, np.float32)
-        normal[face // 2] = 1.0 if face % 2 == 0 else -1.0
-        return normal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -464,7 +463,9 @@ def sample_scene(
     return scene, rotation, center
 
 
-def ray_directions(camera: Camera, height: int, width: int, pixels: np.ndarray | None = None):
+def ray_directions(
+    camera: Camera, height: int, width: int, pixels: np.ndarray | None = None
+) -> np.ndarray:
     """World ray directions [H, W, 3] (camera-z component 1) through `pixels` [H, W, 2].
 
     `pixels` defaults to the pixel grid; a hit at distance s along a ray lies at
