@@ -25,6 +25,7 @@ import math
 from collections.abc import Iterator, Sequence
 from typing import Any
 
+import cv2
 import grain
 import numpy as np
 
@@ -150,16 +151,23 @@ def _flip_frame(example: dict[str, Any], axes: tuple[int, ...]) -> dict[str, Any
     """
     flipped = dict(example)
     frame_signs = np.ones(3, np.float32)
-    flow_signs = np.ones(2, np.float32)
     for axis in axes:
         frame_signs[1 - axis] = -1.0  # pixel axis 0 (v) is camera y, axis 1 (u) is camera x
-        flow_signs[1 - axis] = -1.0  # flow channel 0 is u, 1 is v
+    # OpenCV's flip codes: 0 flips rows (v), 1 columns (u), -1 both; it is several times
+    # faster than copying a negatively strided numpy view.
+    flip_code = -1 if len(axes) == 2 else axes[0]
     for key in _SPATIAL_KEYS + _FLOW_KEYS:
-        if key in example:
-            flipped[key] = np.ascontiguousarray(np.flip(example[key], axis=axes))
+        if key not in example:
+            continue
+        value = np.asarray(example[key])
+        if value.dtype == np.bool_:
+            flipped[key] = cv2.flip(value.view(np.uint8), flip_code).view(np.bool_)
+        else:
+            flipped[key] = cv2.flip(value, flip_code)
     for key in _FLOW_KEYS:
         if key in example:
-            flipped[key] = flipped[key] * flow_signs
+            for axis in axes:
+                flipped[key][..., 1 - axis] *= -1.0  # flow channel 0 is u, 1 is v
     for key in ("intrinsics1", "intrinsics2"):
         intrinsics = np.array(example[key], np.float32)
         for axis in axes:
