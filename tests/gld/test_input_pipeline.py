@@ -537,7 +537,8 @@ def test_gld_scenes_geometry_survives_every_augmentation(tiny_builder):
 
 
 def test_gld_scenes_train_and_eval(tiny_builder):
-    train = tiny_builder.as_data_source("train")
+    train = tiny_builder.as_data_source("train", decoders=input_pipeline.source_decoders())
+    assert isinstance(train[0]["depth2"], bytes)  # left compressed
     ids_by_process = []
     for process_index in range(2):
         iterator = iter(
