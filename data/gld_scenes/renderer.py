@@ -39,6 +39,18 @@ _NEAR = 1e-3  # metres; ignores self-hits of a ray leaving a surface
 _NOISE_LATTICE = 8  # periodic value-noise lattice size per axis
 
 
+def _transform(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """`vectors @ matrix` for [N, 3] @ [3, K] without BLAS.
+
+    Elementwise products give bit-identical results whatever the thread count and
+    array size (BLAS kernels may not), which keeps renders reproducible.
+    """
+    matrix = np.asarray(matrix, vectors.dtype)
+    if matrix.ndim == 1:
+        return vectors[:, 0] * matrix[0] + vectors[:, 1] * matrix[1] + vectors[:, 2] * matrix[2]
+    return vectors[:, :1] * matrix[0] + vectors[:, 1:2] * matrix[1] + vectors[:, 2:3] * matrix[2]
+
+
 @dataclasses.dataclass(frozen=True)
 class SceneSettings:
     """Settings of the scene and camera-motion generator.
@@ -112,9 +124,9 @@ class Material:
         if self.kind == "checker":
             weight = (np.floor(coords).astype(np.int64).sum(-1) & 1).astype(np.float32)
         elif self.kind == "stripes":
-            weight = 0.5 + 0.5 * np.sin(2.0 * np.pi * (coords @ self.direction))
+            weight = 0.5 + 0.5 * np.sin(2.0 * np.pi * _transform(coords, self.direction))
         elif self.kind == "gradient":
-            weight = np.clip(coords @ self.direction, 0.0, 1.0)
+            weight = np.clip(_transform(coords, self.direction), 0.0, 1.0)
         elif self.kind == "noise":
             weight = 0.65 * _value_noise(self.lattice, coords) + 0.35 * _value_noise(
                 self.lattice, 2.7 * coords + 3.1
@@ -181,7 +193,7 @@ class SceneObject:
             units of the direction's length).
         """
         local_origin = (origin - self.center) @ self.rotation
-        local_dirs = directions @ self.rotation
+        local_dirs = _transform(directions, self.rotation)
         if self.shape == "box":
             return _intersect_box(local_origin, local_dirs, self.size)
         if self.shape == "sphere":
@@ -190,7 +202,7 @@ class SceneObject:
 
     def normals(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World unit normals [N, 3] and object-local points [N, 3] at surface points [N, 3]."""
-        local = (points - self.center) @ self.rotation
+        local = _transform(points - self.center, self.rotation)
         if self.shape == "sphere":
             local_normals = local
         elif self.shape == "box":
@@ -208,7 +220,7 @@ class SceneObject:
         local_normals = local_normals / np.maximum(
             np.linalg.norm(local_normals, axis=-1, keepdims=True), 1e-12
         )
-        return local_normals @ self.rotation.T, local
+        return _transform(local_normals, self.rotation.T), local
 
 
 def _safe_reciprocal(values: np.ndarray) -> np.ndarray:
@@ -234,7 +246,7 @@ def _intersect_box(origin: np.ndarray, dirs: np.ndarray, half: np.ndarray) -> np
 
 def _intersect_sphere(origin: np.ndarray, dirs: np.ndarray, radius: float) -> np.ndarray:
     a = np.einsum("nj,nj->n", dirs, dirs)
-    b = dirs @ origin
+    b = _transform(dirs, origin)
     c = float(origin @ origin) - radius * radius
     discriminant = b * b - a * c
     t = (-b - np.sqrt(np.maximum(discriminant, 0.0))) / a
@@ -479,8 +491,7 @@ def ray_directions(
     inverse_k = np.linalg.inv(camera_matrix)
     world_from_pixel = (camera.rotation.T @ inverse_k).astype(np.float32)
     homogeneous = np.concatenate([pixels, np.ones_like(pixels[..., :1])], -1).astype(np.float32)
-    # A 2-D matmul (BLAS) is much faster than a batched one over [H, W].
-    directions = homogeneous.reshape(-1, 3) @ world_from_pixel.T
+    directions = _transform(homogeneous.reshape(-1, 3), world_from_pixel.T)
     return directions.reshape(homogeneous.shape)
 
 
