@@ -10,3 +10,25 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
+
+import pytest  # noqa: E402
+
+# A small global encoder that keeps compile and step times of trainer tests low.
+TINY_MODEL = {"encoder_channels": [4, 8, 8, 8, 8]}
+
+
+@pytest.fixture(scope="session")
+def tiny_scenes_dir(tmp_path_factory):
+    """A data_dir holding the built `gld_scenes/tiny` (64x48, 32 train / 16 test pairs)."""
+    import data
+
+    data_dir = tmp_path_factory.mktemp("tiny_scenes")
+    data.prepare("gld_scenes/tiny", data_dir)
+    return data_dir
+
+
+@pytest.fixture(scope="session")
+def tiny_scenes(tiny_scenes_dir):
+    import data
+
+    return data.get_builder("gld_scenes/tiny", tiny_scenes_dir)

@@ -1,0 +1,183 @@
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+from conftest import REPO_ROOT, TINY_MODEL
+
+from gld import input_pipeline, losses, train
+from gld import model as model_lib
+
+
+def _config(**overrides):
+    values = dict(
+        model_config=dict(TINY_MODEL), batch_size=4, steps=4, log_every=2, eval_every=0,
+        checkpoint_every=2, dataset="gld_scenes/tiny", height=48, width=64,
+    )
+    values.update(overrides)
+    return train.TrainConfig(**values)
+
+
+def _params_of(workdir):
+    _, variables, _ = train.load_trained(workdir)
+    return variables["params"]
+
+
+def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoint(
+    tiny_scenes, tmp_path
+):
+    source = tiny_scenes.as_data_source("train")
+    train.train_and_evaluate(_config(), tmp_path, source, progress=False, print_fn=lambda _: None)
+    good = _params_of(tmp_path)
+    with pytest.raises(train.NonFiniteLossError, match="at step 5"):
+        train.train_and_evaluate(
+            _config(steps=8, depth_weight=float("nan")), tmp_path, source, progress=False,
+            print_fn=lambda _: None,
+        )
+    manager = train.checkpoint_manager(tmp_path)
+    assert manager.latest_step() == 4
+    manager.close()
+    jax.tree_util.tree_map(np.testing.assert_array_equal, _params_of(tmp_path), good)
+
+
+def test_a_workdir_refuses_another_architecture_listing_the_flags(tiny_scenes, tmp_path):
+    source = tiny_scenes.as_data_source("train")
+    train.train_and_evaluate(
+        _config(steps=2), tmp_path, source, progress=False, print_fn=lambda _: None
+    )
+    other = _config(model_config=dict(TINY_MODEL, global_dim=3, use_coordinates=False))
+    with pytest.raises(ValueError, match="global_dim.*use_coordinates"):
+        train.train_and_evaluate(other, tmp_path, source, progress=False, print_fn=lambda _: None)
+    # a speed-only choice is not architecture
+    same = _config(steps=2, model_config=dict(TINY_MODEL, filter_formulation="vmap"))
+    train.write_run_config(tmp_path, same)
+
+
+def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
+    source = tiny_scenes.as_data_source("train")
+    batch = next(
+        input_pipeline.eval_batches([source[i] for i in range(8)], batch_size=8, flow_source="gt")
+    )
+    batch = {key: batch[key] for key in ("image1", "image2", "flow", "depth")}
+    batch["sparse_mask"] = batch["depth"] > 0  # dense supervision
+    model = model_lib.make_model("global_local", **TINY_MODEL)
+    optimizer = train.make_optimizer(3e-3)
+    state = train.create_train_state(model, optimizer, 48, 64, seed=0)
+    step = jax.jit(
+        train.make_train_step(
+            model=model, optimizer=optimizer, loss_weights=losses.LossWeights(smoothness=0.0)
+        )
+    )
+    history = []
+    for _ in range(600):
+        state, step_metrics = step(state, batch, jax.random.key(0))
+        history.append(float(step_metrics["loss"]))
+    assert np.isfinite(history).all()
+    assert history[0] / min(history[-20:]) >= 10.0
+
+
+SHARDED_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import jax, numpy as np
+    from gld import losses, train
+    from gld import model as model_lib
+
+    assert len(jax.devices()) == 4
+    model = model_lib.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8])
+    optimizer = train.make_optimizer(1e-3)
+    rng = np.random.default_rng(0)
+    batch = {
+        "image1": rng.uniform(-0.5, 0.5, (8, 24, 32, 3)).astype(np.float32),
+        "image2": rng.uniform(-0.5, 0.5, (8, 24, 32, 3)).astype(np.float32),
+        "flow": rng.normal(size=(8, 24, 32, 2)).astype(np.float32),
+        "depth": rng.uniform(1, 5, (8, 24, 32)).astype(np.float32),
+        "sparse_mask": rng.uniform(size=(8, 24, 32)) < 0.05,
+    }
+    results = {}
+    for name, devices in (("one", jax.devices()[:1]), ("four", jax.devices())):
+        mesh = train.make_mesh(devices)
+        state = jax.device_put(
+            train.create_train_state(model, optimizer, 24, 32, seed=0), train.replicated(mesh)
+        )
+        step = train.jit_train_step(
+            train.make_train_step(model=model, optimizer=optimizer,
+                                  loss_weights=losses.LossWeights()), mesh)
+        for _ in range(2):
+            global_batch = train.to_global_batch(batch, mesh, train.TRAIN_KEYS)
+            state, _ = step(state, global_batch, jax.random.key(1))
+        leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
+        results[name] = np.concatenate([np.ravel(leaf) for leaf in leaves])
+        if name == "four":
+            assert len(global_batch["image1"].sharding.device_set) == 4
+    print(json.dumps({
+        "max_abs_diff": float(np.max(np.abs(results["one"] - results["four"]))),
+        "max_abs": float(np.max(np.abs(results["one"]))),
+    }))
+    """
+)
+
+
+def test_four_device_step_equals_one_device_step(tmp_path):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    result = subprocess.run(
+        [sys.executable, "-c", SHARDED_SCRIPT], capture_output=True, text=True, env=env,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    numbers = json.loads(result.stdout.strip().splitlines()[-1])
+    assert numbers["max_abs_diff"] <= 1e-5 * max(numbers["max_abs"], 1.0)
+
+
+TWO_PROCESS_SCRIPT = textwrap.dedent(
+    """
+    import hashlib, sys
+    import jax, numpy as np
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2,
+                               process_id=int(sys.argv[2]))
+    import data
+    from gld import train
+    builder = data.get_builder("gld_scenes/tiny", sys.argv[3])
+    config = train.TrainConfig(model_config={"encoder_channels": [4, 8, 8, 8, 8]},
+                               batch_size=4, steps=3, log_every=1, eval_every=0,
+                               checkpoint_every=3, dataset="gld_scenes/tiny", height=48,
+                               width=64)
+    state = train.train_and_evaluate(config, sys.argv[4], builder.as_data_source("train"),
+                                     progress=False, print_fn=lambda _: None)
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
+    digest = hashlib.sha256(b"".join(np.asarray(l).tobytes() for l in leaves)).hexdigest()
+    print("PARAMS", jax.process_index(), jax.process_count(), len(jax.devices()), digest)
+    """
+)
+
+
+def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path):
+    import portpicker
+
+    address = f"127.0.0.1:{portpicker.pick_unused_port()}"
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    workers = [
+        subprocess.Popen(
+            [sys.executable, "-c", TWO_PROCESS_SCRIPT, address, str(index), str(tiny_scenes_dir),
+             str(tmp_path / "run")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        )
+        for index in range(2)
+    ]
+    outputs = [worker.communicate(timeout=300) for worker in workers]
+    for worker, (stdout, stderr) in zip(workers, outputs, strict=True):
+        assert worker.returncode == 0, stderr[-3000:]
+    lines = [next(l for l in out.splitlines() if l.startswith("PARAMS")).split()
+             for out, _ in outputs]
+    assert [line[1] for line in lines] == ["0", "1"]
+    assert all(line[2] == "2" and line[3] == "2" for line in lines)  # 2 processes, 2 devices
+    assert lines[0][4] == lines[1][4]
+    # only process 0 writes the logs
+    records = [json.loads(l) for l in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3]
