@@ -65,3 +65,10 @@ def write_flags(workdir: str | os.PathLike) -> None:
     path = Path(workdir)
     path.mkdir(parents=True, exist_ok=True)
     (path / "flags.txt").write_text(FLAGS.flags_into_string())
+
+
+def data_source(builder, split: str):
+    """A split's random-access records, skipping fields no launcher reads."""
+    from gld import input_pipeline
+
+    return builder.as_data_source(split, decoders=input_pipeline.source_decoders())

@@ -47,8 +47,8 @@ def main(argv):
     height, width = common.dataset_resolution(builder)
     evaluation.evaluate_workdir(
         FLAGS.workdir,
-        builder.as_data_source(FLAGS.split),
-        train_source=builder.as_data_source("train"),
+        common.data_source(builder, FLAGS.split),
+        train_source=common.data_source(builder, "train"),
         dataset=builder.info.full_name,
         height=height,
         width=width,

@@ -106,16 +106,16 @@ def main(argv):
     train.train_and_evaluate(
         config,
         FLAGS.workdir,
-        builder.as_data_source("train"),
-        builder.as_data_source("test"),
+        common.data_source(builder, "train"),
+        common.data_source(builder, "test"),
     )
     if FLAGS.final_eval:
         from gld import evaluation
 
         evaluation.evaluate_workdir(
             FLAGS.workdir,
-            builder.as_data_source("test"),
-            train_source=builder.as_data_source("train"),
+            common.data_source(builder, "test"),
+            train_source=common.data_source(builder, "train"),
             dataset=builder.info.full_name,
             height=height,
             width=width,

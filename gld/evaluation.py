@@ -278,7 +278,11 @@ def evaluate_workdir(
     report = write_report(out_dir, results, height=height, width=width, info=info)
     if num_figures:
         examples = _figure_examples(source, num_figures, gt_pixels, seed, flow, split)
-        batch = {k: np.stack([e[k] for e in examples]) for k in ("image1", "image2", "flow")}
+        batch = {
+            key: np.stack([example[key] for example in examples])
+            for key, value in examples[0].items()
+            if isinstance(value, np.ndarray)
+        }
         predictions = np.asarray(predict_depth(batch))
         render_examples(out_dir / "figures", examples, list(predictions))
     print_fn((out_dir / "table.md").read_text())

@@ -424,7 +424,7 @@ def evaluate_source(
     if progress and jax.process_index() == 0:
         from tqdm import tqdm
 
-        total = math.ceil(len(source) / (local_batch * jax.process_count()))
+        total = input_pipeline.num_eval_batches(len(source), local_batch, jax.process_count())
         batches = tqdm(batches, total=total, desc="evaluate", unit="batch", leave=False)
     collected: dict[str, list] = {}
     ids: list[str] = []
