@@ -63,6 +63,17 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     )
     assert refused.returncode != 0 and "global_dim" in refused.stderr
 
+    inspected = _launch(
+        ["experiments.inspect_filters", f"--workdir={workdir}", "--num_pairs=4",
+         "--num_figures=2"],
+        tiny_scenes_dir,
+    )
+    assert inspected.returncode == 0, inspected.stderr[-3000:]
+    assert "Spearman" in inspected.stdout
+    similarity = json.loads((workdir / "filters" / "similarity.json").read_text())
+    assert len(similarity["global_params"]) == 4 and len(similarity["filter_similarity"]) == 4
+    assert len(list((workdir / "filters").glob("*.png"))) == 2
+
     # evaluate re-runs on the workdir alone
     evaluated = _launch(["experiments.evaluate", f"--workdir={workdir}", "--num_figures=0"],
                         tiny_scenes_dir)

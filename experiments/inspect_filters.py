@@ -1,0 +1,89 @@
+r"""Draws the filters the hypernetwork generates for test pairs, and relates them to motion.
+
+    python -m experiments.inspect_filters --workdir=runs/demo [--num_pairs=8]
+
+Writes <workdir>/filters/: one PNG per pair (the three generated banks as image grids),
+similarity.json (global parameters, pairwise filter and motion similarities, and their
+correlation) and prints how similar the filters of two pairs are against how similar
+their relative motions are.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from absl import app, flags
+
+from experiments import common
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_string("workdir", "runs/demo", "A trained global-local workdir.")
+flags.DEFINE_string("split", "test", "Split the pairs come from.")
+flags.DEFINE_integer("num_pairs", 8, "Pairs to inspect (the first N of the split).")
+flags.DEFINE_integer("num_figures", 4, "Pairs whose filter banks are drawn.")
+common.define_data_flags(default_dataset=None)
+
+
+def main(argv):
+    del argv
+    common.initialise()
+    from gld import input_pipeline, train
+    from gld import inspect as inspect_lib
+
+    model, variables, config = train.load_trained(FLAGS.workdir)
+    if config.model != "global_local":
+        raise app.UsageError(f"{FLAGS.workdir} holds a {config.model!r} model, not global_local")
+    builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
+    source = common.data_source(builder, FLAGS.split)
+    count = min(FLAGS.num_pairs, len(source))
+    batch = next(
+        input_pipeline.eval_batches(
+            [source[i] for i in range(count)], batch_size=count, flow_source=config.flow
+        )
+    )
+    inspected = inspect_lib.filter_banks(variables, batch, model=model)
+    rotation, translation = inspect_lib.rotation_translation_of(batch)
+    filter_sim = inspect_lib.filter_similarity(inspected["kernels"], inspected["biases"])
+    motion_sim = inspect_lib.motion_similarity(rotation, translation)
+    correlation = inspect_lib.similarity_correlation(filter_sim, motion_sim)
+
+    out_dir = Path(FLAGS.workdir) / "filters"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ids = [str(i) for i in batch["id"]]
+    for index in range(min(FLAGS.num_figures, count)):
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(rotation[index]) - 1) / 2, -1, 1))))
+        inspect_lib.draw_filter_banks(
+            inspected["kernels"],
+            index,
+            out_dir / f"{ids[index].replace('/', '_')}.png",
+            title=f"{ids[index]}: rotation {angle:.1f} deg, t = {np.round(translation[index], 2)}",
+        )
+    (out_dir / "similarity.json").write_text(
+        json.dumps(
+            {
+                "ids": ids,
+                "global_params": inspected["global_params"].tolist(),
+                "filter_similarity": filter_sim.tolist(),
+                "motion_similarity": motion_sim.tolist(),
+                "correlation": correlation,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    print("pair A | pair B | filter similarity | motion similarity")
+    upper = np.triu_indices(count, k=1)
+    for a, b in zip(*upper, strict=True):
+        print(f"{ids[a]} | {ids[b]} | {filter_sim[a, b]:+.3f} | {motion_sim[a, b]:+.3f}")
+    print(
+        f"correlation over {correlation['num_pairs']} pairs of pairs: "
+        f"Pearson {correlation['pearson']:+.3f}, Spearman {correlation['spearman']:+.3f}"
+    )
+    print(f"wrote {out_dir}")
+
+
+if __name__ == "__main__":
+    app.run(main)
