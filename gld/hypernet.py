@@ -312,7 +312,177 @@ def _shifted_formulation(filter_banks, inputs, negative_slope):
     return _apply_stack(_shifted_conv, filter_banks, inputs, negative_slope)
 
 
-# --- Custom VJP of the whole stack: convolution forward, matmul gradients. -----------
+# --- Custom VJP of the whole stack: per-example forward, matmul gradients. ----------
+#
+# XLA differentiates a per-example conv into a filter-gradient convolution at batch 1,
+# which its CPU backend runs slowly. These formulations write the backward pass by
+# hand: every example goes through the whole stack in one `lax.map` iteration (its
+# activations stay in cache) and the kernel gradient is a plain matmul over pixels.
+# A backend maps one example through one bank and back; each works in its own layout.
+
+
+class _StackBackend(NamedTuple):
+    """Per-example pieces of a fused stack, in the backend's own activation layout."""
+
+    # [B, H, W, C] -> [B, *layout] and back.
+    to_layout: Callable[[jax.Array], jax.Array]
+    from_layout: Callable[[jax.Array], jax.Array]
+    # (activation, kernel [k, k, C_in, C_out], bias [C_out]) -> pre-activation.
+    forward: Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+    # (bank input, pre-activation cotangent, kernel) -> kernel cotangent.
+    kernel_grad: Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+    # (pre-activation cotangent, kernel) -> bank-input cotangent.
+    input_grad: Callable[[jax.Array, jax.Array], jax.Array]
+    # pre-activation cotangent -> bias cotangent.
+    bias_grad: Callable[[jax.Array], jax.Array]
+
+
+def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC kernel gradient as k*k matmuls over pixels, one per tap (no patch tensor).
+
+    image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
+    """
+    kernel_size = kernel.shape[0]
+    height, width = image.shape[:2]
+    padded = _pad_same(image, kernel_size)
+    taps = [
+        jnp.einsum("hwc,hwd->cd", padded[dy : dy + height, dx : dx + width, :], cotangent)
+        for dy in range(kernel_size)
+        for dx in range(kernel_size)
+    ]
+    return jnp.stack(taps).reshape(kernel.shape)
+
+
+def _kernel_grad_im2col(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC kernel gradient as one matmul: patches [HW, k*k*C_in]^T @ cotangent [HW, C_out]."""
+    patches = _patches(image, kernel.shape[0])
+    return jnp.einsum("hwp,hwd->pd", patches, cotangent).reshape(kernel.shape)
+
+
+def _input_grad_conv(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC input gradient: conv with the flipped, io-transposed kernel."""
+    return _conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
+
+
+def _nhwc_backend(kernel_grad) -> _StackBackend:
+    return _StackBackend(
+        to_layout=lambda x: x,
+        from_layout=lambda x: x,
+        forward=lambda image, kernel, bias: _conv_single(image, kernel) + bias,
+        kernel_grad=kernel_grad,
+        input_grad=_input_grad_conv,
+        bias_grad=lambda cotangent: cotangent.sum((0, 1)),
+    )
+
+
+def _planar_patches(image: jax.Array, kernel_size: int) -> jax.Array:
+    """im2col in channel-major layout: [C, H, W] -> [k*k*C, H*W], rows ordered (dy, dx, c)."""
+    channels, height, width = image.shape
+    pad = kernel_size // 2
+    padded = jnp.pad(image, ((0, 0), (pad, pad), (pad, pad)))
+    taps = [
+        padded[:, dy : dy + height, dx : dx + width]
+        for dy in range(kernel_size)
+        for dx in range(kernel_size)
+    ]
+    return jnp.stack(taps).reshape(kernel_size * kernel_size * channels, height * width)
+
+
+def _planar_forward(image: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
+    """[C_in, H, W] -> [C_out, H, W] as kernel [C_out, k*k*C_in] @ patches [k*k*C_in, HW]."""
+    kernel_size, _, c_in, c_out = kernel.shape
+    matrix = kernel.reshape(kernel_size * kernel_size * c_in, c_out).T
+    out = matrix @ _planar_patches(image, kernel_size) + bias[:, None]
+    return out.reshape(c_out, *image.shape[1:])
+
+
+def _planar_kernel_grad(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """[C_in, H, W], [C_out, H, W] -> [k, k, C_in, C_out] as patches @ cotangent^T."""
+    patches = _planar_patches(image, kernel.shape[0])
+    return (patches @ cotangent.reshape(cotangent.shape[0], -1).T).reshape(kernel.shape)
+
+
+def _planar_input_grad(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """[C_out, H, W] -> [C_in, H, W]: the conv with the flipped, io-transposed kernel."""
+    flipped = jnp.flip(kernel, (0, 1)).swapaxes(2, 3)
+    return _planar_forward(cotangent, flipped, jnp.zeros((kernel.shape[2],), kernel.dtype))
+
+
+_PLANAR_BACKEND = _StackBackend(
+    to_layout=lambda x: x.transpose(0, 3, 1, 2),
+    from_layout=lambda x: x.transpose(0, 2, 3, 1),
+    forward=_planar_forward,
+    kernel_grad=_planar_kernel_grad,
+    input_grad=_planar_input_grad,
+    bias_grad=lambda cotangent: cotangent.sum((1, 2)),
+)
+
+
+def _make_fused_stack(backend: _StackBackend, negative_slope: float):
+    """custom_vjp function (banks [(kernel, bias), ...], inputs [B, H, W, C]) -> outputs."""
+
+    def forward_example(args):
+        image, banks = args
+        outputs = []
+        for kernel, bias in banks:
+            image = jax.nn.leaky_relu(backend.forward(image, kernel, bias), negative_slope)
+            outputs.append(image)
+        return outputs
+
+    def run_forward(banks, inputs):
+        return lax.map(forward_example, (backend.to_layout(inputs), banks))
+
+    @jax.custom_vjp
+    def stack(banks, inputs):
+        # Inference keeps no intermediate activations.
+        last_output = lambda args: forward_example(args)[-1]
+        return backend.from_layout(lax.map(last_output, (backend.to_layout(inputs), banks)))
+
+    def stack_fwd(banks, inputs):
+        banks_value = jax.tree.map(lambda leaf: leaf.value, banks)
+        outputs = run_forward(banks_value, inputs.value)
+        # An empty marker in the residuals when the input's cotangent is needed; None
+        # (no leaf) when the input is data, so its gradient conv is never computed.
+        marker = jnp.zeros((0,)) if inputs.perturbed else None
+        residuals = (banks_value, inputs.value, outputs, marker)
+        return backend.from_layout(outputs[-1]), residuals
+
+    def stack_bwd(residuals, cotangent):
+        banks, inputs, outputs, marker = residuals
+        need_input_grad = marker is not None
+
+        def backward_example(args):
+            image, banks, outputs, cotangent = args
+            bank_inputs = [image, *outputs[:-1]]
+            kernel_grads, bias_grads = [], []
+            for index in reversed(range(len(banks))):
+                kernel = banks[index][0]
+                pre_grad = _leaky_relu_grad(outputs[index], cotangent, negative_slope)
+                kernel_grads.append(backend.kernel_grad(bank_inputs[index], pre_grad, kernel))
+                bias_grads.append(backend.bias_grad(pre_grad))
+                if index > 0 or need_input_grad:
+                    cotangent = backend.input_grad(pre_grad, kernel)
+            grads = list(zip(kernel_grads[::-1], bias_grads[::-1], strict=True))
+            return grads, (cotangent if need_input_grad else None)
+
+        cotangent = backend.to_layout(cotangent)
+        bank_grads, input_grad = lax.map(
+            backward_example, (backend.to_layout(inputs), banks, outputs, cotangent)
+        )
+        if need_input_grad:
+            input_grad = backend.from_layout(input_grad)
+        return bank_grads, input_grad
+
+    stack.defvjp(stack_fwd, stack_bwd, symbolic_zeros=True)
+    return stack
+
+
+def _fused(backend: _StackBackend):
+    def formulation(filter_banks, inputs, negative_slope):
+        banks = [(bank.kernel, bank.bias) for bank in filter_banks]
+        return _make_fused_stack(backend, float(negative_slope))(banks, inputs)
+
+    return formulation
 
 
 def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float) -> jax.Array:
@@ -320,91 +490,18 @@ def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float)
     return jnp.where(activations > 0, cotangent, slope * cotangent)
 
 
-def _input_grad_single(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
-    """d(conv)/d(input) of one example: conv with the flipped, io-transposed kernel."""
-    return _conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
-
-
-def _kernel_grad_single(image: jax.Array, cotangent: jax.Array, kernel_size: int) -> jax.Array:
-    """d(conv)/d(kernel) of one example as k*k matmuls over pixels.
-
-    image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
-    """
-    height, width = image.shape[:2]
-    padded = _pad_same(image, kernel_size)
-    rows = []
-    for dy in range(kernel_size):
-        row = []
-        for dx in range(kernel_size):
-            view = padded[dy : dy + height, dx : dx + width, :]
-            row.append(jnp.einsum("hwc,hwd->cd", view, cotangent))
-        rows.append(jnp.stack(row))
-    return jnp.stack(rows)
-
-
-def _stack_forward_single(image, banks, negative_slope):
-    """Forward of one example, keeping every bank's output for the backward pass."""
-    outputs = []
-    activations = image
-    for kernel, bias in banks:
-        activations = jax.nn.leaky_relu(_conv_single(activations, kernel) + bias, negative_slope)
-        outputs.append(activations)
-    return outputs
-
-
-def _stack_backward_single(image, banks, outputs, cotangent, negative_slope, need_input_grad):
-    """Backward of one example: cotangents of every kernel and bias (and the input)."""
-    bank_inputs = [image, *outputs[:-1]]
-    kernel_grads, bias_grads = [], []
-    for index in reversed(range(len(banks))):
-        kernel = banks[index][0]
-        pre_grad = _leaky_relu_grad(outputs[index], cotangent, negative_slope)
-        kernel_grads.append(_kernel_grad_single(bank_inputs[index], pre_grad, kernel.shape[0]))
-        bias_grads.append(pre_grad.sum((0, 1)))
-        if index > 0 or need_input_grad:
-            cotangent = _input_grad_single(pre_grad, kernel)
-    input_grad = cotangent if need_input_grad else jnp.zeros_like(image)
-    return kernel_grads[::-1], bias_grads[::-1], input_grad
-
-
-def _make_fused_stack(negative_slope: float):
-    @jax.custom_vjp
-    def stack(banks, inputs):
-        return _fwd(banks, inputs)[0]
-
-    def _fwd(banks, inputs):
-        outputs = lax.map(
-            lambda args: _stack_forward_single(args[0], args[1], negative_slope),
-            (inputs, banks),
-        )
-        return outputs[-1], (banks, inputs, outputs)
-
-    def _bwd(residuals, cotangent):
-        banks, inputs, outputs = residuals
-        kernel_grads, bias_grads, input_grad = lax.map(
-            lambda args: _stack_backward_single(*args, negative_slope, True),
-            (inputs, banks, outputs, cotangent),
-        )
-        bank_grads = [(k, b) for k, b in zip(kernel_grads, bias_grads, strict=True)]
-        return bank_grads, input_grad
-
-    stack.defvjp(_fwd, _bwd)
-    return stack
-
-
-def _fused_formulation(filter_banks, inputs, negative_slope):
-    """`jax.custom_vjp` of the whole stack: per-example convolutions forward (`lax.map`),
-    per-example matmul kernel gradients and conv input gradients backward."""
-    banks = [(bank.kernel, bank.bias) for bank in filter_banks]
-    return _make_fused_stack(float(negative_slope))(banks, inputs)
-
-
 FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "vmap": _vmap_formulation,
     "map_conv": _map_conv_formulation,
     "map_im2col": _map_im2col_formulation,
     "shifted": _shifted_formulation,
-    "fused": _fused_formulation,
+    # custom_vjp, lax.map of the stack: conv forward and input gradient, kernel gradient
+    # as k*k per-tap matmuls ("fused") or one im2col matmul ("fused_im2col").
+    "fused": _fused(_nhwc_backend(_kernel_grad_taps)),
+    "fused_im2col": _fused(_nhwc_backend(_kernel_grad_im2col)),
+    # custom_vjp, lax.map of the stack in channel-major layout, everything as
+    # [C_out, k*k*C_in] x [k*k*C_in, H*W] matmuls.
+    "fused_planar": _fused(_PLANAR_BACKEND),
 }
 
 # Fastest formulation per platform, measured with `python -m experiments.benchmark`.
