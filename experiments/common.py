@@ -32,7 +32,7 @@ def initialise() -> None:
 
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)
-    if FLAGS.num_processes > 1:
+    if "num_processes" in FLAGS and FLAGS.num_processes > 1:
         import jax
 
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
