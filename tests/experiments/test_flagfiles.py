@@ -1,0 +1,38 @@
+"""Every flagfile parses with the trainer's flags and names a dataset gld can build."""
+
+from pathlib import Path
+
+import pytest
+from absl import flags
+from conftest import REPO_ROOT
+
+import data
+
+FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags").glob("*.flags"))
+
+
+@pytest.fixture(scope="module")
+def train_flags():
+    import experiments.train  # noqa: F401  (defines the trainer's flags)
+
+    return flags.FLAGS
+
+
+def test_there_is_a_flagfile_per_result():
+    names = {path.stem for path in FLAGFILES}
+    for dataset in ("scenes11", "sun3d", "rgbd"):
+        assert f"{dataset}_global_local" in names
+    for ablation in ("no_image_pair", "no_coordconv", "no_global_module", "no_flow"):
+        assert f"scenes11_ablation_{ablation}" in names
+
+
+@pytest.mark.parametrize("path", FLAGFILES, ids=lambda p: p.stem)
+def test_flagfile_parses_and_documents_itself(train_flags, path: Path):
+    header = [line for line in path.read_text().splitlines() if line.startswith("#")]
+    assert any("Command:" in line and path.name in line for line in header)
+    try:
+        train_flags(["train", f"--flagfile={path}"])
+        data.parse_name(train_flags.dataset)
+        assert train_flags.workdir.startswith("runs/")
+    finally:
+        train_flags.unparse_flags()
