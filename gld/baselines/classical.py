@@ -1,0 +1,370 @@
+"""Classical (untrained) depth baselines: dataset mean, triangulation with the true pose, SfM.
+
+Every method follows one protocol, so the evaluation launcher treats them alike:
+
+    method = CLASSICAL[name](**options)
+    if method.needs_training_data:
+        method.fit(training_examples)
+    outputs = method.predict(batch)  # {'inv_depth', 'depth', ...} numpy, [B, H, W]
+
+`batch` follows the example contract (numpy or JAX arrays with a leading batch axis:
+'flow' [B, H, W, 2] pixels I1 -> I2, normalised 'intrinsics1'/'intrinsics2' [B, 4],
+'rotation' [B, 3, 3], 'translation' [B, 3] with X2 = R X1 + t). All predictions are
+in the scale of the contract: the pair's translation has norm 1. Predictions are
+never NaN: pixels (or whole pairs) a method cannot handle get a defined fallback and
+are counted in the outputs, so they stay in every mean.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gld import geometry, layers
+
+Batch = Mapping[str, Any]
+
+# Triangulated points closer than this (in units of the baseline, ||t|| = 1) are
+# treated as failures: they come from near-degenerate rays, not from real geometry.
+DEFAULT_MIN_DEPTH = 1e-2
+
+
+def _require(batch: Batch, keys: Iterable[str]) -> None:
+    missing = [key for key in keys if key not in batch]
+    if missing:
+        raise ValueError(f"batch lacks {missing}; it has {sorted(batch)}")
+
+
+def _flow_of(batch: Batch) -> np.ndarray:
+    _require(batch, ["flow"])
+    flow = batch["flow"]
+    if flow.ndim != 4 or flow.shape[-1] != 2:
+        raise ValueError(f"'flow' must be [B, H, W, 2], got shape {tuple(flow.shape)}")
+    return flow
+
+
+def triangulate_batch(
+    flow: jax.Array,
+    intrinsics1: jax.Array,
+    intrinsics2: jax.Array,
+    rotation: jax.Array,
+    translation: jax.Array,
+    *,
+    min_depth: float = DEFAULT_MIN_DEPTH,
+    fallback_inv_depth: float = layers.INITIAL_INV_DEPTH,
+) -> dict[str, jax.Array]:
+    """Per-pixel linear triangulation of a batch with a given pose (pure, jittable).
+
+    The translation is rescaled to unit norm (the evaluation scale). A pixel is
+    triangulated when its depth is finite, at least `min_depth`, and its point lies in
+    front of camera 2; every other pixel gets the median triangulated inverse depth of
+    its pair (or `fallback_inv_depth` when none of the pair's pixels triangulates).
+
+    Args:
+      flow: [B, H, W, 2] pixels, I1 -> I2.
+      intrinsics1, intrinsics2: [B, 4] normalised.
+      rotation, translation: [B, 3, 3], [B, 3]; X2 = R X1 + t.
+      min_depth: nearest accepted depth, in units of ||t||.
+      fallback_inv_depth: inverse depth of pairs with no triangulated pixel.
+
+    Returns:
+      'inv_depth', 'depth': [B, H, W] positive and finite; 'triangulated': [B, H, W] bool;
+      'untriangulated': [B] int32 count of filled pixels.
+    """
+    height, width = flow.shape[-3:-1]
+    flow = jnp.asarray(flow, jnp.float32)
+    rotation = jnp.asarray(rotation, jnp.float32)
+    translation = jnp.asarray(translation, jnp.float32)
+    camera_matrix1 = geometry.intrinsics_matrix(
+        jnp.asarray(intrinsics1, jnp.float32), height, width
+    )
+    camera_matrix2 = geometry.intrinsics_matrix(
+        jnp.asarray(intrinsics2, jnp.float32), height, width
+    )
+    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
+    unit_translation = translation / jnp.maximum(norm, 1e-12)
+
+    depth = geometry.triangulate_depth(
+        flow, camera_matrix1, camera_matrix2, rotation, unit_translation
+    )
+    safe_depth = jnp.where(jnp.isfinite(depth), depth, 0.0)
+    points2 = geometry.transform_points(
+        geometry.backproject(safe_depth, camera_matrix1), rotation, unit_translation
+    )
+    triangulated = (
+        jnp.isfinite(depth)
+        & (depth >= min_depth)
+        & (points2[..., 2] > 0)
+        & jnp.all(jnp.isfinite(flow), axis=-1)
+        & (norm[..., None] > 1e-12)
+    )
+    inv_depth = jnp.where(triangulated, 1.0 / jnp.where(triangulated, depth, 1.0), jnp.nan)
+    pair_median = jnp.nanmedian(inv_depth, axis=(-2, -1), keepdims=True)
+    pair_median = jnp.where(jnp.isfinite(pair_median), pair_median, fallback_inv_depth)
+    inv_depth = jnp.where(triangulated, inv_depth, pair_median)
+    return {
+        "inv_depth": inv_depth,
+        "depth": 1.0 / inv_depth,
+        "triangulated": triangulated,
+        "untriangulated": jnp.sum(~triangulated, axis=(-2, -1)).astype(jnp.int32),
+    }
+
+
+def _to_numpy(outputs: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    return {key: np.asarray(value) for key, value in outputs.items()}
+
+
+class DatasetMean:
+    """The paper's "Dataset-Mean": the mean training inverse depth, everywhere.
+
+    The mean is over all valid pixels of all training examples, each example's depth
+    scale-normalised so that its translation has norm 1.
+    """
+
+    needs_training_data = True
+
+    def __init__(self, inv_depth: float | None = None):
+        """Args: inv_depth: the mean, if already known (else call `fit`)."""
+        self.inv_depth = inv_depth
+
+    def fit(self, examples: Iterable[Batch]) -> DatasetMean:
+        """Computes the mean from examples or batches with 'depth' [(B,) H, W] (and,
+        where present, 'depth_valid' and 'translation' [(B,) 3])."""
+        inv_depth_sum, pixel_count = 0.0, 0
+        for example in examples:
+            _require(example, ["depth"])
+            depth = np.asarray(example["depth"], np.float64)
+            valid = geometry.valid_depth(depth)
+            if "depth_valid" in example:
+                valid &= np.asarray(example["depth_valid"], bool)
+            inv_depth = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+            if "translation" in example:
+                # Depth / ||t|| is the normalised depth, so inverse depth scales by ||t||.
+                norm = np.linalg.norm(np.asarray(example["translation"], np.float64), axis=-1)
+                inv_depth = inv_depth * np.reshape(norm, norm.shape + (1, 1))
+            inv_depth_sum += float(inv_depth.sum())
+            pixel_count += int(valid.sum())
+        if pixel_count == 0:
+            raise ValueError("no valid depth pixel in the training examples")
+        self.inv_depth = inv_depth_sum / pixel_count
+        return self
+
+    def predict(self, batch: Batch) -> dict[str, np.ndarray]:
+        """Constant map {'inv_depth', 'depth'}: [B, H, W], sized like 'flow'."""
+        batch_size, height, width, _ = _flow_of(batch).shape
+        if self.inv_depth is None:
+            raise ValueError("DatasetMean has no mean yet: call fit(training_examples) first")
+        inv_depth = np.full((batch_size, height, width), self.inv_depth, np.float32)
+        return {"inv_depth": inv_depth, "depth": 1.0 / inv_depth}
+
+
+class TriangulationGtPose:
+    """Per-pixel linear triangulation from the flow and the true pose and intrinsics."""
+
+    needs_training_data = False
+
+    def __init__(
+        self,
+        *,
+        min_depth: float = DEFAULT_MIN_DEPTH,
+        fallback_inv_depth: float = layers.INITIAL_INV_DEPTH,
+    ):
+        self.min_depth = min_depth
+        self.fallback_inv_depth = fallback_inv_depth
+        self._triangulate = jax.jit(
+            triangulate_batch,
+            static_argnames=("min_depth", "fallback_inv_depth"),
+        )
+
+    def fit(self, examples: Iterable[Batch]) -> TriangulationGtPose:
+        del examples
+        return self
+
+    def predict(self, batch: Batch) -> dict[str, np.ndarray]:
+        """{'inv_depth', 'depth', 'triangulated' [B, H, W], 'untriangulated' [B]}."""
+        flow = _flow_of(batch)
+        _require(batch, ["intrinsics1", "intrinsics2", "rotation", "translation"])
+        outputs = self._triangulate(
+            flow,
+            batch["intrinsics1"],
+            batch["intrinsics2"],
+            batch["rotation"],
+            batch["translation"],
+            min_depth=self.min_depth,
+            fallback_inv_depth=self.fallback_inv_depth,
+        )
+        return _to_numpy(outputs)
+
+
+class SfMFlow:
+    """Two-view structure from motion on the flow: essential matrix, pose, triangulation.
+
+    Correspondences are the pixels of a regular grid (at most `max_correspondences`)
+    and their flow targets inside image 2. The essential matrix comes from
+    `cv2.findEssentialMat` (RANSAC) on normalised camera coordinates, so the two views
+    may have different intrinsics; `cv2.recoverPose` picks R, t by cheirality. t has
+    unit norm, which is exactly the evaluation scale (the true ||t|| = 1), so the depth
+    is directly comparable with the ground truth.
+
+    A pair fails when it has too few correspondences, too little parallax (median flow
+    below `min_parallax_pixels`: the pose is then undetermined), no essential matrix, or
+    fewer than `min_inliers` cheirality inliers. A failed pair is flagged in 'failed'
+    and predicted as the constant `fallback_inv_depth`, so it stays in every mean.
+    """
+
+    needs_training_data = False
+
+    def __init__(
+        self,
+        *,
+        ransac_threshold_pixels: float = 1.0,
+        confidence: float = 0.999,
+        max_correspondences: int = 5000,
+        min_inliers: int = 20,
+        min_parallax_pixels: float = 0.5,
+        min_depth: float = DEFAULT_MIN_DEPTH,
+        fallback_inv_depth: float = layers.INITIAL_INV_DEPTH,
+    ):
+        self.ransac_threshold_pixels = ransac_threshold_pixels
+        self.confidence = confidence
+        self.max_correspondences = max_correspondences
+        self.min_inliers = min_inliers
+        self.min_parallax_pixels = min_parallax_pixels
+        self.min_depth = min_depth
+        self.fallback_inv_depth = fallback_inv_depth
+        self._triangulate = jax.jit(
+            triangulate_batch,
+            static_argnames=("min_depth", "fallback_inv_depth"),
+        )
+
+    def fit(self, examples: Iterable[Batch]) -> SfMFlow:
+        del examples
+        return self
+
+    def estimate_pose(
+        self, flow: np.ndarray, camera_matrix1: np.ndarray, camera_matrix2: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """Relative pose of one pair from its flow.
+
+        Args:
+          flow: [H, W, 2] pixels, I1 -> I2.
+          camera_matrix1, camera_matrix2: [3, 3] pixel-index K.
+
+        Returns:
+          rotation [3, 3], unit translation [3] (X2 = R X1 + t), and whether it succeeded
+          (identity and zero translation when not).
+        """
+        failure = np.eye(3), np.zeros(3), False
+        height, width = flow.shape[:2]
+        step = max(1, math.ceil(math.sqrt(height * width / self.max_correspondences)))
+        grid = geometry.pixel_grid(height, width)[step // 2 :: step, step // 2 :: step]
+        grid_flow = np.asarray(flow, np.float64)[step // 2 :: step, step // 2 :: step]
+        targets = grid + grid_flow
+        usable = (
+            np.all(np.isfinite(grid_flow), axis=-1)
+            & (targets[..., 0] >= -0.5)
+            & (targets[..., 0] <= width - 0.5)
+            & (targets[..., 1] >= -0.5)
+            & (targets[..., 1] <= height - 0.5)
+        )
+        if usable.sum() < max(self.min_inliers, 5):
+            return failure
+        if np.median(np.linalg.norm(grid_flow[usable], axis=-1)) < self.min_parallax_pixels:
+            return failure
+
+        def normalised(pixels, camera_matrix):
+            homogeneous = np.concatenate([pixels, np.ones_like(pixels[:, :1])], axis=-1)
+            rays = homogeneous @ np.linalg.inv(camera_matrix).T
+            return np.ascontiguousarray(rays[:, :2] / rays[:, 2:])
+
+        points1 = normalised(grid[usable].astype(np.float64), camera_matrix1)
+        points2 = normalised(targets[usable], camera_matrix2)
+        mean_focal = 0.25 * (
+            camera_matrix1[0, 0]
+            + camera_matrix1[1, 1]
+            + camera_matrix2[0, 0]
+            + camera_matrix2[1, 1]
+        )
+        identity = np.eye(3)
+        essential, ransac_mask = cv2.findEssentialMat(
+            points1,
+            points2,
+            identity,
+            method=cv2.RANSAC,
+            prob=self.confidence,
+            threshold=self.ransac_threshold_pixels / mean_focal,
+        )
+        if essential is None or essential.shape[0] < 3 or not np.all(np.isfinite(essential)):
+            return failure
+        # Several solutions come stacked as [3k, 3]; take the best-supported (first).
+        inlier_count, rotation, translation, _ = cv2.recoverPose(
+            essential[:3], points1, points2, identity, mask=ransac_mask
+        )
+        translation = translation[:, 0]
+        if (
+            inlier_count < self.min_inliers
+            or not np.all(np.isfinite(rotation))
+            or not np.all(np.isfinite(translation))
+        ):
+            return failure
+        return rotation, translation / np.linalg.norm(translation), True
+
+    def predict(self, batch: Batch) -> dict[str, np.ndarray]:
+        """{'inv_depth', 'depth', 'triangulated' [B, H, W], 'untriangulated' [B],
+        'failed' [B] bool, 'rotation' [B, 3, 3], 'translation' [B, 3]} (estimated pose)."""
+        flow = np.asarray(_flow_of(batch), np.float64)
+        _require(batch, ["intrinsics1", "intrinsics2"])
+        batch_size, height, width, _ = flow.shape
+        intrinsics1 = np.asarray(batch["intrinsics1"], np.float64)
+        intrinsics2 = np.asarray(batch["intrinsics2"], np.float64)
+        camera_matrices1 = geometry.intrinsics_matrix(intrinsics1, height, width)
+        camera_matrices2 = geometry.intrinsics_matrix(intrinsics2, height, width)
+        rotations = np.zeros((batch_size, 3, 3))
+        translations = np.zeros((batch_size, 3))
+        failed = np.zeros(batch_size, bool)
+        for index in range(batch_size):
+            rotation, translation, succeeded = self.estimate_pose(
+                flow[index], camera_matrices1[index], camera_matrices2[index]
+            )
+            rotations[index], translations[index], failed[index] = (
+                rotation,
+                translation,
+                not succeeded,
+            )
+        outputs = _to_numpy(
+            self._triangulate(
+                flow.astype(np.float32),
+                intrinsics1.astype(np.float32),
+                intrinsics2.astype(np.float32),
+                rotations.astype(np.float32),
+                translations.astype(np.float32),
+                min_depth=self.min_depth,
+                fallback_inv_depth=self.fallback_inv_depth,
+            )
+        )
+        pair_failed = failed[:, None, None]
+        outputs["inv_depth"] = np.where(
+            pair_failed, np.float32(self.fallback_inv_depth), outputs["inv_depth"]
+        ).astype(np.float32)
+        outputs["depth"] = 1.0 / outputs["inv_depth"]
+        outputs["triangulated"] = outputs["triangulated"] & ~pair_failed
+        outputs["untriangulated"] = np.where(failed, height * width, outputs["untriangulated"])
+        outputs.update(
+            failed=failed,
+            rotation=rotations.astype(np.float32),
+            translation=translations.astype(np.float32),
+        )
+        return outputs
+
+
+CLASSICAL: dict[str, type] = {
+    "dataset_mean": DatasetMean,
+    "triangulation_gt_pose": TriangulationGtPose,
+    "sfm_flow": SfMFlow,
+}
