@@ -32,9 +32,8 @@ class EigenNet(nn.Module):
       hidden_units: width of the fully connected hidden layer (4096).
       fine_features: channels of fine convolutions 1 and 3 (63, 64).
       fine_kernels: kernel sizes of fine convolutions 1, 3 and 4 (9, 5, 5).
-      dropout_rate: dropout after the hidden layer in training (Eigen: 0.5). 0 by
-        default so that training needs no dropout key; with a rate > 0, pass
-        `rngs={"dropout": key}` when `train=True`.
+      dropout_rate: dropout after the hidden layer in training (Eigen: 0.5); with a
+        rate > 0, `train=True` needs `rngs={"dropout": key}` (gld's trainer passes one).
     """
 
     coarse_features: Sequence[int] = (96, 256, 384, 384, 256)
@@ -43,7 +42,7 @@ class EigenNet(nn.Module):
     hidden_units: int = 4096
     fine_features: Sequence[int] = (63, 64)
     fine_kernels: Sequence[int] = (9, 5, 5)
-    dropout_rate: float = 0.0
+    dropout_rate: float = 0.5
 
     @nn.compact
     def __call__(

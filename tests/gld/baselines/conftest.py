@@ -39,7 +39,8 @@ def train_tiny(model, *, height=32, width=32, steps=25, learning_rate=1e-3):
     optimizer = optax.adam(learning_rate)
     opt_state = optimizer.init(params)
 
-    def loss_fn(params, batch_stats):
+    def loss_fn(params, batch_stats, dropout_key):
+        rngs = {"dropout": dropout_key}
         if batch_stats is not None:
             outputs, updates = model.apply(
                 {"params": params, "batch_stats": batch_stats},
@@ -47,23 +48,27 @@ def train_tiny(model, *, height=32, width=32, steps=25, learning_rate=1e-3):
                 image2,
                 flow,
                 train=True,
+                rngs=rngs,
                 mutable=["batch_stats"],
             )
             batch_stats = updates["batch_stats"]
         else:
-            outputs = model.apply({"params": params}, image1, image2, flow, train=True)
+            outputs = model.apply({"params": params}, image1, image2, flow, train=True, rngs=rngs)
         error = jnp.abs(outputs["inv_depth"] - target)
         return jnp.sum(error * mask) / jnp.sum(mask), batch_stats
 
     @jax.jit
-    def step(params, batch_stats, opt_state):
-        (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch_stats)
+    def step(params, batch_stats, opt_state, dropout_key):
+        (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            params, batch_stats, dropout_key
+        )
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), batch_stats, opt_state, loss
 
     losses = []
-    for _ in range(steps):
-        params, batch_stats, opt_state, loss = step(params, batch_stats, opt_state)
+    for index in range(steps):
+        dropout_key = jax.random.key(index, impl=INIT_KEY_IMPL)
+        params, batch_stats, opt_state, loss = step(params, batch_stats, opt_state, dropout_key)
         losses.append(float(loss))
     assert np.all(np.isfinite(losses)), losses
 
