@@ -1,0 +1,246 @@
+r"""Compares depth methods on one dataset: `python -m experiments.compare [--flagfile=...]`.
+
+    python -m experiments.compare --dataset=gld_scenes/small --workdir=runs/compare_small \
+        --gt_pixels=1 --steps=2500 [--models=global_local,dispnet] [--classical=sfm_flow]
+
+Trains every selected learned model (`--models`, gld.model.MODELS) with the same
+budget, seed, loss, optimiser and input pipeline in <workdir>/<model> (a finished run
+is reused, an unfinished one resumed), evaluates them and the classical baselines
+(`--classical`, gld.baselines.CLASSICAL, no training) on the same split with the same
+flow, and writes <workdir>/compare/:
+  table.md      rows = methods; Abs-Inv, Abs-Rel, S-RMSE as mean ± std over examples,
+                the protocol stamp, and each method's parameters, training and failures;
+  results.json  the same numbers (every per-example metric's mean, std and count).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from absl import app, flags
+
+from experiments import common
+
+FLAGS = flags.FLAGS
+
+LEARNED_DEFAULT = ["global_local", "eigen", "dispnet", "fcrn", "small_encdec"]
+CLASSICAL_DEFAULT = ["dataset_mean", "triangulation_gt_pose", "sfm_flow"]
+
+flags.DEFINE_string("workdir", "runs/compare", "Holds one run per model and compare/.")
+flags.DEFINE_list("models", LEARNED_DEFAULT, "Learned models to train and compare.")
+flags.DEFINE_list("classical", CLASSICAL_DEFAULT, "Classical baselines to compare.")
+flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
+flags.DEFINE_integer("batch_size", 16, "Global training batch size.")
+flags.DEFINE_integer("steps", 2500, "Training steps of every learned model.")
+flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
+flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
+flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
+flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
+flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
+flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
+flags.DEFINE_integer("eval_every", 0, "Steps between periodic test evaluations (0: off).")
+flags.DEFINE_integer("eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all.")
+flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
+flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
+flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
+flags.DEFINE_integer("eval_batch_size", 16, "Evaluation batch size (last batch padded).")
+flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
+common.define_data_flags()
+
+
+def _finished_step(workdir: Path) -> int | None:
+    """The last checkpointed step of a run directory, or None."""
+    from gld import train
+
+    if not (workdir / "checkpoints").exists():
+        return None
+    manager = train.checkpoint_manager(workdir)
+    step = manager.latest_step()
+    manager.close()
+    return step
+
+
+def _summarise(per_example: dict[str, Any]) -> tuple[dict[str, dict], int]:
+    from gld import metrics
+
+    per_example = dict(per_example)
+    mask = per_example.pop("example_mask").astype(bool)
+    return metrics.summarise(per_example, mask), int(mask.sum())
+
+
+def run_comparison(
+    *,
+    workdir: str | Path,
+    builder,
+    models: Sequence[str],
+    classical_methods: Sequence[str],
+    train_config: dict[str, Any],
+    split: str = "test",
+    eval_batch_size: int = 16,
+    max_examples: int = 0,
+    print_fn: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Trains (or reuses) each learned model, evaluates all methods, writes the table.
+
+    Args:
+      workdir: <workdir>/<model> holds each model's run, <workdir>/compare the results.
+      builder: the dataset's TFDS builder (built).
+      models: names in gld.model.MODELS.
+      classical_methods: names in gld.baselines.CLASSICAL.
+      train_config: gld.train.TrainConfig fields shared by every model (budget, seed,
+        loss weights, supervision, flow, ...); `model`, dataset and size are set here.
+      split: the evaluation split.
+      eval_batch_size, max_examples: evaluation batching; 0 examples = the whole split.
+      print_fn: progress messages.
+
+    Returns:
+      The content of results.json.
+    """
+    from gld import evaluation, metrics, train
+    from gld import model as model_lib
+    from gld.baselines import CLASSICAL
+
+    for name in models:
+        if name not in model_lib.MODELS:
+            raise ValueError(f"unknown model {name!r}; valid: {sorted(model_lib.MODELS)}")
+    for name in classical_methods:
+        if name not in CLASSICAL:
+            raise ValueError(f"unknown classical method {name!r}; valid: {sorted(CLASSICAL)}")
+    workdir = Path(workdir)
+    height, width = common.dataset_resolution(builder)
+    train_source = common.data_source(builder, "train")
+    eval_source = common.data_source(builder, split)
+    flow = train_config.get("flow", "estimated")
+
+    results: dict[str, dict] = {}
+    runs: dict[str, dict] = {}
+    num_examples = 0
+    for name in models:
+        config = train.TrainConfig(
+            **train_config,
+            model=name,
+            dataset=builder.info.full_name,
+            height=height,
+            width=width,
+        )
+        run_dir = workdir / name
+        done = _finished_step(run_dir)
+        started = time.perf_counter()
+        if done is not None and done >= config.steps:
+            print_fn(f"{name}: reusing the finished run in {run_dir} (step {done})")
+            train_seconds = None
+        else:
+            print_fn(f"{name}: training {config.steps} steps in {run_dir}")
+            train.train_and_evaluate(config, run_dir, train_source, eval_source, print_fn=print_fn)
+            train_seconds = time.perf_counter() - started
+        model, variables, saved = train.load_trained(run_dir)
+        per_example, _ = train.evaluate_source(
+            model,
+            variables,
+            eval_source,
+            batch_size=eval_batch_size,
+            flow=flow,
+            max_examples=max_examples,
+        )
+        results[name], num_examples = _summarise(per_example)
+        runs[name] = {
+            "workdir": str(run_dir),
+            "parameters": model_lib.parameter_counts(variables["params"])["total"],
+            "steps": int(_finished_step(run_dir)),
+            "batch_size": saved.batch_size,
+            "train_seconds": train_seconds,
+        }
+
+    for name in classical_methods:
+        print_fn(f"{name}: evaluating")
+        started = time.perf_counter()
+        method = evaluation.fit_classical(name, train_source, flow)
+        per_example, _ = evaluation.evaluate_predictor(
+            method.predict,
+            eval_source,
+            batch_size=eval_batch_size,
+            flow=flow,
+            max_examples=max_examples,
+        )
+        results[name], num_examples = _summarise(per_example)
+        runs[name] = {"parameters": 0, "steps": 0, "eval_seconds": time.perf_counter() - started}
+        if "failed" in results[name]:
+            failed = results[name]["failed"]
+            runs[name]["failed_pairs"] = round(failed["mean"] * failed["count"])
+
+    budget = (
+        f"learned models: {train_config.get('steps')} steps at batch "
+        f"{train_config.get('batch_size')}, {train_config.get('gt_pixels')} supervised "
+        f"pixel(s) per image, seed {train_config.get('seed')}; {flow} flow for every method"
+    )
+    stamp = metrics.protocol_stamp(height, width, num_examples, extra=budget)
+    report = {
+        "protocol": stamp,
+        "dataset": builder.info.full_name,
+        "split": split,
+        "train_config": dict(train_config),
+        "methods": results,
+        "runs": runs,
+    }
+    out_dir = workdir / "compare"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "results.json").write_text(json.dumps(report, indent=2) + "\n")
+    table = metrics.markdown_table(results.items(), stamp)
+    table += (
+        "\n| method | parameters | steps | train time | failed pairs |\n|---|---|---|---|---|\n"
+    )
+    for name, run in runs.items():
+        if name in classical_methods:
+            train_time = "none"
+        elif run["train_seconds"] is None:
+            train_time = "reused"
+        else:
+            train_time = f"{run['train_seconds']:.0f} s"
+        failed_pairs = run.get("failed_pairs", "—")
+        table += (
+            f"| {name} | {run['parameters']:,} | {run['steps']} | {train_time} | {failed_pairs} |\n"
+        )
+    (out_dir / "table.md").write_text(table)
+    print_fn(table)
+    return report
+
+
+def main(argv):
+    del argv
+    common.initialise()
+    builder = common.prepare_dataset()
+    train_config = {
+        "batch_size": FLAGS.batch_size,
+        "steps": FLAGS.steps,
+        "learning_rate": FLAGS.learning_rate,
+        "depth_weight": FLAGS.depth_weight,
+        "smoothness_weight": FLAGS.smoothness_weight,
+        "gt_pixels": FLAGS.gt_pixels,
+        "flow": FLAGS.flow,
+        "augment": FLAGS.augment,
+        "seed": FLAGS.seed,
+        "log_every": FLAGS.log_every,
+        "eval_every": FLAGS.eval_every,
+        "eval_examples": FLAGS.eval_examples,
+        "checkpoint_every": FLAGS.checkpoint_every,
+        "worker_count": FLAGS.worker_count,
+    }
+    common.write_flags(FLAGS.workdir)
+    run_comparison(
+        workdir=FLAGS.workdir,
+        builder=builder,
+        models=FLAGS.models,
+        classical_methods=FLAGS.classical,
+        train_config=train_config,
+        split=FLAGS.split,
+        eval_batch_size=FLAGS.eval_batch_size,
+        max_examples=FLAGS.max_examples,
+    )
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,65 @@
+"""`python -m experiments.compare` trains, evaluates and tabulates on the tiny benchmark."""
+
+import json
+import os
+import subprocess
+import sys
+
+from conftest import REPO_ROOT
+
+
+def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path):
+    workdir = tmp_path / "compare"
+    command = [
+        sys.executable,
+        "-m",
+        "experiments.compare",
+        "--dataset=gld_scenes/tiny",
+        f"--data_dir={tiny_scenes_dir}",
+        f"--workdir={workdir}",
+        "--models=small_encdec",
+        "--classical=dataset_mean,triangulation_gt_pose,sfm_flow",
+        "--steps=2",
+        "--batch_size=4",
+        "--checkpoint_every=2",
+        "--log_every=1",
+        "--flow=gt",
+    ]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+
+    def launch(*extra):
+        result = subprocess.run(
+            [*command, *extra], capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        return result
+
+    first = launch()
+    assert "small_encdec: training 2 steps" in first.stdout
+    table = (workdir / "compare" / "table.md").read_text()
+    for row in ("small_encdec", "dataset_mean", "triangulation_gt_pose", "sfm_flow"):
+        assert f"| {row} |" in table
+    assert "Abs-Inv" in table and "protocol:" in table and "2 steps at batch 4" in table
+    assert "| small_encdec | 384,367 | 2 |" in table
+
+    results = json.loads((workdir / "compare" / "results.json").read_text())
+    methods = results["methods"]
+    num_test = methods["dataset_mean"]["abs_inv"]["count"]
+    assert num_test == 16
+    # Every method is averaged over the same examples; failed SfM pairs stay in the mean.
+    for name, summary in methods.items():
+        assert summary["abs_inv"]["count"] == num_test, name
+    assert methods["sfm_flow"]["failed"]["count"] == num_test
+    assert 0 <= results["runs"]["sfm_flow"]["failed_pairs"] <= num_test
+    # With exact flow and pose, triangulation is far better than the dataset mean.
+    triangulation = methods["triangulation_gt_pose"]["abs_inv"]["mean"]
+    assert triangulation < 0.1 * methods["dataset_mean"]["abs_inv"]["mean"]
+
+    # Re-running reuses the finished run (the classical rows are left out to save time).
+    second = launch("--classical=")
+    assert "small_encdec: reusing the finished run" in second.stdout
+    again = json.loads((workdir / "compare" / "results.json").read_text())
+    assert again["methods"]["small_encdec"] == methods["small_encdec"]
+    assert (
+        "| small_encdec | 384,367 | 2 | reused |" in (workdir / "compare" / "table.md").read_text()
+    )
