@@ -63,3 +63,28 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
     assert (
         "| small_encdec | 384,367 | 2 | reused |" in (workdir / "compare" / "table.md").read_text()
     )
+
+
+def test_compare_flagfiles_parse_with_the_compare_flags():
+    # A fresh interpreter: the compare launcher's flags share names with the trainer's.
+    script = (
+        "import sys; from absl import flags; import experiments.compare; "
+        "import data; FLAGS = flags.FLAGS\n"
+        "for path in sys.argv[1:]:\n"
+        "    FLAGS(['compare', '--flagfile=' + path]); data.parse_name(FLAGS.dataset)\n"
+        "    assert FLAGS.workdir.startswith('runs/compare_'), FLAGS.workdir\n"
+        "    assert FLAGS.models == experiments.compare.LEARNED_DEFAULT\n"
+        "    FLAGS.unparse_flags()\n"
+    )
+    paths = sorted(str(p) for p in (REPO_ROOT / "experiments" / "flags").glob("compare_*.flags"))
+    assert len(paths) >= 3
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    result = subprocess.run(
+        [sys.executable, "-c", script, *paths],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
