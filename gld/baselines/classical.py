@@ -215,10 +215,10 @@ class SfMFlow:
     A pair fails when it has too few correspondences, too little parallax (median flow
     below `min_parallax_pixels`: the pose is then undetermined), no essential matrix, or
     fewer than `min_inliers` cheirality inliers. A failed pair is flagged in 'failed'
-    and predicted as the constant `fallback_inv_depth`, so it stays in every mean.
+    and predicted as the constant `fallback_inv_depth` (by default the training set's
+    mean inverse depth, the Dataset-Mean prediction, computed by `fit`), so it stays in
+    every mean.
     """
-
-    needs_training_data = False
 
     def __init__(
         self,
@@ -229,8 +229,11 @@ class SfMFlow:
         min_inliers: int = 20,
         min_parallax_pixels: float = 0.5,
         min_depth: float = DEFAULT_MIN_DEPTH,
-        fallback_inv_depth: float = layers.INITIAL_INV_DEPTH,
+        fallback_inv_depth: float | None = None,
     ):
+        """Args: see the class docstring; `fallback_inv_depth=None` means the training
+        mean (then `needs_training_data` is True and `fit` must be called first)."""
+        self.needs_training_data = fallback_inv_depth is None
         self.ransac_threshold_pixels = ransac_threshold_pixels
         self.confidence = confidence
         self.max_correspondences = max_correspondences
@@ -244,7 +247,8 @@ class SfMFlow:
         )
 
     def fit(self, examples: Iterable[Batch]) -> SfMFlow:
-        del examples
+        """Sets the fallback of failed pairs to the examples' mean inverse depth."""
+        self.fallback_inv_depth = DatasetMean().fit(examples).inv_depth
         return self
 
     def estimate_pose(
@@ -320,6 +324,11 @@ class SfMFlow:
         'failed' [B] bool, 'rotation' [B, 3, 3], 'translation' [B, 3]} (estimated pose)."""
         flow = np.asarray(_flow_of(batch), np.float64)
         _require(batch, ["intrinsics1", "intrinsics2"])
+        if self.fallback_inv_depth is None:
+            raise ValueError(
+                "SfMFlow has no fallback for failed pairs: call fit(training_examples) or "
+                "pass fallback_inv_depth"
+            )
         batch_size, height, width, _ = flow.shape
         intrinsics1 = np.asarray(batch["intrinsics1"], np.float64)
         intrinsics2 = np.asarray(batch["intrinsics2"], np.float64)

@@ -79,7 +79,7 @@ def test_points_behind_the_camera_are_not_triangulated():
 
 def test_sfm_on_exact_flow_recovers_pose_and_depth():
     batch = _scene_batch(seed=4)
-    outputs = classical.SfMFlow().predict(batch)
+    outputs = classical.SfMFlow(fallback_inv_depth=0.1).predict(batch)
     assert not outputs["failed"].any()
     rotation_error = geometry.rotation_error_degrees(outputs["rotation"], batch["rotation"])
     assert np.all(rotation_error < 1.0), rotation_error
@@ -96,7 +96,12 @@ def test_sfm_on_exact_flow_recovers_pose_and_depth():
 def test_sfm_failure_is_flagged_and_predicted_not_dropped():
     batch = _scene_batch(seed=5)
     batch["flow"][1] = 0.0  # no parallax: the pose is undetermined
-    method = classical.SfMFlow(fallback_inv_depth=0.25)
+    method = classical.SfMFlow()
+    assert method.needs_training_data
+    with pytest.raises(ValueError, match="call fit"):
+        method.predict(batch)
+    # The fallback is the training mean inverse depth: 1/4 here.
+    method.fit([{"depth": np.full((3, 4, 4), 4.0)}])
     outputs = method.predict(batch)
     np.testing.assert_array_equal(outputs["failed"], [False, True])
     assert outputs["inv_depth"].shape == (2, HEIGHT, WIDTH)
