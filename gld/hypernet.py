@@ -359,6 +359,36 @@ def _kernel_grad_im2col(image: jax.Array, cotangent: jax.Array, kernel: jax.Arra
     return jnp.einsum("hwp,hwd->pd", patches, cotangent).reshape(kernel.shape)
 
 
+def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC kernel gradient as one plain convolution that XLA hands to its fast conv.
+
+    The correlation of the padded image with the cotangent is a VALID conv whose
+    "batch" is the smaller of C_in and C_out and whose "kernel" is the other tensor
+    (spatial size H x W); its output is the k x k filter gradient. XLA's own
+    filter-gradient conv at batch 1 is much slower.
+
+    image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
+    """
+    pad = kernel.shape[0] // 2
+    c_in, c_out = kernel.shape[2:]
+    if c_in <= c_out:
+        padded = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)))
+        lhs = padded.transpose(2, 0, 1)[..., None]  # [C_in, H + 2p, W + 2p, 1]
+        out = _conv_valid(lhs, cotangent[:, :, None, :])  # [C_in, k, k, C_out]
+        return out.transpose(1, 2, 0, 3)
+    # Correlating the padded cotangent with the image gives the flipped gradient.
+    padded = jnp.pad(cotangent, ((pad, pad), (pad, pad), (0, 0)))
+    lhs = padded.transpose(2, 0, 1)[..., None]  # [C_out, H + 2p, W + 2p, 1]
+    out = _conv_valid(lhs, image[:, :, None, :])  # [C_out, k, k, C_in]
+    return jnp.flip(out.transpose(1, 2, 3, 0), (0, 1))
+
+
+def _conv_valid(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
+    return lax.conv_general_dilated(
+        inputs, kernel, (1, 1), "VALID", dimension_numbers=_DIMENSION_NUMBERS
+    )
+
+
 def _input_grad_conv(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """NHWC input gradient: conv with the flipped, io-transposed kernel."""
     return _conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
@@ -495,9 +525,11 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "map_conv": _map_conv_formulation,
     "map_im2col": _map_im2col_formulation,
     "shifted": _shifted_formulation,
-    # custom_vjp, lax.map of the stack: conv forward and input gradient, kernel gradient
-    # as k*k per-tap matmuls ("fused") or one im2col matmul ("fused_im2col").
-    "fused": _fused(_nhwc_backend(_kernel_grad_taps)),
+    # custom_vjp, lax.map of the stack: conv forward and input gradient; kernel gradient
+    # as a plain conv with channels as batch ("fused"), as k*k per-tap matmuls over
+    # pixels ("fused_taps") or as one im2col matmul ("fused_im2col").
+    "fused": _fused(_nhwc_backend(_kernel_grad_conv)),
+    "fused_taps": _fused(_nhwc_backend(_kernel_grad_taps)),
     "fused_im2col": _fused(_nhwc_backend(_kernel_grad_im2col)),
     # custom_vjp, lax.map of the stack in channel-major layout, everything as
     # [C_out, k*k*C_in] x [k*k*C_in, H*W] matmuls.

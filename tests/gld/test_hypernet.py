@@ -32,21 +32,21 @@ def _loop_reference(filter_banks, inputs, negative_slope):
     return jnp.stack(outputs)
 
 
-def _random_banks(key, batch_size, kernel_size=3, bank_channels=BANK_CHANNELS):
+def _random_banks(seed, batch_size, kernel_size=3, bank_channels=BANK_CHANNELS):
+    rng = np.random.default_rng(seed)
     banks = []
     channels = [IN_CHANNELS, *bank_channels]
     for c_in, c_out in zip(channels[:-1], channels[1:], strict=True):
-        key, kernel_key, bias_key = jax.random.split(key, 3)
-        kernel = jax.random.normal(kernel_key, (batch_size, kernel_size, kernel_size, c_in, c_out))
-        kernel = kernel / np.sqrt(kernel_size * kernel_size * c_in)
-        bias = 0.3 * jax.random.normal(bias_key, (batch_size, c_out))
-        banks.append(FilterBank(kernel, bias))
+        shape = (batch_size, kernel_size, kernel_size, c_in, c_out)
+        kernel = rng.normal(size=shape) / np.sqrt(kernel_size * kernel_size * c_in)
+        bias = 0.3 * rng.normal(size=(batch_size, c_out))
+        banks.append(FilterBank(jnp.asarray(kernel, jnp.float32), jnp.asarray(bias, jnp.float32)))
     return banks
 
 
 def _loss_fn(formulation_fn):
     # A fixed random projection makes every output element matter to the gradient.
-    weights = jax.random.normal(jax.random.PRNGKey(7), (3, 6, 7, BANK_CHANNELS[-1]))
+    weights = np.random.default_rng(7).normal(size=(3, 6, 7, BANK_CHANNELS[-1])).astype(np.float32)
 
     def loss(banks, inputs):
         return jnp.sum(formulation_fn(banks, inputs) * weights)
@@ -60,27 +60,43 @@ def test_output_size_matches_paper_defaults():
     assert hypernet.hypernet_output_size(2, (3, 1), 5) == 25 * 6 + 3 + 25 * 3 + 1
 
 
+SLOPE = 0.2
+
+
+@pytest.fixture(scope="module")
+def reference_case():
+    """Inputs, banks, and the loop reference's outputs and gradients (computed once)."""
+    inputs = jnp.asarray(np.random.default_rng(0).normal(size=(3, 6, 7, IN_CHANNELS)), jnp.float32)
+    banks = _random_banks(1, 3)
+    reference = lambda banks, inputs: _loop_reference(banks, inputs, SLOPE)
+    outputs = jax.jit(reference)(banks, inputs)
+    grads = jax.jit(jax.grad(_loss_fn(reference), argnums=(0, 1)))(banks, inputs)
+    return inputs, banks, outputs, grads
+
+
+def _assert_bank_grads_equal(got, want):
+    for got_bank, want_bank in zip(got, want, strict=True):
+        np.testing.assert_allclose(got_bank.kernel, want_bank.kernel, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(got_bank.bias, want_bank.bias, rtol=1e-4, atol=1e-4)
+
+
 @pytest.mark.parametrize("formulation", sorted(hypernet.FORMULATIONS))
-def test_formulation_matches_loop_of_plain_convs(formulation):
-    inputs = jax.random.normal(jax.random.PRNGKey(0), (3, 6, 7, IN_CHANNELS))
-    banks = _random_banks(jax.random.PRNGKey(1), 3)
-    slope = 0.2
+def test_formulation_matches_loop_of_plain_convs(formulation, reference_case):
+    inputs, banks, expected_outputs, expected_grads = reference_case
 
     def apply(banks, inputs):
         return hypernet.apply_filter_banks(
-            banks, inputs, formulation=formulation, negative_slope=slope
+            banks, inputs, formulation=formulation, negative_slope=SLOPE
         )
 
-    reference = lambda banks, inputs: _loop_reference(banks, inputs, slope)
     np.testing.assert_allclose(
-        jax.jit(apply)(banks, inputs), reference(banks, inputs), rtol=1e-4, atol=1e-5
+        jax.jit(apply)(banks, inputs), expected_outputs, rtol=1e-4, atol=1e-5
     )
-    grads = jax.jit(jax.grad(_loss_fn(apply), argnums=(0, 1)))(banks, inputs)
-    expected = jax.grad(_loss_fn(reference), argnums=(0, 1))(banks, inputs)
-    for got_bank, want_bank in zip(grads[0], expected[0], strict=True):
-        np.testing.assert_allclose(got_bank.kernel, want_bank.kernel, rtol=1e-4, atol=1e-4)
-        np.testing.assert_allclose(got_bank.bias, want_bank.bias, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(grads[1], expected[1], rtol=1e-4, atol=1e-4)
+    bank_grads, input_grads = jax.jit(jax.grad(_loss_fn(apply), argnums=(0, 1)))(banks, inputs)
+    _assert_bank_grads_equal(bank_grads, expected_grads[0])
+    np.testing.assert_allclose(input_grads, expected_grads[1], rtol=1e-4, atol=1e-4)
+    # Inputs that are data (as in the model): only the banks are differentiated.
+    _assert_bank_grads_equal(jax.jit(jax.grad(_loss_fn(apply)))(banks, inputs), expected_grads[0])
 
 
 def test_hypernetwork_shapes_and_initial_modulation():
@@ -149,7 +165,7 @@ def test_default_formulation_is_registered():
     ],
 )
 def test_apply_filter_banks_rejects_bad_shapes(change, message):
-    banks = _random_banks(jax.random.PRNGKey(0), 2)
+    banks = _random_banks(0, 2)
     inputs = jnp.zeros((2, 6, 7, IN_CHANNELS))
     bad_banks, bad_inputs = change(banks, inputs)
     with pytest.raises(ValueError, match=message):
