@@ -19,14 +19,14 @@ flags.DEFINE_string("model", "global_local", "Model name (gld.model.MODELS).")
 flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
 flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
 flags.DEFINE_integer("batch_size", 16, "Global batch size.")
-flags.DEFINE_integer("steps", 2500, "Training steps (the paper: 94000 at 256x192).")
+flags.DEFINE_integer("steps", 2000, "Training steps (the paper: 94000 at 256x192).")
 flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
 flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
 flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
 flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
 flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
 flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
-flags.DEFINE_integer("eval_every", 500, "Steps between evaluations on the test split (0: off).")
+flags.DEFINE_integer("eval_every", 1000, "Steps between evaluations on the test split (0: off).")
 flags.DEFINE_integer("eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all.")
 flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
 flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
@@ -42,6 +42,9 @@ flags.DEFINE_bool("use_image_pair", True, "Ablation switch: image pair into the 
 flags.DEFINE_bool("use_coordinates", True, "Ablation switch: CoordConv channels.")
 flags.DEFINE_bool("use_global_module", True, "Ablation switch: filters generated from g.")
 flags.DEFINE_bool("use_flow", True, "Ablation switch: optical flow as the local input.")
+flags.DEFINE_enum(
+    "local_flow_units", "normalised", ["normalised", "pixels"], "Units of the local network flow."
+)
 flags.DEFINE_string(
     "filter_formulation", None, "apply_filter_banks formulation (default: fastest here)."
 )
@@ -63,6 +66,7 @@ def model_config_from_flags() -> dict:
         "use_coordinates": FLAGS.use_coordinates,
         "use_global_module": FLAGS.use_global_module,
         "use_flow": FLAGS.use_flow,
+        "local_flow_units": FLAGS.local_flow_units,
     }
     if FLAGS.filter_formulation:
         config["filter_formulation"] = FLAGS.filter_formulation

@@ -32,6 +32,9 @@ class GlobalLocal(nn.Module):
       use_coordinates: append x, y in [-1, 1] to the local input (ablation: no CoordConv).
       use_global_module: generate filters from g (ablation: static learned filters).
       use_flow: use optical flow (ablation: the image pair replaces the flow everywhere).
+      local_flow_units: "normalised" divides the local network's flow by the image size,
+        like the global input; "pixels" feeds it in pixels, as the PyTorch reference does
+        (on gld_scenes/small it learned slower: test Abs-Inv 0.0382 vs 0.0336 at step 1000).
       filter_formulation: how per-example banks are applied (see `gld.hypernet`);
         None picks the fastest for the platform.
     """
@@ -45,6 +48,7 @@ class GlobalLocal(nn.Module):
     use_coordinates: bool = True
     use_global_module: bool = True
     use_flow: bool = True
+    local_flow_units: str = "normalised"
     filter_formulation: str | None = None
 
     @property
@@ -74,8 +78,12 @@ class GlobalLocal(nn.Module):
         image_pair = jnp.concatenate([image1, image2], axis=-1)
         normalised_flow = layers.normalise_flow(flow)
 
+        if self.local_flow_units not in ("pixels", "normalised"):
+            raise ValueError(
+                f"local_flow_units must be 'pixels' or 'normalised', got {self.local_flow_units!r}"
+            )
         if self.use_flow:
-            local_inputs = normalised_flow
+            local_inputs = flow if self.local_flow_units == "pixels" else normalised_flow
             global_inputs = (
                 jnp.concatenate([image_pair, normalised_flow], axis=-1)
                 if self.use_image_pair
@@ -142,6 +150,7 @@ ARCHITECTURE_FIELDS = (
     "use_coordinates",
     "use_global_module",
     "use_flow",
+    "local_flow_units",
 )
 
 

@@ -108,3 +108,20 @@ def test_bad_inputs_are_named():
         model.apply(variables, image1, image2[:, :10], flow)
     with pytest.raises(ValueError, match="unknown model"):
         model_lib.make_model("resnet9000")
+
+
+def test_local_flow_units_scale_only_the_local_input():
+    image1, image2, flow = _inputs()
+    normalised = model_lib.GlobalLocal()
+    pixels = model_lib.GlobalLocal(local_flow_units="pixels")
+    variables = normalised.init(jax.random.key(0), image1, image2, flow)
+    # same parameters; the pixel model sees flow * [W, H] where the other sees flow
+    scaled = flow / jnp.asarray([32.0, 24.0])
+    a = pixels.apply(variables, image1, image2, flow)
+    b = normalised.apply(variables, image1, image2, flow)
+    assert not np.allclose(a["inv_depth"], b["inv_depth"])
+    np.testing.assert_allclose(a["global_params"], b["global_params"], rtol=1e-6)
+    with pytest.raises(ValueError, match="local_flow_units"):
+        model_lib.GlobalLocal(local_flow_units="metres").init(
+            jax.random.key(0), image1, image2, scaled
+        )
