@@ -7,8 +7,14 @@ from conftest import REPO_ROOT
 
 def _build(*args):
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    return subprocess.run([sys.executable, "-m", "data.build", *args], capture_output=True,
-                          text=True, env=env, cwd=REPO_ROOT, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "data.build", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=300,
+    )
 
 
 def test_build_command_builds_and_reports(tmp_path):

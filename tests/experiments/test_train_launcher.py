@@ -20,15 +20,23 @@ TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2"]
 def _launch(args, data_dir, **kwargs):
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
     command = [sys.executable, "-m", *args, "--dataset=gld_scenes/tiny", f"--data_dir={data_dir}"]
-    return subprocess.run(command, capture_output=True, text=True, env=env, cwd=REPO_ROOT,
-                          timeout=600, **kwargs)
+    return subprocess.run(
+        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600, **kwargs
+    )
 
 
 def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "run"
     result = _launch(
-        ["experiments.train", f"--workdir={workdir}", "--steps=6", "--checkpoint_every=3",
-         "--eval_every=3", "--num_figures=2", *TINY_FLAGS],
+        [
+            "experiments.train",
+            f"--workdir={workdir}",
+            "--steps=6",
+            "--checkpoint_every=3",
+            "--eval_every=3",
+            "--num_figures=2",
+            *TINY_FLAGS,
+        ],
         tiny_scenes_dir,
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -37,13 +45,20 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     train_records = [r for r in records if r["split"] == "train"]
     assert [r["step"] for r in train_records] == [2, 4, 6]
-    for key in ("loss", "depth_l1", "smoothness", "learning_rate", "steps_per_sec",
-                "examples_per_sec"):
+    for key in (
+        "loss",
+        "depth_l1",
+        "smoothness",
+        "learning_rate",
+        "steps_per_sec",
+        "examples_per_sec",
+    ):
         assert all(np.isfinite(r[key]) for r in train_records), key
     assert [r["step"] for r in records if r["split"] == "test"] == [3, 6]
     assert list((workdir / "tensorboard").glob("events.out.tfevents.*"))
     assert sorted(p.name for p in (workdir / "checkpoints").iterdir() if p.name.isdigit()) == [
-        "3", "6"
+        "3",
+        "6",
     ]
     report = json.loads((workdir / "eval" / "metrics.json").read_text())
     assert set(report["methods"]) == {"global_local", "dataset_mean"}
@@ -64,8 +79,7 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     assert refused.returncode != 0 and "global_dim" in refused.stderr
 
     inspected = _launch(
-        ["experiments.inspect_filters", f"--workdir={workdir}", "--num_pairs=4",
-         "--num_figures=2"],
+        ["experiments.inspect_filters", f"--workdir={workdir}", "--num_pairs=4", "--num_figures=2"],
         tiny_scenes_dir,
     )
     assert inspected.returncode == 0, inspected.stderr[-3000:]
@@ -75,20 +89,34 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     assert len(list((workdir / "filters").glob("*.png"))) == 2
 
     # evaluate re-runs on the workdir alone
-    evaluated = _launch(["experiments.evaluate", f"--workdir={workdir}", "--num_figures=0"],
-                        tiny_scenes_dir)
+    evaluated = _launch(
+        ["experiments.evaluate", f"--workdir={workdir}", "--num_figures=0"], tiny_scenes_dir
+    )
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
 
 
 def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_dir, tmp_path):
-    common = ["experiments.train", "--steps=60", "--checkpoint_every=5", "--eval_every=0",
-              "--final_eval=false", *TINY_FLAGS]
+    common = [
+        "experiments.train",
+        "--steps=60",
+        "--checkpoint_every=5",
+        "--eval_every=0",
+        "--final_eval=false",
+        *TINY_FLAGS,
+    ]
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
     killed_dir = tmp_path / "killed"
-    command = [sys.executable, "-m", *common, f"--workdir={killed_dir}",
-               "--dataset=gld_scenes/tiny", f"--data_dir={tiny_scenes_dir}"]
-    process = subprocess.Popen(command, env=env, cwd=REPO_ROOT, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
+    command = [
+        sys.executable,
+        "-m",
+        *common,
+        f"--workdir={killed_dir}",
+        "--dataset=gld_scenes/tiny",
+        f"--data_dir={tiny_scenes_dir}",
+    ]
+    process = subprocess.Popen(
+        command, env=env, cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     checkpoints = killed_dir / "checkpoints"
     deadline = time.time() + 300
     while time.time() < deadline and process.poll() is None:
@@ -110,7 +138,8 @@ def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_di
     _, straight_vars, _ = train.load_trained(tmp_path / "straight")
     jax.tree_util.tree_map(
         lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
-        resumed_vars, straight_vars,
+        resumed_vars,
+        straight_vars,
     )
 
 
@@ -118,8 +147,13 @@ def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_di
 def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
     workdir = tmp_path / method
     result = _launch(
-        ["experiments.evaluate", f"--model={method}", f"--workdir={workdir}", "--flow=gt",
-         "--num_figures=1"],
+        [
+            "experiments.evaluate",
+            f"--model={method}",
+            f"--workdir={workdir}",
+            "--flow=gt",
+            "--num_figures=1",
+        ],
         tiny_scenes_dir,
     )
     assert result.returncode == 0, result.stderr[-3000:]

@@ -40,7 +40,10 @@ def test_triangulation_is_jittable_and_batched():
     translation = np.array([[0.3, 0.0, 0.1], [-0.2, 0.1, 0.3]], np.float32)
     flow, _ = geometry.depth_to_flow(depth, k, k, rotation, translation)
     recovered = geometry.triangulate_depth(
-        jnp.asarray(flow), jnp.asarray(k), jnp.asarray(k), jnp.asarray(rotation),
+        jnp.asarray(flow),
+        jnp.asarray(k),
+        jnp.asarray(k),
+        jnp.asarray(rotation),
         jnp.asarray(translation),
     )
     np.testing.assert_allclose(np.asarray(recovered), depth, rtol=2e-3)

@@ -41,7 +41,9 @@ def test_examples_without_valid_pixels_are_marked_and_summary_ignores_padding():
 
 def test_pose_errors():
     rotation = np.eye(3)[None]
-    errors = metrics.pose_errors(rotation, np.array([[0, 0, 1.0]]), rotation, np.array([[0, 1, 0.0]]))
+    errors = metrics.pose_errors(
+        rotation, np.array([[0, 0, 1.0]]), rotation, np.array([[0, 1, 0.0]])
+    )
     assert float(errors["rotation_deg"][0]) == pytest.approx(0.0, abs=1e-5)
     assert float(errors["translation_deg"][0]) == pytest.approx(90.0)
 

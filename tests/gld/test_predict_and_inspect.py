@@ -11,11 +11,23 @@ from gld.predict import DepthPredictor
 def trained_workdir(tiny_scenes, tmp_path_factory):
     workdir = tmp_path_factory.mktemp("trained")
     config = train.TrainConfig(
-        model_config=dict(TINY_MODEL), batch_size=4, steps=2, log_every=1, eval_every=0,
-        checkpoint_every=2, dataset="gld_scenes/tiny", height=48, width=64,
+        model_config=dict(TINY_MODEL),
+        batch_size=4,
+        steps=2,
+        log_every=1,
+        eval_every=0,
+        checkpoint_every=2,
+        dataset="gld_scenes/tiny",
+        height=48,
+        width=64,
     )
-    train.train_and_evaluate(config, workdir, tiny_scenes.as_data_source("train"),
-                             progress=False, print_fn=lambda _: None)
+    train.train_and_evaluate(
+        config,
+        workdir,
+        tiny_scenes.as_data_source("train"),
+        progress=False,
+        print_fn=lambda _: None,
+    )
     return workdir
 
 
@@ -38,8 +50,9 @@ def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_wor
     images1 = test_batch["image1"] + 0.5
     images2 = test_batch["image2"] + 0.5
     batched = predictor.predict(images1, images2, flow=test_batch["flow"])
-    direct = predictor.model.apply(predictor.variables, test_batch["image1"],
-                                   test_batch["image2"], test_batch["flow"])
+    direct = predictor.model.apply(
+        predictor.variables, test_batch["image1"], test_batch["image2"], test_batch["flow"]
+    )
     np.testing.assert_allclose(batched["depth"], np.asarray(direct["depth"]), rtol=1e-4)
     assert batched["global_params"].shape == (4, 6)
 
@@ -64,7 +77,9 @@ def test_filter_inspection(trained_workdir, test_batch, tmp_path):
     inspected = inspect_lib.filter_banks(variables, test_batch, model=model)
     assert inspected["global_params"].shape == (4, 6)
     assert [k.shape for k in inspected["kernels"]] == [
-        (4, 3, 3, 4, 20), (4, 3, 3, 20, 10), (4, 3, 3, 10, 20)
+        (4, 3, 3, 4, 20),
+        (4, 3, 3, 20, 10),
+        (4, 3, 3, 10, 20),
     ]
     similarity = inspect_lib.filter_similarity(inspected["kernels"], inspected["biases"])
     np.testing.assert_allclose(np.diag(similarity), 1.0, rtol=1e-5)

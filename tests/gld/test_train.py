@@ -15,8 +15,15 @@ from gld import model as model_lib
 
 def _config(**overrides):
     values = dict(
-        model_config=dict(TINY_MODEL), batch_size=4, steps=4, log_every=2, eval_every=0,
-        checkpoint_every=2, dataset="gld_scenes/tiny", height=48, width=64,
+        model_config=dict(TINY_MODEL),
+        batch_size=4,
+        steps=4,
+        log_every=2,
+        eval_every=0,
+        checkpoint_every=2,
+        dataset="gld_scenes/tiny",
+        height=48,
+        width=64,
     )
     values.update(overrides)
     return train.TrainConfig(**values)
@@ -35,7 +42,10 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
     good = _params_of(tmp_path)
     with pytest.raises(train.NonFiniteLossError, match="at step 5"):
         train.train_and_evaluate(
-            _config(steps=8, depth_weight=float("nan")), tmp_path, source, progress=False,
+            _config(steps=8, depth_weight=float("nan")),
+            tmp_path,
+            source,
+            progress=False,
             print_fn=lambda _: None,
         )
     manager = train.checkpoint_manager(tmp_path)
@@ -123,10 +133,17 @@ SHARDED_SCRIPT = textwrap.dedent(
 
 
 def test_four_device_step_equals_one_device_step(tmp_path):
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(REPO_ROOT),
+    )
     result = subprocess.run(
-        [sys.executable, "-c", SHARDED_SCRIPT], capture_output=True, text=True, env=env,
+        [sys.executable, "-c", SHARDED_SCRIPT],
+        capture_output=True,
+        text=True,
+        env=env,
         timeout=300,
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -164,17 +181,28 @@ def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
     workers = [
         subprocess.Popen(
-            [sys.executable, "-c", TWO_PROCESS_SCRIPT, address, str(index), str(tiny_scenes_dir),
-             str(tmp_path / "run")],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            [
+                sys.executable,
+                "-c",
+                TWO_PROCESS_SCRIPT,
+                address,
+                str(index),
+                str(tiny_scenes_dir),
+                str(tmp_path / "run"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
         )
         for index in range(2)
     ]
     outputs = [worker.communicate(timeout=300) for worker in workers]
     for worker, (stdout, stderr) in zip(workers, outputs, strict=True):
         assert worker.returncode == 0, stderr[-3000:]
-    lines = [next(l for l in out.splitlines() if l.startswith("PARAMS")).split()
-             for out, _ in outputs]
+    lines = [
+        next(l for l in out.splitlines() if l.startswith("PARAMS")).split() for out, _ in outputs
+    ]
     assert [line[1] for line in lines] == ["0", "1"]
     assert all(line[2] == "2" and line[3] == "2" for line in lines)  # 2 processes, 2 devices
     assert lines[0][4] == lines[1][4]
