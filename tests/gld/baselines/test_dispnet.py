@@ -1,3 +1,4 @@
+import baseline_checks
 import jax
 import jax.numpy as jnp
 
@@ -7,8 +8,8 @@ from gld.baselines.dispnet import DispNet
 NARROW = dict(encoder_features=(8, 8, 16, 16, 16, 32), decoder_features=(16, 16, 8, 8, 8))
 
 
-def test_shapes_at_paper_size(model_checks):
-    outputs = model_checks.output_shapes(DispNet(), 192, 256)
+def test_shapes_at_paper_size():
+    outputs = baseline_checks.output_shapes(DispNet(), 192, 256)
     # pr2 ... pr6 at 1/4 ... 1/64 resolution, finest first.
     assert [scale.shape for scale in outputs["inv_depth_pyramid"]] == [
         (2, 48, 64),
@@ -19,8 +20,8 @@ def test_shapes_at_paper_size(model_checks):
     ]
 
 
-def test_sizes_not_divisible_by_64_are_cropped_to_the_skips(model_checks):
-    outputs = model_checks.output_shapes(DispNet(), 20, 28)
+def test_sizes_not_divisible_by_64_are_cropped_to_the_skips():
+    outputs = baseline_checks.output_shapes(DispNet(), 20, 28)
     assert [scale.shape[1:] for scale in outputs["inv_depth_pyramid"]] == [
         (5, 7),
         (3, 4),
@@ -42,7 +43,7 @@ def test_original_layer_sizes():
     assert baselines.LEARNED["dispnet"] is DispNet
 
 
-def test_training_lowers_sparse_loss(model_checks):
-    losses, outputs, _ = model_checks.train_tiny(DispNet(**NARROW))
-    model_checks.check_trained_outputs(losses, outputs)
+def test_training_lowers_sparse_loss():
+    losses, outputs, _ = baseline_checks.train_tiny(DispNet(**NARROW))
+    baseline_checks.check_trained_outputs(losses, outputs)
     assert len(outputs["inv_depth_pyramid"]) == 5

@@ -1,3 +1,4 @@
+import baseline_checks
 import jax
 import jax.numpy as jnp
 import pytest
@@ -24,8 +25,8 @@ def test_shapes_at_paper_size():
 
 
 @pytest.mark.parametrize("height, width", [(48, 64), (32, 32), (20, 28)])
-def test_dense_layers_follow_the_input_size(model_checks, height, width):
-    outputs = model_checks.output_shapes(EigenNet(), height, width)
+def test_dense_layers_follow_the_input_size(height, width):
+    outputs = baseline_checks.output_shapes(EigenNet(), height, width)
     coarse = outputs["inv_depth_pyramid"][0]
     assert coarse.shape == (2, -(-height // 4), -(-width // 4))
 
@@ -37,7 +38,7 @@ def test_registered_and_counted():
     assert baselines.parameter_count(EigenNet(**NARROW), 64, 32) > narrow + 64 * 64
 
 
-def test_training_lowers_sparse_loss(model_checks):
-    losses, outputs, _ = model_checks.train_tiny(EigenNet(**NARROW))
-    model_checks.check_trained_outputs(losses, outputs)
+def test_training_lowers_sparse_loss():
+    losses, outputs, _ = baseline_checks.train_tiny(EigenNet(**NARROW))
+    baseline_checks.check_trained_outputs(losses, outputs)
     assert outputs["inv_depth_pyramid"][0].shape == (2, 8, 8)

@@ -1,3 +1,4 @@
+import baseline_checks
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,10 +20,10 @@ def test_unpool_places_values_top_left_of_zero_blocks():
     assert np.count_nonzero(unpooled[:, :, 1::2]) == 0
 
 
-def test_resnet50_shapes_and_parameter_count(model_checks):
+def test_resnet50_shapes_and_parameter_count():
     model = FCRN()
-    model_checks.output_shapes(model, 192, 256)
-    model_checks.output_shapes(model, 20, 28)
+    baseline_checks.output_shapes(model, 192, 256)
+    baseline_checks.output_shapes(model, 20, 28)
     image = jax.ShapeDtypeStruct((1, 64, 64, 3), jnp.float32)
     flow = jax.ShapeDtypeStruct((1, 64, 64, 2), jnp.float32)
     variables = jax.eval_shape(model.init, jax.random.key(0), image, image, flow)
@@ -36,9 +37,9 @@ def test_resnet50_shapes_and_parameter_count(model_checks):
     assert baselines.LEARNED["fcrn"] is FCRN
 
 
-def test_training_lowers_sparse_loss_and_updates_batch_statistics(model_checks):
-    losses, outputs, variables = model_checks.train_tiny(FCRN(**NARROW))
-    model_checks.check_trained_outputs(losses, outputs)
+def test_training_lowers_sparse_loss_and_updates_batch_statistics():
+    losses, outputs, variables = baseline_checks.train_tiny(FCRN(**NARROW))
+    baseline_checks.check_trained_outputs(losses, outputs)
     # Running statistics start at mean 0, variance 1 and move towards the batch's.
     stem_stats = variables["batch_stats"]["stem_norm"]
     assert np.max(np.abs(stem_stats["mean"])) > 1e-3

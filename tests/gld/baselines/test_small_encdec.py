@@ -1,3 +1,5 @@
+import baseline_checks
+
 from gld import baselines
 from gld.baselines.small_encdec import SmallEncDec
 
@@ -20,13 +22,13 @@ def test_parameter_count_matches_the_papers_layers():
     assert baselines.LEARNED["small_encdec"] is SmallEncDec
 
 
-def test_shapes_at_paper_size_and_odd_tiny_size(model_checks):
-    outputs = model_checks.output_shapes(SmallEncDec(), 192, 256)
+def test_shapes_at_paper_size_and_odd_tiny_size():
+    outputs = baseline_checks.output_shapes(SmallEncDec(), 192, 256)
     assert "inv_depth_pyramid" not in outputs
     # 20x28 halves to 10x14, 5x7, 3x4, 2x2: up-sampling overshoots and must be cropped.
-    model_checks.output_shapes(SmallEncDec(), 20, 28)
+    baseline_checks.output_shapes(SmallEncDec(), 20, 28)
 
 
-def test_training_lowers_sparse_loss(model_checks):
-    losses, outputs, _ = model_checks.train_tiny(SmallEncDec(), learning_rate=3e-4)
-    model_checks.check_trained_outputs(losses, outputs)
+def test_training_lowers_sparse_loss():
+    losses, outputs, _ = baseline_checks.train_tiny(SmallEncDec(), learning_rate=3e-4)
+    baseline_checks.check_trained_outputs(losses, outputs)

@@ -1,12 +1,12 @@
-"""Shared checks of the learned baselines: output shapes and a few training steps."""
+"""Shared checks of the learned baselines: output shapes and a few training steps.
 
-import types
+A plain module (not a conftest.py, whose module name would shadow tests/conftest.py).
+"""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import pytest
 
 # The 'rbg' generator compiles several times faster than threefry on CPU; model
 # initialisation is most of a tiny test's time otherwise.
@@ -103,14 +103,3 @@ def check_trained_outputs(losses, outputs, height=32, width=32):
     np.testing.assert_allclose(outputs["depth"] * outputs["inv_depth"], 1.0, rtol=1e-5)
     for scale in outputs.get("inv_depth_pyramid", ()):
         assert np.all(scale > 0)
-
-
-@pytest.fixture
-def model_checks():
-    """The helpers above, for the tests of each model."""
-    return types.SimpleNamespace(
-        tiny_batch=tiny_batch,
-        train_tiny=train_tiny,
-        output_shapes=output_shapes,
-        check_trained_outputs=check_trained_outputs,
-    )
