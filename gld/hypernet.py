@@ -522,52 +522,6 @@ def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float)
     return jnp.where(activations > 0, cotangent, slope * cotangent)
 
 
-def _narrow_conv_forward(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
-    """Contracts the input channels first (one matmul to k*k*C_out maps), then adds up
-    the k*k shifted maps: cheap when C_out is small (XLA's conv is slow at C_out = 1)."""
-    kernel_size, _, c_in, c_out = kernel.shape
-    height, width = inputs.shape[1:3]
-    weights = kernel.transpose(2, 0, 1, 3).reshape(c_in, kernel_size * kernel_size * c_out)
-    padded = _pad_same(jnp.einsum("bhwc,cn->bhwn", inputs, weights), kernel_size)
-    out = None
-    for dy in range(kernel_size):
-        for dx in range(kernel_size):
-            tap = (dy * kernel_size + dx) * c_out
-            term = padded[:, dy : dy + height, dx : dx + width, tap : tap + c_out]
-            out = term if out is None else out + term
-    return out
-
-
-@jax.custom_vjp
-def shared_conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
-    """'SAME' stride-1 conv with ONE kernel for the whole batch, for few output channels.
-
-    The same function as `lax.conv_general_dilated` (NHWC, HWIO): the forward pass
-    contracts channels first (about 2x faster on CPU for the final 20 -> 1 conv of the
-    local network), the backward pass is XLA's own conv gradient (faster there).
-
-    Args:
-      inputs: [B, H, W, C_in].
-      kernel: [k, k, C_in, C_out], k odd.
-
-    Returns:
-      [B, H, W, C_out].
-    """
-    return _narrow_conv_forward(inputs, kernel)
-
-
-def _shared_conv_fwd(inputs, kernel):
-    return _narrow_conv_forward(inputs, kernel), (inputs, kernel)
-
-
-def _shared_conv_bwd(residuals, cotangent):
-    _, conv_vjp = jax.vjp(_conv, *residuals)
-    return conv_vjp(cotangent)
-
-
-shared_conv.defvjp(_shared_conv_fwd, _shared_conv_bwd)
-
-
 FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "vmap": _vmap_formulation,
     "map_conv": _map_conv_formulation,

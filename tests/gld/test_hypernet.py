@@ -172,24 +172,3 @@ def test_apply_filter_banks_rejects_bad_shapes(change, message):
         hypernet.apply_filter_banks(bad_banks, bad_inputs)
     with pytest.raises(ValueError, match="unknown formulation"):
         hypernet.apply_filter_banks(banks, inputs, formulation="nope")
-
-
-def test_shared_conv_equals_plain_conv_in_outputs_and_gradients():
-    rng = np.random.default_rng(3)
-    inputs = jnp.asarray(rng.normal(size=(2, 5, 6, 4)), jnp.float32)
-    kernel = jnp.asarray(rng.normal(size=(3, 3, 4, 2)), jnp.float32)
-    weights = jnp.asarray(rng.normal(size=(2, 5, 6, 2)), jnp.float32)
-
-    def plain(inputs, kernel):
-        return lax.conv_general_dilated(
-            inputs, kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
-        )
-
-    np.testing.assert_allclose(
-        jax.jit(hypernet.shared_conv)(inputs, kernel), plain(inputs, kernel), rtol=1e-5, atol=1e-5
-    )
-    loss = lambda conv: lambda x, k: jnp.sum(conv(x, k) ** 2 * weights)
-    got = jax.grad(loss(hypernet.shared_conv), argnums=(0, 1))(inputs, kernel)
-    want = jax.grad(loss(plain), argnums=(0, 1))(inputs, kernel)
-    for got_grad, want_grad in zip(got, want, strict=True):
-        np.testing.assert_allclose(got_grad, want_grad, rtol=1e-4, atol=1e-4)
