@@ -539,11 +539,12 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
 }
 
 # Fastest formulation per platform. CPU: measured with `python -m experiments.benchmark`
-# on a shared 2-core machine, "fused" had the fastest batch-16 train step (1.57 s against
-# 1.78 "fused_taps", 3.2 "map_im2col", 7.1 "map_conv", 102 "vmap") and a forward as fast
-# as the best ("map_conv", "fused_taps"). GPU: not measured yet; "vmap" lowers to one
-# grouped convolution, which cuDNN runs natively, while the lax.map formulations would
-# serialise the batch into small kernels.
+# on a shared 2-core machine, "fused" had the fastest batch-16 train step (under load:
+# 1.57 s against 1.78 "fused_taps", 1.95 "fused_im2col", 3.2 "map_im2col", 3.5
+# "shifted", 7.1 "map_conv", 102 "vmap"; quiet: 0.76-0.83 s against PyTorch eager's
+# 1.29-1.33 s) and a forward as fast as the best. GPU: not measured yet; "vmap" lowers
+# to one grouped convolution, which cuDNN runs natively, while the lax.map formulations
+# would serialise the batch into small kernels.
 _DEFAULT_FORMULATIONS = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
 
 
