@@ -115,10 +115,12 @@ def measure_one(
     optimizer = train_lib.make_optimizer(1e-4)
     state = train_lib.create_train_state(model, optimizer, height, width, seed=0)
     params = state.params
+    # Every collection (batch-norm statistics too), with the parameters swapped in.
+    extra_collections = {k: v for k, v in state.variables().items() if k != "params"}
 
     def make_forward(model):
         return lambda params, image1, image2, flow: model.apply(
-            {"params": params}, image1, image2, flow
+            {"params": params, **extra_collections}, image1, image2, flow
         )["inv_depth"]
 
     result: dict[str, Any] = {
