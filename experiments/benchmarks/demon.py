@@ -27,6 +27,7 @@ from absl import app, flags
 import data
 from data.demon import convert, pairs, reader
 from data.gld_scenes import renderer
+from experiments.benchmarks import format_table
 from gld import geometry, records
 
 FLAGS = flags.FLAGS
@@ -135,15 +136,6 @@ def run(
         if not work_dir:
             shutil.rmtree(root, ignore_errors=True)
     return results
-
-
-def format_table(results: dict[str, Any]) -> str:
-    """The figures of `run` as an aligned two-column table."""
-    rows = []
-    for key, value in results.items():
-        text = f"{value:.2f}" if isinstance(value, float | np.floating) else str(value)
-        rows.append(f"{key:<24} {text}")
-    return "\n".join(rows)
 
 
 def _define_flags() -> None:

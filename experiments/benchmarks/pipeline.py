@@ -15,10 +15,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import numpy as np
 from absl import app, flags
 
 import data
+from experiments.benchmarks import format_table
 from gld import input_pipeline
 
 FLAGS = flags.FLAGS
@@ -139,15 +139,6 @@ def run(
         results[f"ratio_w{worker_count}"] = ratio
         results[f"meets_target_w{worker_count}"] = bool(ratio >= TARGET_RATIO)
     return results
-
-
-def format_table(results: dict[str, Any]) -> str:
-    """The figures of `run` as an aligned two-column table."""
-    rows = []
-    for key, value in results.items():
-        text = f"{value:.2f}" if isinstance(value, float | np.floating) else str(value)
-        rows.append(f"{key:<28} {text}")
-    return "\n".join(rows)
 
 
 def _define_flags() -> None:

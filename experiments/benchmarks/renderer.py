@@ -16,12 +16,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from absl import app, flags
 
 import data
 from data.gld_scenes import gld_scenes_dataset_builder as builder_module
 from data.gld_scenes import renderer
+from experiments.benchmarks import format_table
 from gld import flow
 
 FLAGS = flags.FLAGS
@@ -110,15 +110,6 @@ def run(
             if not data_dir:
                 shutil.rmtree(root, ignore_errors=True)
     return results
-
-
-def format_table(results: dict[str, Any]) -> str:
-    """The figures of `run` as an aligned two-column table."""
-    rows = []
-    for key, value in results.items():
-        text = f"{value:.2f}" if isinstance(value, float | np.floating) else str(value)
-        rows.append(f"{key:<26} {text}")
-    return "\n".join(rows)
 
 
 def _define_flags() -> None:

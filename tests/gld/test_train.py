@@ -198,14 +198,16 @@ def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path
         for index in range(2)
     ]
     outputs = [worker.communicate(timeout=300) for worker in workers]
-    for worker, (stdout, stderr) in zip(workers, outputs, strict=True):
+    for worker, (_, stderr) in zip(workers, outputs, strict=True):
         assert worker.returncode == 0, stderr[-3000:]
     lines = [
-        next(l for l in out.splitlines() if l.startswith("PARAMS")).split() for out, _ in outputs
+        next(line for line in out.splitlines() if line.startswith("PARAMS")).split()
+        for out, _ in outputs
     ]
     assert [line[1] for line in lines] == ["0", "1"]
     assert all(line[2] == "2" and line[3] == "2" for line in lines)  # 2 processes, 2 devices
     assert lines[0][4] == lines[1][4]
     # only process 0 writes the logs
-    records = [json.loads(l) for l in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    log = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in log]
     assert [r["step"] for r in records] == [1, 2, 3]
