@@ -32,12 +32,12 @@ def trained_workdir(tiny_scenes, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def test_batch(tiny_scenes):
+def eval_batch(tiny_scenes):
     source = tiny_scenes.as_data_source("test")
     return next(input_pipeline.eval_batches([source[i] for i in range(4)], batch_size=4))
 
 
-def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_workdir, test_batch):
+def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_workdir, eval_batch):
     predictor = DepthPredictor.from_workdir(trained_workdir)
     rng = np.random.default_rng(0)
     image1 = rng.integers(0, 256, (50, 70, 3), dtype=np.uint8)
@@ -47,11 +47,11 @@ def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_wor
     # float images in [0, 1] give the same answer as the uint8 ones
     np.testing.assert_allclose(predictor(image1 / 255.0, image2 / 255.0), depth, rtol=1e-4)
     # at the model's own size, with the dataset's flow, it matches a direct model call
-    images1 = test_batch["image1"] + 0.5
-    images2 = test_batch["image2"] + 0.5
-    batched = predictor.predict(images1, images2, flow=test_batch["flow"])
+    images1 = eval_batch["image1"] + 0.5
+    images2 = eval_batch["image2"] + 0.5
+    batched = predictor.predict(images1, images2, flow=eval_batch["flow"])
     direct = predictor.model.apply(
-        predictor.variables, test_batch["image1"], test_batch["image2"], test_batch["flow"]
+        predictor.variables, eval_batch["image1"], eval_batch["image2"], eval_batch["flow"]
     )
     np.testing.assert_allclose(batched["depth"], np.asarray(direct["depth"]), rtol=1e-4)
     assert batched["global_params"].shape == (4, 6)
@@ -72,9 +72,9 @@ def test_predictor_names_bad_arguments(trained_workdir):
         DepthPredictor.from_workdir(trained_workdir / "nowhere")
 
 
-def test_filter_inspection(trained_workdir, test_batch, tmp_path):
+def test_filter_inspection(trained_workdir, eval_batch, tmp_path):
     model, variables, _ = train.load_trained(trained_workdir)
-    inspected = inspect_lib.filter_banks(variables, test_batch, model=model)
+    inspected = inspect_lib.filter_banks(variables, eval_batch, model=model)
     assert inspected["global_params"].shape == (4, 6)
     assert [k.shape for k in inspected["kernels"]] == [
         (4, 3, 3, 4, 20),
