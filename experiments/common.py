@@ -19,6 +19,53 @@ def define_data_flags(default_dataset: str = "gld_scenes/small") -> None:
     flags.DEFINE_enum("flow", "estimated", ["estimated", "gt"], "Which flow the model is given.")
 
 
+# TrainConfig fields set by the training flags below (shared by train and compare).
+TRAINING_FLAGS = (
+    "batch_size",
+    "steps",
+    "learning_rate",
+    "depth_weight",
+    "smoothness_weight",
+    "gt_pixels",
+    "fixed_sparse_pixels",
+    "flow",
+    "augment",
+    "seed",
+    "log_every",
+    "eval_every",
+    "eval_examples",
+    "checkpoint_every",
+    "worker_count",
+)
+
+
+def define_training_flags(*, steps: int, eval_every: int) -> None:
+    """The run flags every training launcher shares (budget, loss, data order, logging)."""
+    flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
+    flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
+    flags.DEFINE_integer("batch_size", 16, "Global batch size.")
+    flags.DEFINE_integer("steps", steps, "Training steps (the paper: 94000 at 256x192).")
+    flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
+    flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
+    flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
+    flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
+    flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
+    flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
+    flags.DEFINE_integer(
+        "eval_every", eval_every, "Steps between evaluations on the test split (0: off)."
+    )
+    flags.DEFINE_integer(
+        "eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all."
+    )
+    flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
+    flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
+
+
+def training_options() -> dict:
+    """The TrainConfig fields given by the training flags."""
+    return {name: FLAGS[name].value for name in TRAINING_FLAGS}
+
+
 def define_distributed_flags() -> None:
     flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process).")
     flags.DEFINE_integer("num_processes", 1, "Number of JAX processes.")

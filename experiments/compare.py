@@ -33,19 +33,7 @@ CLASSICAL_DEFAULT = ["dataset_mean", "triangulation_gt_pose", "sfm_flow"]
 flags.DEFINE_string("workdir", "runs/compare", "Holds one run per model and compare/.")
 flags.DEFINE_list("models", LEARNED_DEFAULT, "Learned models to train and compare.")
 flags.DEFINE_list("classical", CLASSICAL_DEFAULT, "Classical baselines to compare.")
-flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
-flags.DEFINE_integer("batch_size", 16, "Global training batch size.")
-flags.DEFINE_integer("steps", 2500, "Training steps of every learned model.")
-flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
-flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
-flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
-flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
-flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
-flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
-flags.DEFINE_integer("eval_every", 0, "Steps between periodic test evaluations (0: off).")
-flags.DEFINE_integer("eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all.")
-flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
-flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
+common.define_training_flags(steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
 flags.DEFINE_integer("eval_batch_size", 16, "Evaluation batch size (last batch padded).")
 flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
@@ -213,22 +201,7 @@ def main(argv):
     del argv
     common.initialise()
     builder = common.prepare_dataset()
-    train_config = {
-        "batch_size": FLAGS.batch_size,
-        "steps": FLAGS.steps,
-        "learning_rate": FLAGS.learning_rate,
-        "depth_weight": FLAGS.depth_weight,
-        "smoothness_weight": FLAGS.smoothness_weight,
-        "gt_pixels": FLAGS.gt_pixels,
-        "flow": FLAGS.flow,
-        "augment": FLAGS.augment,
-        "seed": FLAGS.seed,
-        "log_every": FLAGS.log_every,
-        "eval_every": FLAGS.eval_every,
-        "eval_examples": FLAGS.eval_examples,
-        "checkpoint_every": FLAGS.checkpoint_every,
-        "worker_count": FLAGS.worker_count,
-    }
+    train_config = common.training_options()
     common.write_flags(FLAGS.workdir)
     run_comparison(
         workdir=FLAGS.workdir,

@@ -16,20 +16,6 @@ FLAGS = flags.FLAGS
 
 flags.DEFINE_string("workdir", "runs/demo", "Run directory (checkpoints, logs, eval).")
 flags.DEFINE_string("model", "global_local", "Model name (gld.model.MODELS).")
-flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
-flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
-flags.DEFINE_integer("batch_size", 16, "Global batch size.")
-flags.DEFINE_integer("steps", 2000, "Training steps (the paper: 94000 at 256x192).")
-flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
-flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
-flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
-flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
-flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
-flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
-flags.DEFINE_integer("eval_every", 1000, "Steps between evaluations on the test split (0: off).")
-flags.DEFINE_integer("eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all.")
-flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
-flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
 flags.DEFINE_bool("final_eval", True, "Evaluate the final model on the whole test split.")
 flags.DEFINE_integer("num_figures", 8, "Example figures written by the final evaluation.")
 # Architecture of the global-local model (the paper's numbers are the defaults).
@@ -48,6 +34,7 @@ flags.DEFINE_enum(
 flags.DEFINE_string(
     "filter_formulation", None, "apply_filter_banks formulation (default: fastest here)."
 )
+common.define_training_flags(steps=2000, eval_every=1000)
 common.define_data_flags()
 common.define_distributed_flags()
 
@@ -83,24 +70,10 @@ def main(argv):
     config = train.TrainConfig(
         model=FLAGS.model,
         model_config=model_config_from_flags(),
-        batch_size=FLAGS.batch_size,
-        steps=FLAGS.steps,
-        learning_rate=FLAGS.learning_rate,
-        depth_weight=FLAGS.depth_weight,
-        smoothness_weight=FLAGS.smoothness_weight,
-        gt_pixels=FLAGS.gt_pixels,
-        fixed_sparse_pixels=FLAGS.fixed_sparse_pixels,
-        flow=FLAGS.flow,
-        augment=FLAGS.augment,
-        seed=FLAGS.seed,
-        log_every=FLAGS.log_every,
-        eval_every=FLAGS.eval_every,
-        checkpoint_every=FLAGS.checkpoint_every,
-        eval_examples=FLAGS.eval_examples,
-        worker_count=FLAGS.worker_count,
         dataset=FLAGS.dataset,
         height=height,
         width=width,
+        **common.training_options(),
     )
     common.write_flags(FLAGS.workdir)
     print(
