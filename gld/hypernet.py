@@ -206,9 +206,10 @@ class StaticFilterBanks(nn.Module):
 
 
 # ----------------------------------------------------------------------------------
-# Formulations. Each takes (filter_banks, inputs [B, H, W, C_in], negative_slope) and
-# returns [B, H, W, C_out of the last bank]: 'SAME' padding, stride 1, LeakyReLU after
-# every bank.
+# Formulations. Each takes (filter_banks, inputs [B, H, W, C_in], negative_slope, head)
+# and returns [B, H, W, C_out of the last bank] ('SAME' padding, stride 1, LeakyReLU
+# after every bank), or of the head when one is given: a conv shared by the batch,
+# applied to the last bank's output without an activation.
 
 
 def _conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -282,11 +283,24 @@ def _apply_stack(
     return activations
 
 
+def _with_head(formulation):
+    """A formulation of the banks alone, followed by the head as one batched conv."""
+
+    def with_head(filter_banks, inputs, negative_slope, head):
+        outputs = formulation(filter_banks, inputs, negative_slope)
+        return outputs if head is None else _conv(outputs, head.kernel) + head.bias
+
+    with_head.__doc__ = formulation.__doc__
+    return with_head
+
+
+@_with_head
 def _vmap_formulation(filter_banks, inputs, negative_slope):
     """The design's reference: `jax.vmap` over `lax.conv_general_dilated`."""
     return _apply_stack(jax.vmap(_conv_single), filter_banks, inputs, negative_slope)
 
 
+@_with_head
 def _map_conv_formulation(filter_banks, inputs, negative_slope):
     """`lax.map` over examples of the whole stack of plain convolutions."""
 
@@ -297,6 +311,7 @@ def _map_conv_formulation(filter_banks, inputs, negative_slope):
     return lax.map(one_example, (inputs, list(filter_banks)))
 
 
+@_with_head
 def _map_im2col_formulation(filter_banks, inputs, negative_slope):
     """`lax.map` over examples of the stack, each conv as im2col + one matmul."""
 
@@ -307,6 +322,7 @@ def _map_im2col_formulation(filter_banks, inputs, negative_slope):
     return lax.map(one_example, (inputs, list(filter_banks)))
 
 
+@_with_head
 def _shifted_formulation(filter_banks, inputs, negative_slope):
     """Whole batch at once, each conv a sum of k*k shifted batched matmuls."""
     return _apply_stack(_shifted_conv, filter_banks, inputs, negative_slope)
@@ -449,48 +465,59 @@ _PLANAR_BACKEND = _StackBackend(
 )
 
 
-def _make_fused_stack(backend: _StackBackend, negative_slope: float):
-    """custom_vjp function (banks [(kernel, bias), ...], inputs [B, H, W, C]) -> outputs."""
+def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
+    """custom_vjp function (layers [(kernel, bias), ...], inputs [B, H, W, C]) -> outputs.
+
+    Layer i is followed by a LeakyReLU of slope `slopes[i]`, or by nothing when None.
+    """
+
+    def activate(pre: jax.Array, slope: float | None) -> jax.Array:
+        return pre if slope is None else jax.nn.leaky_relu(pre, slope)
 
     def forward_example(args):
-        image, banks = args
+        image, layers = args
         outputs = []
-        for kernel, bias in banks:
-            image = jax.nn.leaky_relu(backend.forward(image, kernel, bias), negative_slope)
+        for (kernel, bias), slope in zip(layers, slopes, strict=True):
+            image = activate(backend.forward(image, kernel, bias), slope)
             outputs.append(image)
         return outputs
 
-    def run_forward(banks, inputs):
-        return lax.map(forward_example, (backend.to_layout(inputs), banks))
+    def run_forward(layers, inputs):
+        return lax.map(forward_example, (backend.to_layout(inputs), layers))
 
     @jax.custom_vjp
-    def stack(banks, inputs):
+    def stack(layers, inputs):
         # Inference keeps no intermediate activations.
         last_output = lambda args: forward_example(args)[-1]
         layout_inputs = backend.to_layout(inputs)
-        return backend.from_layout(lax.map(last_output, (layout_inputs, banks)))
+        return backend.from_layout(lax.map(last_output, (layout_inputs, layers)))
 
-    def stack_fwd(banks, inputs):
-        banks_value = jax.tree.map(lambda leaf: leaf.value, banks)
-        outputs = run_forward(banks_value, inputs.value)
+    def stack_fwd(layers, inputs):
+        layers_value = jax.tree.map(lambda leaf: leaf.value, layers)
+        outputs = run_forward(layers_value, inputs.value)
         # An empty marker in the residuals when the input's cotangent is needed; None
         # (no leaf) when the input is data, so its gradient conv is never computed.
         marker = jnp.zeros((0,)) if inputs.perturbed else None
-        residuals = (banks_value, inputs.value, outputs, marker)
+        residuals = (layers_value, inputs.value, outputs, marker)
         return backend.from_layout(outputs[-1]), residuals
 
     def stack_bwd(residuals, cotangent):
-        banks, inputs, outputs, marker = residuals
+        layers, inputs, outputs, marker = residuals
         need_input_grad = marker is not None
 
         def backward_example(args):
-            image, banks, outputs, cotangent = args
-            bank_inputs = [image, *outputs[:-1]]
+            image, layers, outputs, cotangent = args
+            layer_inputs = [image, *outputs[:-1]]
             kernel_grads, bias_grads = [], []
-            for index in reversed(range(len(banks))):
-                kernel = banks[index][0]
-                pre_grad = _leaky_relu_grad(outputs[index], cotangent, negative_slope)
-                kernel_grads.append(backend.kernel_grad(bank_inputs[index], pre_grad, kernel))
+            for index in reversed(range(len(layers))):
+                kernel = layers[index][0]
+                slope = slopes[index]
+                pre_grad = (
+                    cotangent
+                    if slope is None
+                    else _leaky_relu_grad(outputs[index], cotangent, slope)
+                )
+                kernel_grads.append(backend.kernel_grad(layer_inputs[index], pre_grad, kernel))
                 bias_grads.append(backend.bias_grad(pre_grad))
                 if index > 0 or need_input_grad:
                     cotangent = backend.input_grad(pre_grad, kernel)
@@ -498,21 +525,34 @@ def _make_fused_stack(backend: _StackBackend, negative_slope: float):
             return grads, (cotangent if need_input_grad else None)
 
         cotangent = backend.to_layout(cotangent)
-        bank_grads, input_grad = lax.map(
-            backward_example, (backend.to_layout(inputs), banks, outputs, cotangent)
+        layer_grads, input_grad = lax.map(
+            backward_example, (backend.to_layout(inputs), layers, outputs, cotangent)
         )
         if need_input_grad:
             input_grad = backend.from_layout(input_grad)
-        return bank_grads, input_grad
+        return layer_grads, input_grad
 
     stack.defvjp(stack_fwd, stack_bwd, symbolic_zeros=True)
     return stack
 
 
 def _fused(backend: _StackBackend):
-    def formulation(filter_banks, inputs, negative_slope):
-        banks = [(bank.kernel, bank.bias) for bank in filter_banks]
-        return _make_fused_stack(backend, float(negative_slope))(banks, inputs)
+    def formulation(filter_banks, inputs, negative_slope, head):
+        layers = [(bank.kernel, bank.bias) for bank in filter_banks]
+        slopes = [float(negative_slope)] * len(layers)
+        if head is not None:
+            # The shared head joins the per-example stack, so each example's last
+            # activations are still in cache when it runs; the broadcast's transpose
+            # sums its per-example gradients over the batch.
+            batch_size = inputs.shape[0]
+            layers.append(
+                (
+                    jnp.broadcast_to(head.kernel, (batch_size, *head.kernel.shape)),
+                    jnp.broadcast_to(head.bias, (batch_size, *head.bias.shape)),
+                )
+            )
+            slopes.append(None)
+        return _make_fused_stack(backend, tuple(slopes))(layers, inputs)
 
     return formulation
 
@@ -558,20 +598,27 @@ def apply_filter_banks(
     filter_banks: Sequence[FilterBank],
     inputs: jax.Array,
     *,
+    head: FilterBank | None = None,
     formulation: str | None = None,
     negative_slope: float = layers.NEGATIVE_SLOPE,
 ) -> jax.Array:
-    """Applies per-example filter banks, each followed by a LeakyReLU.
+    """Applies per-example filter banks, each followed by a LeakyReLU, then a shared head.
 
     Args:
       filter_banks: banks with kernel [B, k, k, C_in, C_out] and bias [B, C_out];
         each bank's C_in is the previous bank's C_out.
       inputs: [B, H, W, C_in] (the local network's [flow, x, y]).
+      head: optional conv shared by the whole batch (kernel [k, k, C_out, C_head], bias
+        [C_head]) applied to the last bank's output with no activation: the local
+        network's final conv. The fused formulations run it inside their per-example
+        pass, which on CPU is about 3x faster than a separate batched conv with one
+        output channel.
       formulation: a key of `FORMULATIONS`; None = `default_formulation()`.
       negative_slope: LeakyReLU slope applied after every bank.
 
     Returns:
-      [B, H, W, C_out of the last bank]; 'SAME' padding, stride 1.
+      [B, H, W, C_out of the last bank], or [B, H, W, C_head] with a head; 'SAME'
+      padding, stride 1.
     """
     name = default_formulation() if formulation is None else formulation
     if name not in FORMULATIONS:
@@ -599,4 +646,17 @@ def apply_filter_banks(
                 f"got shape {bias.shape}"
             )
         channels = kernel.shape[4]
-    return FORMULATIONS[name](list(filter_banks), inputs, negative_slope)
+    if head is not None:
+        kernel, bias = head.kernel, head.bias
+        if kernel.ndim != 4 or kernel.shape[0] != kernel.shape[1] or kernel.shape[0] % 2 == 0:
+            raise ValueError(
+                f"head.kernel must be [k, k, C_in, C_out] with odd k, got shape {kernel.shape}"
+            )
+        if kernel.shape[2] != channels:
+            raise ValueError(
+                f"head.kernel shape {kernel.shape} does not match the last bank's "
+                f"{channels} output channels"
+            )
+        if bias.shape != (kernel.shape[3],):
+            raise ValueError(f"head.bias must be {(kernel.shape[3],)}, got shape {bias.shape}")
+    return FORMULATIONS[name](list(filter_banks), inputs, negative_slope, head)

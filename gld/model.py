@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from gld import baselines, geometry, layers
 from gld.global_encoder import GlobalEncoder
-from gld.hypernet import HyperNetwork, StaticFilterBanks, apply_filter_banks
+from gld.hypernet import FilterBank, HyperNetwork, StaticFilterBanks, apply_filter_banks
 
 
 class GlobalLocal(nn.Module):
@@ -115,14 +115,40 @@ class GlobalLocal(nn.Module):
             global_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
             filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
 
-        features = apply_filter_banks(
-            filter_banks, local_inputs, formulation=self.filter_formulation
+        final_conv = ConvParameters(
+            in_channels=self.bank_channels[-1],
+            out_channels=1,
+            kernel_size=self.kernel_size,
+            name="final_conv",
+        )()
+        logits = apply_filter_banks(
+            filter_banks, local_inputs, head=final_conv, formulation=self.filter_formulation
         )
-        logits = nn.Conv(1, (self.kernel_size, self.kernel_size), name="final_conv")(features)
         outputs = layers.depth_outputs(logits)
         outputs["global_params"] = global_params
         outputs["filter_banks"] = list(filter_banks)
         return outputs
+
+
+class ConvParameters(nn.Module):
+    """The kernel and bias of a conv shared by the batch, initialised like `nn.Conv`.
+
+    The local network's final conv is applied by `apply_filter_banks` (as its head,
+    next to the per-example banks), so the model holds only its parameters; names and
+    initialisation are those of `nn.Conv`.
+    """
+
+    in_channels: int
+    out_channels: int
+    kernel_size: int = 3
+
+    @nn.compact
+    def __call__(self) -> FilterBank:
+        """Returns FilterBank(kernel [k, k, C_in, C_out], bias [C_out])."""
+        shape = (self.kernel_size, self.kernel_size, self.in_channels, self.out_channels)
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), shape)
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.out_channels,))
+        return FilterBank(kernel=kernel, bias=bias)
 
 
 def _check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None:

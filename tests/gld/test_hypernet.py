@@ -44,9 +44,31 @@ def _random_banks(seed, batch_size, kernel_size=3, bank_channels=BANK_CHANNELS):
     return banks
 
 
-def _loss_fn(formulation_fn):
+def _random_head(seed, kernel_size=3, c_out=2):
+    """A conv shared by the batch after the last bank (the model's final conv)."""
+    rng = np.random.default_rng(seed)
+    shape = (kernel_size, kernel_size, BANK_CHANNELS[-1], c_out)
+    kernel = rng.normal(size=shape) / np.sqrt(kernel_size * kernel_size * BANK_CHANNELS[-1])
+    return FilterBank(
+        jnp.asarray(kernel, jnp.float32), jnp.asarray(rng.normal(size=c_out), jnp.float32)
+    )
+
+
+def _head_reference(outputs, head):
+    conv = lax.conv_general_dilated(
+        outputs,
+        head.kernel,
+        (1, 1),
+        "SAME",
+        dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        precision=lax.Precision.HIGHEST,
+    )
+    return conv + head.bias
+
+
+def _loss_fn(formulation_fn, channels=BANK_CHANNELS[-1]):
     # A fixed random projection makes every output element matter to the gradient.
-    weights = np.random.default_rng(7).normal(size=(3, 6, 7, BANK_CHANNELS[-1])).astype(np.float32)
+    weights = np.random.default_rng(7).normal(size=(3, 6, 7, channels)).astype(np.float32)
 
     def loss(banks, inputs):
         return jnp.sum(formulation_fn(banks, inputs) * weights)
@@ -63,40 +85,55 @@ def test_output_size_matches_paper_defaults():
 SLOPE = 0.2
 
 
-@pytest.fixture(scope="module")
-def reference_case():
-    """Inputs, banks, and the loop reference's outputs and gradients (computed once)."""
+@pytest.fixture(scope="module", params=["banks", "banks_and_head"])
+def reference_case(request):
+    """Inputs, layers (banks, and a head or None), and the loop reference's outputs and
+    gradients (computed once per case)."""
     inputs = jnp.asarray(np.random.default_rng(0).normal(size=(3, 6, 7, IN_CHANNELS)), jnp.float32)
-    banks = _random_banks(1, 3)
-    reference = lambda banks, inputs: _loop_reference(banks, inputs, SLOPE)
-    outputs = jax.jit(reference)(banks, inputs)
-    grads = jax.jit(jax.grad(_loss_fn(reference), argnums=(0, 1)))(banks, inputs)
-    return inputs, banks, outputs, grads
+    layers = (_random_banks(1, 3), _random_head(2) if request.param == "banks_and_head" else None)
+
+    def reference(layers, inputs):
+        banks, head = layers
+        outputs = _loop_reference(banks, inputs, SLOPE)
+        return outputs if head is None else _head_reference(outputs, head)
+
+    channels = BANK_CHANNELS[-1] if layers[1] is None else layers[1].kernel.shape[-1]
+    outputs = jax.jit(reference)(layers, inputs)
+    grads = jax.jit(jax.grad(_loss_fn(reference, channels), argnums=(0, 1)))(layers, inputs)
+    return inputs, layers, outputs, grads, channels
 
 
 def _assert_bank_grads_equal(got, want):
-    for got_bank, want_bank in zip(got, want, strict=True):
+    got_banks, got_head = got
+    want_banks, want_head = want
+    for got_bank, want_bank in zip(got_banks, want_banks, strict=True):
         np.testing.assert_allclose(got_bank.kernel, want_bank.kernel, rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(got_bank.bias, want_bank.bias, rtol=1e-4, atol=1e-4)
+    assert (got_head is None) == (want_head is None)
+    if want_head is not None:
+        np.testing.assert_allclose(got_head.kernel, want_head.kernel, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(got_head.bias, want_head.bias, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("formulation", sorted(hypernet.FORMULATIONS))
 def test_formulation_matches_loop_of_plain_convs(formulation, reference_case):
-    inputs, banks, expected_outputs, expected_grads = reference_case
+    inputs, layers, expected_outputs, expected_grads, channels = reference_case
 
-    def apply(banks, inputs):
+    def apply(layers, inputs):
+        banks, head = layers
         return hypernet.apply_filter_banks(
-            banks, inputs, formulation=formulation, negative_slope=SLOPE
+            banks, inputs, head=head, formulation=formulation, negative_slope=SLOPE
         )
 
     np.testing.assert_allclose(
-        jax.jit(apply)(banks, inputs), expected_outputs, rtol=1e-4, atol=1e-5
+        jax.jit(apply)(layers, inputs), expected_outputs, rtol=1e-4, atol=1e-5
     )
-    bank_grads, input_grads = jax.jit(jax.grad(_loss_fn(apply), argnums=(0, 1)))(banks, inputs)
-    _assert_bank_grads_equal(bank_grads, expected_grads[0])
+    loss = _loss_fn(apply, channels)
+    layer_grads, input_grads = jax.jit(jax.grad(loss, argnums=(0, 1)))(layers, inputs)
+    _assert_bank_grads_equal(layer_grads, expected_grads[0])
     np.testing.assert_allclose(input_grads, expected_grads[1], rtol=1e-4, atol=1e-4)
-    # Inputs that are data (as in the model): only the banks are differentiated.
-    _assert_bank_grads_equal(jax.jit(jax.grad(_loss_fn(apply)))(banks, inputs), expected_grads[0])
+    # Inputs that are data (as in the model): only the layers are differentiated.
+    _assert_bank_grads_equal(jax.jit(jax.grad(loss))(layers, inputs), expected_grads[0])
 
 
 def test_hypernetwork_shapes_and_initial_modulation():
@@ -172,3 +209,17 @@ def test_apply_filter_banks_rejects_bad_shapes(change, message):
         hypernet.apply_filter_banks(bad_banks, bad_inputs)
     with pytest.raises(ValueError, match="unknown formulation"):
         hypernet.apply_filter_banks(banks, inputs, formulation="nope")
+
+
+@pytest.mark.parametrize(
+    "head, message",
+    [
+        (FilterBank(jnp.zeros((2, 3, 3, BANK_CHANNELS[-1], 1)), jnp.zeros(1)), "head.kernel must"),
+        (FilterBank(jnp.zeros((3, 3, BANK_CHANNELS[-1] + 1, 1)), jnp.zeros(1)), "last bank"),
+        (FilterBank(jnp.zeros((3, 3, BANK_CHANNELS[-1], 1)), jnp.zeros(2)), "head.bias"),
+    ],
+)
+def test_apply_filter_banks_rejects_bad_head(head, message):
+    inputs = jnp.zeros((2, 6, 7, IN_CHANNELS))
+    with pytest.raises(ValueError, match=message):
+        hypernet.apply_filter_banks(_random_banks(0, 2), inputs, head=head)
