@@ -15,6 +15,7 @@ measured on each platform (see `experiments/benchmark.py`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
@@ -23,10 +24,14 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax.sharding import PartitionSpec
 
 from gld import layers
 
 _DIMENSION_NUMBERS = ("NHWC", "HWIO", "NHWC")
+
+# Name of the mesh axis that shards the batch (`gld.train.make_mesh`).
+BATCH_AXIS = "data"
 
 # Fraction of a filter's initial scale by which a unit-variance global parameter
 # vector moves it at initialisation: enough that the global module steers the local
@@ -659,4 +664,42 @@ def apply_filter_banks(
             )
         if bias.shape != (kernel.shape[3],):
             raise ValueError(f"head.bias must be {(kernel.shape[3],)}, got shape {bias.shape}")
-    return FORMULATIONS[name](list(filter_banks), inputs, negative_slope, head)
+    formulation_fn = functools.partial(FORMULATIONS[name], negative_slope=negative_slope)
+    apply = lambda banks, inputs, head: formulation_fn(banks, inputs, head=head)
+    return _on_batch_shards(apply, inputs.shape[0])(list(filter_banks), inputs, head)
+
+
+def _on_batch_shards(apply: Callable, batch_size: int) -> Callable:
+    """`apply(banks, inputs, head)` run on each device's shard of the batch.
+
+    XLA's partitioner cannot split a `lax.map` over its mapped axis: given a batch
+    sharded over devices, it gathers the whole batch on every device and each device
+    loops over all examples. When a mesh with a `BATCH_AXIS` axis is set (`jax.set_mesh`,
+    as `gld.train` does around its steps) and divides the batch, `shard_map` gives each
+    device its own examples; banks and inputs are split on the batch axis, the shared
+    head is replicated (its gradient is summed over devices).
+    """
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or BATCH_AXIS not in mesh.axis_names:
+        return apply
+    devices = mesh.shape[BATCH_AXIS]
+    if devices == 1 or batch_size % devices:
+        return apply
+    batch = PartitionSpec(BATCH_AXIS)
+    sharded = jax.shard_map(
+        apply,
+        mesh=mesh,
+        in_specs=(batch, batch, PartitionSpec()),
+        out_specs=batch,
+        check_vma=False,
+    )
+    axis_type = mesh.axis_types[mesh.axis_names.index(BATCH_AXIS)]
+    if axis_type != jax.sharding.AxisType.Explicit:
+        return sharded
+
+    def resharded(banks, inputs, head):
+        # Explicit sharding: the arguments' types must already carry the specs.
+        banks, inputs = jax.reshard((banks, inputs), batch)
+        return sharded(banks, inputs, jax.reshard(head, PartitionSpec()))
+
+    return resharded

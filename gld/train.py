@@ -10,6 +10,7 @@ devices, on a GPU and on several processes after `jax.distributed.initialize`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -28,6 +29,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from gld import input_pipeline, losses, metrics
 from gld import model as model_lib
+from gld.hypernet import BATCH_AXIS
 
 # Keys of a batch that go to the devices (the rest, like "id", stay on the host).
 TRAIN_KEYS = ("image1", "image2", "flow", "depth", "sparse_mask")
@@ -198,7 +200,8 @@ def make_eval_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
 
 def make_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     """A 1-D data-parallel mesh over all devices (of all processes)."""
-    return Mesh(np.asarray(devices if devices is not None else jax.devices()), ("data",))
+    devices = np.asarray(devices if devices is not None else jax.devices())
+    return Mesh(devices, (BATCH_AXIS,))
 
 
 def replicated(mesh: Mesh) -> NamedSharding:
@@ -206,7 +209,7 @@ def replicated(mesh: Mesh) -> NamedSharding:
 
 
 def batch_sharded(mesh: Mesh) -> NamedSharding:
-    return NamedSharding(mesh, PartitionSpec("data"))
+    return NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
 
 
 def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh, keys: Sequence[str]) -> dict:
@@ -227,22 +230,37 @@ def per_process_batch_size(global_batch_size: int, mesh: Mesh) -> int:
     return global_batch_size // jax.process_count()
 
 
+def _under_mesh(jitted: Callable, mesh: Mesh) -> Callable:
+    """Calls (and so traces) `jitted` with `mesh` set: per-example code that XLA cannot
+    partition by itself (the `lax.map` filter-bank formulations) finds the mesh's
+    "data" axis and runs on each device's shard of the batch (`gld.hypernet`)."""
+
+    @functools.wraps(jitted)
+    def call(*args):
+        with jax.set_mesh(mesh):
+            return jitted(*args)
+
+    return call
+
+
 def jit_train_step(train_step: Callable, mesh: Mesh) -> Callable:
     """`train_step` compiled with replicated state, sharded batch and donated state."""
-    return jax.jit(
+    jitted = jax.jit(
         train_step,
         in_shardings=(replicated(mesh), batch_sharded(mesh), replicated(mesh)),
         out_shardings=(replicated(mesh), replicated(mesh)),
         donate_argnums=0,
     )
+    return _under_mesh(jitted, mesh)
 
 
 def jit_eval_step(eval_step: Callable, mesh: Mesh) -> Callable:
-    return jax.jit(
+    jitted = jax.jit(
         eval_step,
         in_shardings=(replicated(mesh), batch_sharded(mesh)),
         out_shardings=batch_sharded(mesh),
     )
+    return _under_mesh(jitted, mesh)
 
 
 def gather(tree: Any) -> Any:

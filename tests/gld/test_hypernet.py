@@ -1,9 +1,16 @@
 """Tests of gld/hypernet.py: the hypernetwork and every filter-bank formulation."""
 
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import REPO_ROOT
 from jax import lax
 
 from gld import hypernet
@@ -223,3 +230,60 @@ def test_apply_filter_banks_rejects_bad_head(head, message):
     inputs = jnp.zeros((2, 6, 7, IN_CHANNELS))
     with pytest.raises(ValueError, match=message):
         hypernet.apply_filter_banks(_random_banks(0, 2), inputs, head=head)
+
+
+SHARDED_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import NamedSharding, PartitionSpec
+    from gld import hypernet
+    from gld.hypernet import FilterBank
+
+    assert len(jax.devices()) == 2
+    axis_types = jax.sharding.AxisType
+    rng = np.random.default_rng(0)
+    as_f32 = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)
+    inputs = as_f32(4, 6, 7, 3)
+    banks = [FilterBank(as_f32(4, 3, 3, 3, 5), as_f32(4, 5)),
+             FilterBank(as_f32(4, 3, 3, 5, 2), as_f32(4, 2))]
+    head = FilterBank(as_f32(3, 3, 2, 1), as_f32(1))
+    weights = as_f32(4, 6, 7, 1)
+    result = {}
+    for formulation in ("fused", "map_conv", "vmap"):
+        def loss(layers, inputs):
+            banks, head = layers
+            outputs = hypernet.apply_filter_banks(
+                banks, inputs, head=head, formulation=formulation)
+            return jnp.sum(outputs * weights)
+        grad = jax.jit(jax.grad(loss))
+        single = grad((banks, head), inputs)
+        for axis_type in (axis_types.Auto, axis_types.Explicit):
+            mesh = jax.make_mesh((2,), (hypernet.BATCH_AXIS,), axis_types=(axis_type,))
+            sharding = NamedSharding(mesh, PartitionSpec(hypernet.BATCH_AXIS))
+            with jax.set_mesh(mesh):
+                sharded = grad((banks, head), jax.device_put(inputs, sharding))
+            result[f"{formulation}/{axis_type}"] = max(
+                float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(a)))
+                for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(sharded)))
+    print(json.dumps(result))
+    """
+)
+
+
+def test_banks_on_a_batch_sharded_mesh_give_the_single_device_gradients():
+    # Under a mesh the banks run on each device's shard of the batch (shard_map); the
+    # shared head's gradient must still sum over all examples of all devices.
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(REPO_ROOT),
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", SHARDED_SCRIPT], capture_output=True, text=True, env=env
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    relative_errors = json.loads(result.stdout.strip().splitlines()[-1])
+    for formulation, error in relative_errors.items():
+        assert error < 1e-5, (formulation, error)

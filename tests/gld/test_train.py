@@ -124,6 +124,12 @@ SHARDED_SCRIPT = textwrap.dedent(
         results[name] = np.concatenate([np.ravel(leaf) for leaf in leaves])
         if name == "four":
             assert len(global_batch["image1"].sharding.device_set) == 4
+            # Each device runs the per-example filter banks on its own two examples:
+            # nothing gathers the batch onto every device.
+            with jax.set_mesh(mesh):
+                compiled = step.__wrapped__.lower(
+                    state, global_batch, jax.random.key(1)).compile().as_text()
+            assert "all-gather(" not in compiled, "the batch is gathered on every device"
     print(json.dumps({
         "max_abs_diff": float(np.max(np.abs(results["one"] - results["four"]))),
         "max_abs": float(np.max(np.abs(results["one"]))),
