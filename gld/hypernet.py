@@ -583,13 +583,14 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "fused_planar": _fused(_PLANAR_BACKEND),
 }
 
-# Fastest formulation per platform. CPU: `python -m experiments.benchmark` on a quiet
-# 2-core machine timed the batch-16 Adam step at 0.79 s with "fused" against 0.84
-# "fused_taps", 1.04 "fused_planar", 1.07 "fused_im2col", 1.23 "map_im2col", 1.75
-# "shifted", 4.0 "map_conv" and 36 "vmap" (PyTorch eager: 1.25 s), with the fastest
-# forward passes too (batch 1: 12.7 ms; batch 16: 61 pairs/s). GPU: not measured yet;
-# "vmap" lowers to one grouped convolution, which cuDNN runs natively, while the
-# lax.map formulations would serialise the batch into small kernels.
+# Fastest formulation per platform. CPU: `python -m experiments.benchmark` on the 2-core
+# machine timed the batch-16 Adam step (256x192, final conv as the head) at 0.73 s with
+# "fused" against 0.91 "fused_taps", 1.10 "fused_im2col", 1.18 "fused_planar", 1.22
+# "map_im2col", 1.76 "shifted", 4.1 "map_conv" and 37 "vmap" (PyTorch eager: 1.33 s),
+# with the fastest forward passes too (batch 1: 12.3 ms; batch 16: 77.5 pairs/s against
+# 62.3 for compiled PyTorch). GPU: not measured yet; "vmap" lowers to one grouped
+# convolution, which cuDNN runs natively, while the lax.map formulations would
+# serialise the batch into small kernels.
 _DEFAULT_FORMULATIONS = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
 
 
