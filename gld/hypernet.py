@@ -471,7 +471,7 @@ _PLANAR_BACKEND = _StackBackend(
 
 
 def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
-    """custom_vjp function (layers [(kernel, bias), ...], inputs [B, H, W, C]) -> outputs.
+    """custom_vjp function (convs [(kernel, bias), ...], inputs [B, H, W, C]) -> outputs.
 
     Layer i is followed by a LeakyReLU of slope `slopes[i]`, or by nothing when None.
     """
@@ -480,49 +480,49 @@ def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
         return pre if slope is None else jax.nn.leaky_relu(pre, slope)
 
     def forward_example(args):
-        image, layers = args
+        image, convs = args
         outputs = []
-        for (kernel, bias), slope in zip(layers, slopes, strict=True):
+        for (kernel, bias), slope in zip(convs, slopes, strict=True):
             image = activate(backend.forward(image, kernel, bias), slope)
             outputs.append(image)
         return outputs
 
-    def run_forward(layers, inputs):
-        return lax.map(forward_example, (backend.to_layout(inputs), layers))
+    def run_forward(convs, inputs):
+        return lax.map(forward_example, (backend.to_layout(inputs), convs))
 
     @jax.custom_vjp
-    def stack(layers, inputs):
+    def stack(convs, inputs):
         # Inference keeps no intermediate activations.
         last_output = lambda args: forward_example(args)[-1]
         layout_inputs = backend.to_layout(inputs)
-        return backend.from_layout(lax.map(last_output, (layout_inputs, layers)))
+        return backend.from_layout(lax.map(last_output, (layout_inputs, convs)))
 
-    def stack_fwd(layers, inputs):
-        layers_value = jax.tree.map(lambda leaf: leaf.value, layers)
-        outputs = run_forward(layers_value, inputs.value)
+    def stack_fwd(convs, inputs):
+        convs_value = jax.tree.map(lambda leaf: leaf.value, convs)
+        outputs = run_forward(convs_value, inputs.value)
         # An empty marker in the residuals when the input's cotangent is needed; None
         # (no leaf) when the input is data, so its gradient conv is never computed.
         marker = jnp.zeros((0,)) if inputs.perturbed else None
-        residuals = (layers_value, inputs.value, outputs, marker)
+        residuals = (convs_value, inputs.value, outputs, marker)
         return backend.from_layout(outputs[-1]), residuals
 
     def stack_bwd(residuals, cotangent):
-        layers, inputs, outputs, marker = residuals
+        convs, inputs, outputs, marker = residuals
         need_input_grad = marker is not None
 
         def backward_example(args):
-            image, layers, outputs, cotangent = args
-            layer_inputs = [image, *outputs[:-1]]
+            image, convs, outputs, cotangent = args
+            conv_inputs = [image, *outputs[:-1]]
             kernel_grads, bias_grads = [], []
-            for index in reversed(range(len(layers))):
-                kernel = layers[index][0]
+            for index in reversed(range(len(convs))):
+                kernel = convs[index][0]
                 slope = slopes[index]
                 pre_grad = (
                     cotangent
                     if slope is None
                     else _leaky_relu_grad(outputs[index], cotangent, slope)
                 )
-                kernel_grads.append(backend.kernel_grad(layer_inputs[index], pre_grad, kernel))
+                kernel_grads.append(backend.kernel_grad(conv_inputs[index], pre_grad, kernel))
                 bias_grads.append(backend.bias_grad(pre_grad))
                 if index > 0 or need_input_grad:
                     cotangent = backend.input_grad(pre_grad, kernel)
@@ -530,12 +530,12 @@ def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
             return grads, (cotangent if need_input_grad else None)
 
         cotangent = backend.to_layout(cotangent)
-        layer_grads, input_grad = lax.map(
-            backward_example, (backend.to_layout(inputs), layers, outputs, cotangent)
+        conv_grads, input_grad = lax.map(
+            backward_example, (backend.to_layout(inputs), convs, outputs, cotangent)
         )
         if need_input_grad:
             input_grad = backend.from_layout(input_grad)
-        return layer_grads, input_grad
+        return conv_grads, input_grad
 
     stack.defvjp(stack_fwd, stack_bwd, symbolic_zeros=True)
     return stack
@@ -543,21 +543,21 @@ def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
 
 def _fused(backend: _StackBackend):
     def formulation(filter_banks, inputs, negative_slope, head):
-        layers = [(bank.kernel, bank.bias) for bank in filter_banks]
-        slopes = [float(negative_slope)] * len(layers)
+        convs = [(bank.kernel, bank.bias) for bank in filter_banks]
+        slopes = [float(negative_slope)] * len(convs)
         if head is not None:
             # The shared head joins the per-example stack, so each example's last
             # activations are still in cache when it runs; the broadcast's transpose
             # sums its per-example gradients over the batch.
             batch_size = inputs.shape[0]
-            layers.append(
+            convs.append(
                 (
                     jnp.broadcast_to(head.kernel, (batch_size, *head.kernel.shape)),
                     jnp.broadcast_to(head.bias, (batch_size, *head.bias.shape)),
                 )
             )
             slopes.append(None)
-        return _make_fused_stack(backend, tuple(slopes))(layers, inputs)
+        return _make_fused_stack(backend, tuple(slopes))(convs, inputs)
 
     return formulation
 
