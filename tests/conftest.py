@@ -1,6 +1,8 @@
 """Test-wide settings: CPU only, quiet TFDS, repo root importable."""
 
+import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -12,6 +14,23 @@ if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
 import pytest  # noqa: E402
+
+
+def run_on_cpu_devices(script: str, device_count: int) -> dict:
+    """Runs `script` in a fresh interpreter with `device_count` CPU devices and returns
+    the JSON object it prints on its last line (asserting that it exits cleanly)."""
+    env = dict(
+        os.environ,
+        XLA_FLAGS=f"--xla_force_host_platform_device_count={device_count}",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(REPO_ROOT),
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
 
 # A small global encoder that keeps compile and step times of trainer tests low.
 TINY_MODEL = {"encoder_channels": [4, 8, 8, 8, 8]}

@@ -1,16 +1,12 @@
 """Tests of gld/hypernet.py: the hypernetwork and every filter-bank formulation."""
 
-import json
-import os
-import subprocess
-import sys
 import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import run_on_cpu_devices
 from jax import lax
 
 from gld import hypernet
@@ -274,16 +270,6 @@ SHARDED_SCRIPT = textwrap.dedent(
 def test_banks_on_a_batch_sharded_mesh_give_the_single_device_gradients():
     # Under a mesh the banks run on each device's shard of the batch (shard_map); the
     # shared head's gradient must still sum over all examples of all devices.
-    env = dict(
-        os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=2",
-        JAX_PLATFORMS="cpu",
-        PYTHONPATH=str(REPO_ROOT),
-    )
-    result = subprocess.run(
-        [sys.executable, "-c", SHARDED_SCRIPT], capture_output=True, text=True, env=env
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    relative_errors = json.loads(result.stdout.strip().splitlines()[-1])
+    relative_errors = run_on_cpu_devices(SHARDED_SCRIPT, 2)
     for formulation, error in relative_errors.items():
         assert error < 1e-5, (formulation, error)

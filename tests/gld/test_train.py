@@ -7,7 +7,7 @@ import textwrap
 import jax
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, TINY_MODEL
+from conftest import REPO_ROOT, TINY_MODEL, run_on_cpu_devices
 
 from gld import input_pipeline, losses, train
 from gld import model as model_lib
@@ -139,21 +139,7 @@ SHARDED_SCRIPT = textwrap.dedent(
 
 
 def test_four_device_step_equals_one_device_step(tmp_path):
-    env = dict(
-        os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=4",
-        JAX_PLATFORMS="cpu",
-        PYTHONPATH=str(REPO_ROOT),
-    )
-    result = subprocess.run(
-        [sys.executable, "-c", SHARDED_SCRIPT],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    numbers = json.loads(result.stdout.strip().splitlines()[-1])
+    numbers = run_on_cpu_devices(SHARDED_SCRIPT, 4)
     assert numbers["max_abs_diff"] <= 1e-5 * max(numbers["max_abs"], 1.0)
 
 
