@@ -305,26 +305,19 @@ def _vmap_formulation(filter_banks, inputs, negative_slope):
     return _apply_stack(jax.vmap(_conv_single), filter_banks, inputs, negative_slope)
 
 
-@_with_head
-def _map_conv_formulation(filter_banks, inputs, negative_slope):
-    """`lax.map` over examples of the whole stack of plain convolutions."""
+def _mapped_stack(conv_single: Callable[[jax.Array, jax.Array], jax.Array]):
+    """A formulation that runs the whole stack one example at a time under `lax.map`,
+    with `conv_single(image [H, W, C_in], kernel [k, k, C_in, C_out])` as its conv."""
 
-    def one_example(args):
-        image, banks = args
-        return _apply_stack(_conv_single, banks, image, negative_slope)
+    @_with_head
+    def formulation(filter_banks, inputs, negative_slope):
+        def one_example(args):
+            image, banks = args
+            return _apply_stack(conv_single, banks, image, negative_slope)
 
-    return lax.map(one_example, (inputs, list(filter_banks)))
+        return lax.map(one_example, (inputs, list(filter_banks)))
 
-
-@_with_head
-def _map_im2col_formulation(filter_banks, inputs, negative_slope):
-    """`lax.map` over examples of the stack, each conv as im2col + one matmul."""
-
-    def one_example(args):
-        image, banks = args
-        return _apply_stack(_im2col_conv_single, banks, image, negative_slope)
-
-    return lax.map(one_example, (inputs, list(filter_banks)))
+    return formulation
 
 
 @_with_head
@@ -569,8 +562,9 @@ def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float)
 
 FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "vmap": _vmap_formulation,
-    "map_conv": _map_conv_formulation,
-    "map_im2col": _map_im2col_formulation,
+    # lax.map over examples of the whole stack: plain convs, or im2col + one matmul each.
+    "map_conv": _mapped_stack(_conv_single),
+    "map_im2col": _mapped_stack(_im2col_conv_single),
     "shifted": _shifted_formulation,
     # custom_vjp, lax.map of the stack: conv forward and input gradient; kernel gradient
     # as a plain conv with channels as batch ("fused"), as k*k per-tap matmuls over
