@@ -36,6 +36,26 @@ def run_on_cpu_devices(script: str, device_count: int) -> dict:
 TINY_MODEL = {"encoder_channels": [4, 8, 8, 8, 8]}
 
 
+def tiny_train_config(**overrides):
+    """A TrainConfig for `gld_scenes/tiny` with TINY_MODEL: batch 4, 4 steps, a checkpoint
+    every 2 steps, no periodic evaluation; `overrides` replace any field."""
+    from gld import train
+
+    values = dict(
+        model_config=dict(TINY_MODEL),
+        batch_size=4,
+        steps=4,
+        log_every=2,
+        eval_every=0,
+        checkpoint_every=2,
+        dataset="gld_scenes/tiny",
+        height=48,
+        width=64,
+    )
+    values.update(overrides)
+    return train.TrainConfig(**values)
+
+
 @pytest.fixture(scope="session")
 def tiny_scenes_dir(tmp_path_factory):
     """A data_dir holding the built `gld_scenes/tiny` (64x48, 32 train / 16 test pairs)."""

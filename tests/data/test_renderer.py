@@ -148,17 +148,21 @@ def test_depth_flow_triangulation_round_trip(pairs):
         assert relative_error[usable].max() < 1e-3
 
 
+def _reproject_view1(example):
+    """Flow and view-2 depth of every view-1 pixel, in float64, from the record's depth,
+    intrinsics and pose."""
+    return geometry.depth_to_flow(
+        example["depth1"].astype(np.float64),
+        geometry.intrinsics_matrix(example["intrinsics1"], HEIGHT, WIDTH),
+        geometry.intrinsics_matrix(example["intrinsics2"], HEIGHT, WIDTH),
+        example["rotation"].astype(np.float64),
+        example["translation"].astype(np.float64),
+    )
+
+
 def test_view2_depth_agrees_with_transformed_view1_depth(pairs):
     for example, scene, _, camera2 in pairs:
-        camera_matrix1 = geometry.intrinsics_matrix(example["intrinsics1"], HEIGHT, WIDTH)
-        camera_matrix2 = geometry.intrinsics_matrix(example["intrinsics2"], HEIGHT, WIDTH)
-        flow, depth_in_view2 = geometry.depth_to_flow(
-            example["depth1"].astype(np.float64),
-            camera_matrix1,
-            camera_matrix2,
-            example["rotation"].astype(np.float64),
-            example["translation"].astype(np.float64),
-        )
+        flow, depth_in_view2 = _reproject_view1(example)
         valid = example["gt_flow_valid"]
         # Cast view-2 rays exactly through the sub-pixel landing points.
         landing = (geometry.pixel_grid(HEIGHT, WIDTH) + flow).astype(np.float32)
@@ -176,15 +180,7 @@ def test_view2_depth_agrees_with_transformed_view1_depth(pairs):
 def test_flow_validity_excludes_occlusions_and_out_of_view(pairs):
     occluded_total = outside_total = 0
     for example, scene, _, camera2 in pairs:
-        camera_matrix1 = geometry.intrinsics_matrix(example["intrinsics1"], HEIGHT, WIDTH)
-        camera_matrix2 = geometry.intrinsics_matrix(example["intrinsics2"], HEIGHT, WIDTH)
-        flow, depth_in_view2 = geometry.depth_to_flow(
-            example["depth1"].astype(np.float64),
-            camera_matrix1,
-            camera_matrix2,
-            example["rotation"].astype(np.float64),
-            example["translation"].astype(np.float64),
-        )
+        flow, depth_in_view2 = _reproject_view1(example)
         landing = geometry.pixel_grid(HEIGHT, WIDTH) + flow
         u, v = landing[..., 0], landing[..., 1]
         outside = (u < -0.5) | (u > WIDTH - 0.5) | (v < -0.5) | (v > HEIGHT - 0.5)

@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from conftest import TINY_MODEL
+from conftest import tiny_train_config
 
 from gld import input_pipeline, train
 from gld import inspect as inspect_lib
@@ -10,17 +10,7 @@ from gld.predict import DepthPredictor
 @pytest.fixture(scope="module")
 def trained_workdir(tiny_scenes, tmp_path_factory):
     workdir = tmp_path_factory.mktemp("trained")
-    config = train.TrainConfig(
-        model_config=dict(TINY_MODEL),
-        batch_size=4,
-        steps=2,
-        log_every=1,
-        eval_every=0,
-        checkpoint_every=2,
-        dataset="gld_scenes/tiny",
-        height=48,
-        width=64,
-    )
+    config = tiny_train_config(steps=2, log_every=1)
     train.train_and_evaluate(
         config,
         workdir,

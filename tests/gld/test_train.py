@@ -7,26 +7,10 @@ import textwrap
 import jax
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, TINY_MODEL, run_on_cpu_devices
+from conftest import REPO_ROOT, TINY_MODEL, run_on_cpu_devices, tiny_train_config
 
 from gld import input_pipeline, losses, train
 from gld import model as model_lib
-
-
-def _config(**overrides):
-    values = dict(
-        model_config=dict(TINY_MODEL),
-        batch_size=4,
-        steps=4,
-        log_every=2,
-        eval_every=0,
-        checkpoint_every=2,
-        dataset="gld_scenes/tiny",
-        height=48,
-        width=64,
-    )
-    values.update(overrides)
-    return train.TrainConfig(**values)
 
 
 def _params_of(workdir):
@@ -38,11 +22,13 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
     tiny_scenes, tmp_path
 ):
     source = tiny_scenes.as_data_source("train")
-    train.train_and_evaluate(_config(), tmp_path, source, progress=False, print_fn=lambda _: None)
+    train.train_and_evaluate(
+        tiny_train_config(), tmp_path, source, progress=False, print_fn=lambda _: None
+    )
     good = _params_of(tmp_path)
     with pytest.raises(train.NonFiniteLossError, match="at step 5"):
         train.train_and_evaluate(
-            _config(steps=8, depth_weight=float("nan")),
+            tiny_train_config(steps=8, depth_weight=float("nan")),
             tmp_path,
             source,
             progress=False,
@@ -57,13 +43,13 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
 def test_a_workdir_refuses_another_architecture_listing_the_flags(tiny_scenes, tmp_path):
     source = tiny_scenes.as_data_source("train")
     train.train_and_evaluate(
-        _config(steps=2), tmp_path, source, progress=False, print_fn=lambda _: None
+        tiny_train_config(steps=2), tmp_path, source, progress=False, print_fn=lambda _: None
     )
-    other = _config(model_config=dict(TINY_MODEL, global_dim=3, use_coordinates=False))
+    other = tiny_train_config(model_config=dict(TINY_MODEL, global_dim=3, use_coordinates=False))
     with pytest.raises(ValueError, match="global_dim.*use_coordinates"):
         train.train_and_evaluate(other, tmp_path, source, progress=False, print_fn=lambda _: None)
     # a speed-only choice is not architecture
-    same = _config(steps=2, model_config=dict(TINY_MODEL, filter_formulation="vmap"))
+    same = tiny_train_config(steps=2, model_config=dict(TINY_MODEL, filter_formulation="vmap"))
     train.write_run_config(tmp_path, same)
 
 
