@@ -9,8 +9,11 @@ is reused, an unfinished one resumed), evaluates them and the classical baseline
 (`--classical`, gld.baselines.CLASSICAL, no training) on the same split with the same
 flow, and writes <workdir>/compare/:
   table.md      rows = methods; Abs-Inv, Abs-Rel, S-RMSE as mean ± std over examples,
-                the protocol stamp, and each method's parameters, training and failures;
+                Abs-Inv as a multiple of the dataset mean's, the protocol stamp, and each
+                method's parameters, training and failures;
   results.json  the same numbers (every per-example metric's mean, std and count).
+The references, the dataset mean and the per-pair oracle constant (which sees the
+truth), are in every comparison, listed in `--classical` or not.
 """
 
 from __future__ import annotations
@@ -28,11 +31,15 @@ from experiments import common
 FLAGS = flags.FLAGS
 
 LEARNED_DEFAULT = ["global_local", "eigen", "dispnet", "fcrn", "small_encdec"]
-CLASSICAL_DEFAULT = ["dataset_mean", "triangulation_gt_pose", "sfm_flow"]
+CLASSICAL_DEFAULT = ["dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow"]
+# Evaluated in every comparison, whatever `--classical` says: a table carries its references.
+REFERENCES = ["dataset_mean", "oracle_pair_median"]
 
 flags.DEFINE_string("workdir", "runs/compare", "Holds one run per model and compare/.")
 flags.DEFINE_list("models", LEARNED_DEFAULT, "Learned models to train and compare.")
-flags.DEFINE_list("classical", CLASSICAL_DEFAULT, "Classical baselines to compare.")
+flags.DEFINE_list(
+    "classical", CLASSICAL_DEFAULT, "Classical baselines to compare (the references always)."
+)
 common.define_training_flags(steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
 flags.DEFINE_integer("eval_batch_size", 16, "Evaluation batch size (last batch padded).")
@@ -78,7 +85,8 @@ def run_comparison(
       workdir: <workdir>/<model> holds each model's run, <workdir>/compare the results.
       builder: the dataset's TFDS builder (built).
       models: names in gld.model.MODELS.
-      classical_methods: names in gld.baselines.CLASSICAL.
+      classical_methods: names in gld.baselines.CLASSICAL; the REFERENCES are evaluated
+        (first among them) whether listed or not.
       train_config: gld.train.TrainConfig fields shared by every model (budget, seed,
         loss weights, supervision, flow, ...); `model`, dataset and size are set here.
       split: the evaluation split.
@@ -91,6 +99,7 @@ def run_comparison(
     from gld import evaluation, metrics, train
     from gld import model as model_lib
     from gld.baselines import CLASSICAL
+    from gld.baselines.classical import LABELS
 
     for name in models:
         if name not in model_lib.MODELS:
@@ -98,6 +107,7 @@ def run_comparison(
     for name in classical_methods:
         if name not in CLASSICAL:
             raise ValueError(f"unknown classical method {name!r}; valid: {sorted(CLASSICAL)}")
+    classical_methods = [*REFERENCES, *(m for m in classical_methods if m not in REFERENCES)]
     workdir = Path(workdir)
     height, width = common.dataset_resolution(builder)
     train_source = common.data_source(builder, "train")
@@ -172,12 +182,14 @@ def run_comparison(
         "split": split,
         "train_config": dict(train_config),
         "methods": results,
+        "labels": {name: label for name, label in LABELS.items() if name in results},
+        "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(results.items()),
         "runs": runs,
     }
     out_dir = workdir / "compare"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "results.json").write_text(json.dumps(report, indent=2) + "\n")
-    table = metrics.markdown_table(results.items(), stamp)
+    table = metrics.markdown_table(results.items(), stamp, labels=LABELS)
     table += (
         "\n| method | parameters | steps | train time | failed pairs |\n|---|---|---|---|---|\n"
     )
@@ -190,7 +202,8 @@ def run_comparison(
             train_time = f"{run['train_seconds']:.0f} s"
         failed_pairs = run.get("failed_pairs", "—")
         table += (
-            f"| {name} | {run['parameters']:,} | {run['steps']} | {train_time} | {failed_pairs} |\n"
+            f"| {metrics.table_name(name, LABELS)} | {run['parameters']:,} | {run['steps']} "
+            f"| {train_time} | {failed_pairs} |\n"
         )
     (out_dir / "table.md").write_text(table)
     print_fn(table)

@@ -3,6 +3,8 @@
 Learned models are evaluated by `gld.train.evaluate_source` (jit, sharded, exact means
 over padded batches); methods without parameters (the classical baselines) by
 `evaluate_predictor`, which runs any `predict(batch) -> {"depth", ...}` on the host.
+Every report carries its references on the same split: the dataset mean and the
+per-pair oracle constant, with each method's Abs-Inv as a multiple of the dataset mean's.
 """
 
 from __future__ import annotations
@@ -18,6 +20,9 @@ import jax
 import numpy as np
 
 from gld import input_pipeline, metrics
+
+# The per-pair oracle constant reported next to every method (`classical.OraclePairMedian`).
+ORACLE = "oracle_pair_median"
 
 
 def evaluate_predictor(
@@ -81,6 +86,11 @@ def write_report(
 ) -> dict[str, Any]:
     """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
 
+    Methods appear in the order of `results`; references that see the ground truth are
+    labelled (`gld.baselines.classical.LABELS`) in the table and in metrics.json, which
+    also holds each method's Abs-Inv as a multiple of the dataset mean's when the
+    dataset mean is among the methods.
+
     Args:
       out_dir: the directory (created).
       results: method name -> (per-example metrics incl. "example_mask", ids).
@@ -90,6 +100,8 @@ def write_report(
     Returns:
       The metrics.json content.
     """
+    from gld.baselines import classical
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summaries = {}
@@ -107,9 +119,16 @@ def write_report(
                 if mask[row]:
                     writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
     stamp = metrics.protocol_stamp(height, width, num_examples)
-    report = {"protocol": stamp, **(info or {}), "methods": summaries}
+    labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
+    report = {
+        "protocol": stamp,
+        **(info or {}),
+        "methods": summaries,
+        "labels": labels,
+        "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(summaries.items()),
+    }
     (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
-    table = metrics.markdown_table(summaries.items(), stamp)
+    table = metrics.markdown_table(summaries.items(), stamp, labels=labels)
     (out_dir / "table.md").write_text(table)
     return report
 
@@ -214,6 +233,7 @@ def evaluate_workdir(
     split: str = "test",
     num_figures: int = 8,
     with_dataset_mean: bool = True,
+    with_oracle: bool = True,
     batch_size: int = 16,
     max_examples: int = 0,
     step: int | None = None,
@@ -223,8 +243,10 @@ def evaluate_workdir(
 ) -> dict[str, Any]:
     """Evaluates a workdir's trained model (or a classical method) on `source`.
 
-    Writes <workdir>/eval (see `write_report` and `render_examples`); the dataset-mean
-    baseline, fitted on `train_source`, is evaluated alongside when asked.
+    Writes <workdir>/eval (see `write_report` and `render_examples`). The references are
+    evaluated alongside on the same examples with the same flow, when asked: the dataset
+    mean (fitted on `train_source`, so only when it is given) and the per-pair oracle
+    constant. Rows: the method, then dataset_mean, then oracle_pair_median.
     """
     from gld import train
 
@@ -272,6 +294,11 @@ def evaluate_workdir(
             mean.predict, source, batch_size=batch_size, flow=flow, max_examples=max_examples
         )
         info["dataset_mean_inv_depth"] = mean.inv_depth
+    if with_oracle and classical_method != ORACLE and jax.process_index() == 0:
+        oracle = fit_classical(ORACLE, train_source, flow)
+        results[ORACLE] = evaluate_predictor(
+            oracle.predict, source, batch_size=batch_size, flow=flow, max_examples=max_examples
+        )
     if jax.process_index() != 0:
         return {}
     out_dir = Path(workdir) / "eval"

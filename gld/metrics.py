@@ -8,7 +8,7 @@ example mask so that padded, sharded batches give exact means through (sum, coun
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -104,16 +104,61 @@ def protocol_stamp(height: int, width: int, num_examples: int, extra: str = "") 
     return f"{stamp}; {extra}" if extra else stamp
 
 
+def ratios_to_reference(
+    rows: Iterable[tuple[str, dict[str, dict]]],
+    reference: str = "dataset_mean",
+    metric: str = "abs_inv",
+) -> dict[str, float]:
+    """Each method's mean `metric` as a multiple of the reference method's.
+
+    Args:
+      rows: (method, summary) pairs, summaries as made by `summarise`.
+      reference: the method every other is divided by.
+      metric: the per-example metric compared.
+
+    Returns:
+      method -> mean / reference mean, for every method with `metric`; empty when the
+      reference is missing or its mean is not a positive number.
+    """
+    rows = list(rows)
+    means = {method: summary[metric]["mean"] for method, summary in rows if metric in summary}
+    reference_mean = means.get(reference, math.nan)
+    if not (math.isfinite(reference_mean) and reference_mean > 0):
+        return {}
+    return {method: mean / reference_mean for method, mean in means.items()}
+
+
+def table_name(method: str, labels: Mapping[str, str] | None = None) -> str:
+    """How a table names a method: "name — label" where `labels` has one, else the name."""
+    return f"{method} — {labels[method]}" if labels and method in labels else method
+
+
 def markdown_table(
-    rows: Iterable[tuple[str, dict[str, dict]]], stamp: str, metrics=DEPTH_METRICS
+    rows: Iterable[tuple[str, dict[str, dict]]],
+    stamp: str,
+    metrics=DEPTH_METRICS,
+    *,
+    labels: Mapping[str, str] | None = None,
+    reference: str = "dataset_mean",
 ) -> str:
-    """Rows of (method, summary) -> a Markdown table with mean ± std, and the stamp."""
-    header = "| method | " + " | ".join(METRIC_NAMES.get(m, m) for m in metrics) + " |"
-    lines = [header, "|---" * (len(metrics) + 1) + "|"]
+    """Rows of (method, summary) -> a Markdown table with mean ± std, and the stamp.
+
+    Methods are named by `table_name`. When the `reference` method is among the rows, a
+    last column gives each method's Abs-Inv as a multiple of the reference's (see
+    `ratios_to_reference`).
+    """
+    rows = list(rows)
+    ratios = ratios_to_reference(rows, reference)
+    names = [METRIC_NAMES.get(m, m) for m in metrics]
+    if ratios:
+        names.append(f"{METRIC_NAMES['abs_inv']} ÷ {reference}")
+    lines = ["| method | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     for method, summary in rows:
         cells = [
             f"{summary[m]['mean']:.4f} ± {summary[m]['std']:.4f}" if m in summary else "—"
             for m in metrics
         ]
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        if ratios:
+            cells.append(f"{ratios[method]:.2f}×" if method in ratios else "—")
+        lines.append(f"| {table_name(method, labels)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + f"\n\n{stamp}\n"

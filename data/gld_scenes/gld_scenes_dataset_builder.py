@@ -11,20 +11,27 @@ Build with `data.prepare("gld_scenes/small", data_dir)` or
 processes: `data.prepare("gld_scenes/full", data_dir, workers=8)`. Example i of a
 split is rendered from a generator seeded by (config seed, split, i), so the
 records are identical across builds and independent of the number of workers.
+
+The dataset card (`metadata.json`) records, per split, the estimated flow's end-point
+error and the benchmark's signal (`signal_<split>`, see `signal_statistics`): how far
+pixels move, how much of that motion is parallax (the part that carries depth), and
+how well triangulation with the true pose recovers depth from the estimated and from
+the true flow.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import multiprocessing
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import tensorflow_datasets as tfds
 
 from gld import flow as flow_lib
-from gld import records
+from gld import geometry, records
+from gld.baselines import classical
 
 from . import renderer
 
@@ -51,6 +58,11 @@ _CITATION = """\
   year={2020}
 }
 """
+
+
+# The card's signal statistics come from the first CARD_PAIRS pairs of each split (pairs
+# are independent draws), so they cost seconds even for `full`.
+CARD_PAIRS = 500
 
 
 @dataclasses.dataclass(eq=False)
@@ -126,10 +138,107 @@ def render_example(
     return example_id, example, epe, float(example["gt_flow_valid"].mean())
 
 
-def _render_record(task: tuple[SceneConfig, str, int]) -> tuple[str, dict[str, Any], float, float]:
-    """Pool worker: `render_example` with the record already encoded (PNG in parallel)."""
+def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
+    """What one pair offers a depth learner: its motion, its parallax, its triangulability.
+
+    Numpy only (it runs in the rendering workers). The triangulation is the
+    `triangulation_gt_pose` baseline's (`classical.triangulate_batch`) and its Abs-Inv
+    follows the evaluation's protocol, so the card's numbers are the ones
+    `python -m experiments.evaluate --model=triangulation_gt_pose` reports.
+
+    Args:
+      example: a raw example or a stored record: 'depth1' [H, W]; 'flow' (the estimate)
+        and 'gt_flow' [H, W, 2] pixels I1 -> I2; 'gt_flow_valid' [H, W] bool;
+        'intrinsics1', 'intrinsics2' [4] normalised; 'rotation' [3, 3]; 'translation' [3].
+
+    Returns:
+      gt_flow_px_mean, gt_flow_px_median: |true flow| in pixels over its valid pixels;
+      translational_flow_px_mean: |true flow - rotation-only flow| over the same pixels,
+        where the rotation-only flow is the pair's flow with the translation set to zero
+        (the flow at infinite depth), so the rest is the parallax that carries depth;
+      triangulation_abs_inv_estimated_flow, triangulation_abs_inv_gt_flow: Abs-Inv of
+        triangulation with the true pose from each flow, over every valid depth pixel,
+        depth scaled so that ||t|| = 1.
+      The flow values are NaN for a pair without a valid true-flow pixel.
+    """
+    depth = np.asarray(example["depth1"], np.float64)
+    height, width = depth.shape
+    intrinsics1 = np.asarray(example["intrinsics1"], np.float64)
+    intrinsics2 = np.asarray(example["intrinsics2"], np.float64)
+    rotation = np.asarray(example["rotation"], np.float64)
+    translation = np.asarray(example["translation"], np.float64)
+    gt_flow = np.asarray(example["gt_flow"], np.float64)
+    flow_valid = np.asarray(example["gt_flow_valid"], bool)
+
+    rotational_flow, _ = geometry.depth_to_flow(
+        np.ones_like(depth),
+        geometry.intrinsics_matrix(intrinsics1, height, width),
+        geometry.intrinsics_matrix(intrinsics2, height, width),
+        rotation,
+        np.zeros(3),
+    )
+    magnitude = np.linalg.norm(gt_flow, axis=-1)[flow_valid]
+    parallax = np.linalg.norm(gt_flow - rotational_flow, axis=-1)[flow_valid]
+
+    def twice(value):
+        return np.stack([np.asarray(value, np.float32)] * 2)
+
+    # One batch of two: the estimated flow, then the true flow.
+    predicted = classical.triangulate_batch(
+        np.stack([example["flow"], example["gt_flow"]]).astype(np.float32),
+        twice(intrinsics1),
+        twice(intrinsics2),
+        twice(rotation),
+        twice(translation),
+    )["inv_depth"]
+    depth_valid = geometry.valid_depth(depth)
+    true_inv_depth = np.linalg.norm(translation) / depth[depth_valid]
+    abs_inv = [np.abs(true_inv_depth - pair[depth_valid]).mean() for pair in predicted]
+    has_flow = bool(flow_valid.any())
+    return {
+        "gt_flow_px_mean": float(magnitude.mean()) if has_flow else float("nan"),
+        "gt_flow_px_median": float(np.median(magnitude)) if has_flow else float("nan"),
+        "translational_flow_px_mean": float(parallax.mean()) if has_flow else float("nan"),
+        "triangulation_abs_inv_estimated_flow": float(abs_inv[0]),
+        "triangulation_abs_inv_gt_flow": float(abs_inv[1]),
+    }
+
+
+def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict[str, Any]:
+    """The card's `signal_<split>` entry from `signal_statistics` of some of its pairs.
+
+    Every value is the mean over pairs of the per-pair value, except gt_flow_px_median,
+    the median over pairs of each pair's median; pairs without a valid true-flow pixel
+    are left out of the flow values.
+    """
+    summary: dict[str, Any] = {
+        "pairs": len(per_pair),
+        "split_pairs": split_pairs,
+        "note": (
+            f"over the first {len(per_pair)} of {split_pairs} pairs: means over pairs of "
+            "per-pair values (gt_flow_px_median: the median of the pairs' medians); flow in "
+            "pixels over valid true-flow pixels; translational = true flow minus the "
+            "rotation-only flow (zero translation); triangulation with the true pose, "
+            "Abs-Inv at ||t|| = 1 over valid depth pixels"
+        ),
+    }
+    for name in per_pair[0] if per_pair else ():
+        values = np.asarray([pair[name] for pair in per_pair], np.float64)
+        values = values[np.isfinite(values)]
+        reduce = np.median if name == "gt_flow_px_median" else np.mean
+        summary[name] = float(reduce(values)) if values.size else None
+    return summary
+
+
+def _render_record(
+    task: tuple[SceneConfig, str, int],
+) -> tuple[str, dict[str, Any], float, float, dict[str, float] | None]:
+    """Pool worker: `render_example` with the record already encoded (PNG in parallel),
+    and the stored record's `signal_statistics` for the first CARD_PAIRS of a split."""
     example_id, example, epe, valid_fraction = render_example(*task)
-    return example_id, records.encode(example), epe, valid_fraction
+    record = records.encode(example)
+    signal = signal_statistics(record) if task[2] < CARD_PAIRS else None
+    return example_id, record, epe, valid_fraction, signal
 
 
 class Builder(tfds.core.GeneratorBasedBuilder):
@@ -175,27 +284,30 @@ class Builder(tfds.core.GeneratorBasedBuilder):
 
     def _generate_examples(self, split: str, count: int) -> Iterator[tuple[str, dict[str, Any]]]:
         tasks = [(self.builder_config, split, index) for index in range(count)]
-        errors, valid_fractions = [], []
+        errors, valid_fractions, signal = [], [], []
         if self._workers == 1:
             results = map(_render_record, tasks)
-            yield from self._collect(results, errors, valid_fractions)
+            yield from self._collect(results, errors, valid_fractions, signal)
         else:
             # Fork: workers inherit the imported modules (the builder may have been imported
             # from a path that a fresh interpreter could not import).
             context = multiprocessing.get_context("fork")
             with context.Pool(self._workers) as pool:
                 results = pool.imap(_render_record, tasks, chunksize=4)
-                yield from self._collect(results, errors, valid_fractions)
+                yield from self._collect(results, errors, valid_fractions, signal)
         # The dataset card: written to metadata.json after the splits are generated.
         errors = np.asarray(errors, np.float64)
         finite = errors[np.isfinite(errors)]
         self.info.metadata[f"flow_epe_{split}"] = float(finite.mean()) if finite.size else None
         self.info.metadata[f"flow_epe_{split}_std"] = float(finite.std()) if finite.size else None
         self.info.metadata[f"gt_flow_valid_fraction_{split}"] = float(np.mean(valid_fractions))
+        self.info.metadata[f"signal_{split}"] = summarise_signal(signal, count)
 
     @staticmethod
-    def _collect(results, errors: list, valid_fractions: list):
-        for example_id, record, epe, valid_fraction in results:
+    def _collect(results, errors: list, valid_fractions: list, signal: list):
+        for example_id, record, epe, valid_fraction, pair_signal in results:
             errors.append(epe)
             valid_fractions.append(valid_fraction)
+            if pair_signal is not None:
+                signal.append(pair_signal)
             yield example_id, record

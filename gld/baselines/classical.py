@@ -1,4 +1,5 @@
-"""Classical (untrained) depth baselines: dataset mean, triangulation with the true pose, SfM.
+"""Classical (untrained) depth baselines and references: dataset mean, per-pair oracle
+constant, triangulation with the true pose, SfM.
 
 Every method follows one protocol, so the evaluation launcher treats them alike:
 
@@ -13,11 +14,15 @@ Every method follows one protocol, so the evaluation launcher treats them alike:
 in the scale of the contract: the pair's translation has norm 1. Predictions are
 never NaN: pixels (or whole pairs) a method cannot handle get a defined fallback and
 are counted in the outputs, so they stay in every mean.
+
+`OraclePairMedian` reads the ground truth of the pair it predicts: it is a reference,
+not a method, and every table shows it with its label (`LABELS`).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -29,6 +34,7 @@ import numpy as np
 from gld import geometry, layers
 
 Batch = Mapping[str, Any]
+Array = Any  # np.ndarray | jax.Array
 
 # Triangulated points closer than this (in units of the baseline, ||t|| = 1) are
 # treated as failures: they come from near-degenerate rays, not from real geometry.
@@ -50,16 +56,19 @@ def _flow_of(batch: Batch) -> np.ndarray:
 
 
 def triangulate_batch(
-    flow: jax.Array,
-    intrinsics1: jax.Array,
-    intrinsics2: jax.Array,
-    rotation: jax.Array,
-    translation: jax.Array,
+    flow: Array,
+    intrinsics1: Array,
+    intrinsics2: Array,
+    rotation: Array,
+    translation: Array,
     *,
     min_depth: float = DEFAULT_MIN_DEPTH,
     fallback_inv_depth: float = layers.INITIAL_INV_DEPTH,
-) -> dict[str, jax.Array]:
+) -> dict[str, Array]:
     """Per-pixel linear triangulation of a batch with a given pose (pure, jittable).
+
+    JAX arrays (or tracers) in give JAX arrays out; numpy arrays in give numpy arrays
+    out, without touching JAX (so that dataset builders can call it in worker processes).
 
     The translation is rescaled to unit norm (the evaluation scale). A pixel is
     triangulated when its depth is finite, at least `min_depth`, and its point lies in
@@ -77,42 +86,43 @@ def triangulate_batch(
       'inv_depth', 'depth': [B, H, W] positive and finite; 'triangulated': [B, H, W] bool;
       'untriangulated': [B] int32 count of filled pixels.
     """
+    inputs = (flow, intrinsics1, intrinsics2, rotation, translation)
+    xp = jnp if any(isinstance(value, jax.Array) for value in inputs) else np
     height, width = flow.shape[-3:-1]
-    flow = jnp.asarray(flow, jnp.float32)
-    rotation = jnp.asarray(rotation, jnp.float32)
-    translation = jnp.asarray(translation, jnp.float32)
-    camera_matrix1 = geometry.intrinsics_matrix(
-        jnp.asarray(intrinsics1, jnp.float32), height, width
-    )
-    camera_matrix2 = geometry.intrinsics_matrix(
-        jnp.asarray(intrinsics2, jnp.float32), height, width
-    )
-    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
-    unit_translation = translation / jnp.maximum(norm, 1e-12)
+    flow = xp.asarray(flow, xp.float32)
+    rotation = xp.asarray(rotation, xp.float32)
+    translation = xp.asarray(translation, xp.float32)
+    camera_matrix1 = geometry.intrinsics_matrix(xp.asarray(intrinsics1, xp.float32), height, width)
+    camera_matrix2 = geometry.intrinsics_matrix(xp.asarray(intrinsics2, xp.float32), height, width)
+    norm = xp.linalg.norm(translation, axis=-1, keepdims=True)
+    unit_translation = translation / xp.maximum(norm, 1e-12)
 
     depth = geometry.triangulate_depth(
         flow, camera_matrix1, camera_matrix2, rotation, unit_translation
     )
-    safe_depth = jnp.where(jnp.isfinite(depth), depth, 0.0)
+    safe_depth = xp.where(xp.isfinite(depth), depth, 0.0)
     points2 = geometry.transform_points(
         geometry.backproject(safe_depth, camera_matrix1), rotation, unit_translation
     )
     triangulated = (
-        jnp.isfinite(depth)
+        xp.isfinite(depth)
         & (depth >= min_depth)
         & (points2[..., 2] > 0)
-        & jnp.all(jnp.isfinite(flow), axis=-1)
+        & xp.all(xp.isfinite(flow), axis=-1)
         & (norm[..., None] > 1e-12)
     )
-    inv_depth = jnp.where(triangulated, 1.0 / jnp.where(triangulated, depth, 1.0), jnp.nan)
-    pair_median = jnp.nanmedian(inv_depth, axis=(-2, -1), keepdims=True)
-    pair_median = jnp.where(jnp.isfinite(pair_median), pair_median, fallback_inv_depth)
-    inv_depth = jnp.where(triangulated, inv_depth, pair_median)
+    inv_depth = xp.where(triangulated, 1.0 / xp.where(triangulated, depth, 1.0), xp.nan)
+    with warnings.catch_warnings():
+        # numpy warns about a pair with no triangulated pixel; its fallback is next.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        pair_median = xp.nanmedian(inv_depth, axis=(-2, -1), keepdims=True)
+    pair_median = xp.where(xp.isfinite(pair_median), pair_median, fallback_inv_depth)
+    inv_depth = xp.where(triangulated, inv_depth, pair_median)
     return {
         "inv_depth": inv_depth,
         "depth": 1.0 / inv_depth,
         "triangulated": triangulated,
-        "untriangulated": jnp.sum(~triangulated, axis=(-2, -1)).astype(jnp.int32),
+        "untriangulated": xp.sum(~triangulated, axis=(-2, -1)).astype(xp.int32),
     }
 
 
@@ -161,6 +171,51 @@ class DatasetMean:
         if self.inv_depth is None:
             raise ValueError("DatasetMean has no mean yet: call fit(training_examples) first")
         inv_depth = np.full((batch_size, height, width), self.inv_depth, np.float32)
+        return {"inv_depth": inv_depth, "depth": 1.0 / inv_depth}
+
+
+class OraclePairMedian:
+    """Per-pair oracle constant: each pair's own median true inverse depth, everywhere.
+
+    It reads the pair's ground truth ('depth', 'depth_valid'), so it is an oracle, not a
+    method. Among constant predictions it is the best one of each pair under Abs-Inv (the
+    median minimises the mean absolute error), so a model that beats it has learned
+    structure within the pair, not only the pair's scale.
+    """
+
+    label = "per-pair oracle constant (sees the truth)"
+    needs_training_data = False
+
+    def __init__(self, *, fallback_inv_depth: float = layers.INITIAL_INV_DEPTH):
+        """Args: fallback_inv_depth: prediction of pairs without a valid pixel (which no
+        metric counts)."""
+        self.fallback_inv_depth = fallback_inv_depth
+
+    def fit(self, examples: Iterable[Batch]) -> OraclePairMedian:
+        del examples
+        return self
+
+    def predict(self, batch: Batch) -> dict[str, np.ndarray]:
+        """Constant map per pair {'inv_depth', 'depth'}: [B, H, W], sized like 'depth'.
+
+        Args:
+          batch: 'depth' [B, H, W] in the contract's scale (||t|| = 1) and, where present,
+            'depth_valid' [B, H, W] bool; pixels with non-positive or non-finite depth
+            are invalid too.
+        """
+        _require(batch, ["depth"])
+        depth = np.asarray(batch["depth"], np.float64)
+        if depth.ndim != 3:
+            raise ValueError(f"'depth' must be [B, H, W], got shape {depth.shape}")
+        valid = geometry.valid_depth(depth)
+        if "depth_valid" in batch:
+            valid &= np.asarray(batch["depth_valid"], bool)
+        inv_depth = np.empty(depth.shape, np.float32)
+        for pair, (pair_depth, pair_valid) in enumerate(zip(depth, valid, strict=True)):
+            if pair_valid.any():
+                inv_depth[pair] = np.median(1.0 / pair_depth[pair_valid])
+            else:
+                inv_depth[pair] = self.fallback_inv_depth
         return {"inv_depth": inv_depth, "depth": 1.0 / inv_depth}
 
 
@@ -374,6 +429,11 @@ class SfMFlow:
 
 CLASSICAL: dict[str, type] = {
     "dataset_mean": DatasetMean,
+    "oracle_pair_median": OraclePairMedian,
     "triangulation_gt_pose": TriangulationGtPose,
     "sfm_flow": SfMFlow,
 }
+
+# What every table writes next to a method's name: references that see the ground truth
+# must never be read as methods.
+LABELS: dict[str, str] = {"oracle_pair_median": OraclePairMedian.label}

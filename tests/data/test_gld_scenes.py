@@ -132,3 +132,132 @@ def test_unknown_config_lists_valid_ones():
 def test_bad_worker_count_raises(tmp_path):
     with pytest.raises(ValueError, match="workers"):
         builder_module.Builder(config="tiny", data_dir=str(tmp_path), workers=0)
+
+
+def _moving_pair(rotation, translation, seed=0):
+    """A hand-made example: random depth 2-6 m seen by a camera that moves by (R, t), its
+    exact flow and an estimate off by 0.5 px."""
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(2.0, 6.0, (HEIGHT, WIDTH))
+    intrinsics = np.array([0.9, 1.2, 0.5, 0.5])
+    camera_matrix = geometry.intrinsics_matrix(intrinsics, HEIGHT, WIDTH)
+    gt_flow, _ = geometry.depth_to_flow(depth, camera_matrix, camera_matrix, rotation, translation)
+    return {
+        "depth1": depth.astype(np.float32),
+        "flow": (gt_flow + 0.5).astype(np.float32),
+        "gt_flow": gt_flow.astype(np.float32),
+        "gt_flow_valid": np.ones((HEIGHT, WIDTH), bool),
+        "intrinsics1": intrinsics,
+        "intrinsics2": intrinsics,
+        "rotation": np.asarray(rotation, np.float64),
+        "translation": np.asarray(translation, np.float64),
+    }
+
+
+def test_signal_of_a_pure_translation_is_all_parallax():
+    example = _moving_pair(np.eye(3), np.array([0.3, 0.1, 0.05]))
+    signal = builder_module.signal_statistics(example)
+    magnitude = np.linalg.norm(example["gt_flow"], axis=-1)
+    assert signal["gt_flow_px_mean"] == pytest.approx(magnitude.mean(), rel=1e-6)
+    assert signal["gt_flow_px_median"] == pytest.approx(np.median(magnitude), rel=1e-6)
+    assert signal["translational_flow_px_mean"] == pytest.approx(magnitude.mean(), rel=1e-5)
+    assert signal["triangulation_abs_inv_gt_flow"] < 1e-5
+    assert signal["triangulation_abs_inv_estimated_flow"] > 100 * max(
+        signal["triangulation_abs_inv_gt_flow"], 1e-6
+    )
+
+
+def test_signal_of_a_pure_rotation_has_no_parallax():
+    rotation = geometry.rotation_matrix(np.radians([1.0, 2.0, 0.5]))
+    example = _moving_pair(rotation, np.array([1e-9, 0.0, 0.0]))
+    signal = builder_module.signal_statistics(example)
+    assert signal["gt_flow_px_mean"] > 1.0
+    assert signal["translational_flow_px_mean"] < 1e-4
+    assert all(np.isfinite(value) for value in signal.values())
+
+
+def test_signal_summary_counts_pairs_and_skips_pairs_without_flow():
+    per_pair = [
+        {"gt_flow_px_mean": 2.0, "gt_flow_px_median": 1.0, "triangulation_abs_inv_gt_flow": 0.1},
+        {"gt_flow_px_mean": 4.0, "gt_flow_px_median": 3.0, "triangulation_abs_inv_gt_flow": 0.2},
+        {"gt_flow_px_mean": 9.0, "gt_flow_px_median": 8.0, "triangulation_abs_inv_gt_flow": 0.6},
+        {
+            "gt_flow_px_mean": float("nan"),
+            "gt_flow_px_median": float("nan"),
+            "triangulation_abs_inv_gt_flow": 0.3,
+        },
+    ]
+    summary = builder_module.summarise_signal(per_pair, split_pairs=10)
+    assert summary["pairs"] == 4 and summary["split_pairs"] == 10
+    assert "first 4 of 10 pairs" in summary["note"]
+    assert summary["gt_flow_px_mean"] == pytest.approx(5.0)
+    assert summary["gt_flow_px_median"] == pytest.approx(3.0)  # median of 1, 3, 8
+    assert summary["triangulation_abs_inv_gt_flow"] == pytest.approx(0.3)
+
+
+def _by_hand_flow_signal(example) -> tuple[float, float, float]:
+    """A pair's mean and median |true flow| and mean |true flow - rotation-only flow| over
+    its valid pixels; the rotation-only flow from the homography K2 R K1^-1."""
+    camera_matrix1 = geometry.intrinsics_matrix(example["intrinsics1"].astype(float), HEIGHT, WIDTH)
+    camera_matrix2 = geometry.intrinsics_matrix(example["intrinsics2"].astype(float), HEIGHT, WIDTH)
+    homography = camera_matrix2 @ example["rotation"].astype(float) @ np.linalg.inv(camera_matrix1)
+    v, u = np.mgrid[0:HEIGHT, 0:WIDTH].astype(float)
+    pixels = np.stack([u, v, np.ones_like(u)], axis=-1)
+    mapped = pixels @ homography.T
+    rotation_flow = mapped[..., :2] / mapped[..., 2:] - pixels[..., :2]
+    valid = example["gt_flow_valid"]
+    flow = example["gt_flow"].astype(float)
+    magnitude = np.linalg.norm(flow, axis=-1)[valid]
+    parallax = np.linalg.norm(flow - rotation_flow, axis=-1)[valid]
+    return magnitude.mean(), np.median(magnitude), parallax.mean()
+
+
+def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
+    from gld import evaluation
+    from gld.baselines import classical
+
+    metadata = json.loads((tiny.data_path / "metadata.json").read_text())
+    assert metadata["signal_train"]["pairs"] == metadata["signal_train"]["split_pairs"] == 32
+    signal = metadata["signal_test"]
+    assert signal["pairs"] == signal["split_pairs"] == 16
+    assert "first 16 of 16 pairs" in signal["note"]
+
+    by_hand = np.array([_by_hand_flow_signal(example) for example in tiny_test_split])
+    assert signal["gt_flow_px_mean"] == pytest.approx(by_hand[:, 0].mean(), rel=1e-6)
+    assert signal["gt_flow_px_median"] == pytest.approx(np.median(by_hand[:, 1]), rel=1e-6)
+    assert signal["translational_flow_px_mean"] == pytest.approx(by_hand[:, 2].mean(), rel=1e-6)
+    # Hand-held motion: the camera moves, so there is parallax, but rotation moves pixels too.
+    assert 0.5 < signal["translational_flow_px_mean"] < signal["gt_flow_px_mean"]
+
+    # The card's triangulation numbers are what the evaluation reports for the baseline.
+    source = tiny.as_data_source()["test"]
+    for flow, key in (("estimated", "estimated_flow"), ("gt", "gt_flow")):
+        per_example, _ = evaluation.evaluate_predictor(
+            classical.TriangulationGtPose().predict, source, flow=flow
+        )
+        assert per_example["example_mask"].all()
+        expected = per_example["abs_inv"].mean()
+        assert signal[f"triangulation_abs_inv_{key}"] == pytest.approx(expected, rel=1e-3, abs=1e-7)
+    # Exact flow and pose triangulate almost exactly; the estimated flow does not.
+    assert signal["triangulation_abs_inv_gt_flow"] < 1e-4
+    assert (
+        signal["triangulation_abs_inv_estimated_flow"]
+        > 100 * signal["triangulation_abs_inv_gt_flow"]
+    )
+
+
+def test_card_signal_uses_the_first_card_pairs_of_a_split(tmp_path, monkeypatch):
+    monkeypatch.setattr(builder_module, "CARD_PAIRS", 2)
+    config = data.builder_class("gld_scenes").builder_configs["tiny"]
+    builder = builder_module.Builder(config=config, data_dir=str(tmp_path))
+    list(builder._generate_examples("test", 3))
+    signal = builder.info.metadata["signal_test"]
+    assert signal["pairs"] == 2 and signal["split_pairs"] == 3
+    assert "first 2 of 3 pairs" in signal["note"]
+    first_two = [
+        builder_module.signal_statistics(builder_module.render_example(config, "test", i)[1])
+        for i in range(2)
+    ]
+    assert signal["gt_flow_px_mean"] == pytest.approx(
+        np.mean([pair["gt_flow_px_mean"] for pair in first_two]), rel=1e-5
+    )

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 from conftest import REPO_ROOT
 
 
@@ -39,6 +40,9 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
     table = (workdir / "compare" / "table.md").read_text()
     for row in ("small_encdec", "dataset_mean", "triangulation_gt_pose", "sfm_flow"):
         assert f"| {row} |" in table
+    # The oracle is a reference in every comparison, labelled as one, listed or not.
+    assert "| oracle_pair_median — per-pair oracle constant (sees the truth) |" in table
+    assert "Abs-Inv ÷ dataset_mean" in table
     assert "Abs-Inv" in table and "protocol:" in table and "2 steps at batch 4" in table
     assert "| small_encdec | 384,367 | 2 |" in table
 
@@ -54,15 +58,62 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
     # With exact flow and pose, triangulation is far better than the dataset mean.
     triangulation = methods["triangulation_gt_pose"]["abs_inv"]["mean"]
     assert triangulation < 0.1 * methods["dataset_mean"]["abs_inv"]["mean"]
+    # The best constant of each pair beats the one constant of every pair.
+    assert (
+        methods["oracle_pair_median"]["abs_inv"]["mean"]
+        < methods["dataset_mean"]["abs_inv"]["mean"]
+    )
+    assert results["abs_inv_vs_dataset_mean"]["triangulation_gt_pose"] < 0.1
 
-    # Re-running reuses the finished run (the classical rows are left out to save time).
+    # Re-running reuses the finished run (the classical rows are left out to save time,
+    # the references stay).
     second = launch("--classical=")
     assert "small_encdec: reusing the finished run" in second.stdout
     again = json.loads((workdir / "compare" / "results.json").read_text())
     assert again["methods"]["small_encdec"] == methods["small_encdec"]
+    assert list(again["methods"]) == ["small_encdec", "dataset_mean", "oracle_pair_median"]
     assert (
         "| small_encdec | 384,367 | 2 | reused |" in (workdir / "compare" / "table.md").read_text()
     )
+
+
+def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tmp_path):
+    # No learned model: nothing is trained, only the methods are evaluated.
+    workdir = tmp_path / "compare"
+    command = [
+        sys.executable,
+        "-m",
+        "experiments.compare",
+        "--dataset=gld_scenes/tiny",
+        f"--data_dir={tiny_scenes_dir}",
+        f"--workdir={workdir}",
+        "--models=",
+        "--classical=triangulation_gt_pose",
+        "--flow=gt",
+    ]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    result = subprocess.run(
+        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    results = json.loads((workdir / "compare" / "results.json").read_text())
+    methods = results["methods"]
+    assert list(methods) == ["dataset_mean", "oracle_pair_median", "triangulation_gt_pose"]
+    assert results["labels"] == {"oracle_pair_median": "per-pair oracle constant (sees the truth)"}
+    ratios = results["abs_inv_vs_dataset_mean"]
+    mean = methods["dataset_mean"]["abs_inv"]["mean"]
+    for name, summary in methods.items():
+        assert ratios[name] == pytest.approx(summary["abs_inv"]["mean"] / mean), name
+    assert ratios["oracle_pair_median"] < 1.0
+
+    lines = (workdir / "compare" / "table.md").read_text().splitlines()
+    assert lines[0].endswith("| Abs-Inv ÷ dataset_mean |")
+    assert lines[2].startswith("| dataset_mean |") and lines[2].endswith("| 1.00× |")
+    oracle_row = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
+    assert lines[3].startswith(oracle_row)
+    assert lines[3].endswith(f"| {ratios['oracle_pair_median']:.2f}× |")
+    # The runs table names the oracle the same way.
+    assert f"{oracle_row} 0 | 0 | none | — |" in lines
 
 
 def test_compare_flagfiles_parse_with_the_compare_flags():

@@ -61,11 +61,15 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
         "6",
     ]
     report = json.loads((workdir / "eval" / "metrics.json").read_text())
-    assert set(report["methods"]) == {"global_local", "dataset_mean"}
+    assert list(report["methods"]) == ["global_local", "dataset_mean", "oracle_pair_median"]
     assert report["methods"]["global_local"]["abs_inv"]["count"] == 16
+    assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 16
+    assert report["abs_inv_vs_dataset_mean"]["dataset_mean"] == 1.0
     assert "||t|| = 1" in report["protocol"] and report["step"] == 6
     table = (workdir / "eval" / "table.md").read_text()
     assert "| global_local |" in table and "| dataset_mean |" in table
+    assert "| oracle_pair_median — per-pair oracle constant (sees the truth) |" in table
+    assert "Abs-Inv ÷ dataset_mean" in table
     rows = (workdir / "eval" / "per_example_global_local.csv").read_text().splitlines()
     assert rows[0].startswith("id,") and len(rows) == 17
     assert len(list((workdir / "eval" / "figures").glob("*.png"))) == 2

@@ -54,3 +54,39 @@ def test_table_carries_the_protocol_stamp():
     table = metrics.markdown_table([("global_local", summary)], stamp)
     assert "| global_local | 0.5000 ± 0.1000 |" in table
     assert "256x192" in table and "||t|| = 1" in table and "no median scaling" in table
+
+
+def _summary(abs_inv: float) -> dict[str, dict]:
+    return {
+        name: {"mean": abs_inv if name == "abs_inv" else 0.5, "std": 0.1, "count": 2}
+        for name in metrics.DEPTH_METRICS
+    }
+
+
+def test_table_gives_abs_inv_as_a_multiple_of_the_dataset_mean():
+    rows = [
+        ("global_local", _summary(0.03)),
+        ("dataset_mean", _summary(0.04)),
+        ("oracle_pair_median", _summary(0.01)),
+    ]
+    assert metrics.ratios_to_reference(rows) == pytest.approx(
+        {"global_local": 0.75, "dataset_mean": 1.0, "oracle_pair_median": 0.25}
+    )
+    table = metrics.markdown_table(
+        rows, "stamp", labels={"oracle_pair_median": "per-pair oracle constant"}
+    )
+    lines = table.splitlines()
+    assert lines[0] == "| method | Abs-Inv | Abs-Rel | S-RMSE | Abs-Inv ÷ dataset_mean |"
+    assert lines[1] == "|---|---|---|---|---|"
+    assert lines[2].startswith("| global_local | 0.0300 ± 0.1000 |")
+    assert lines[2].endswith("| 0.75× |")
+    assert lines[3].endswith("| 1.00× |")
+    assert lines[4].startswith("| oracle_pair_median — per-pair oracle constant | 0.0100")
+    assert lines[4].endswith("| 0.25× |")
+
+
+def test_table_without_the_reference_has_no_ratio_column():
+    assert metrics.ratios_to_reference([("global_local", _summary(0.03))]) == {}
+    assert metrics.ratios_to_reference([("dataset_mean", _summary(0.0))]) == {}
+    table = metrics.markdown_table([("global_local", _summary(0.03))], "stamp")
+    assert table.splitlines()[0] == "| method | Abs-Inv | Abs-Rel | S-RMSE |"

@@ -1,3 +1,5 @@
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,6 +55,22 @@ def test_triangulation_is_jittable_over_jax_arrays():
     outputs = jax.jit(classical.triangulate_batch)(*(jnp.asarray(batch[key]) for key in keys))
     relative_error = jnp.abs(outputs["depth"] - batch["depth"]) / batch["depth"]
     assert float(relative_error.max()) < 1e-3
+
+
+def test_triangulation_of_numpy_arrays_stays_in_numpy_and_matches_the_jitted_one():
+    batch = _scene_batch(seed=6)
+    batch["flow"][0, :4] = np.nan  # filled with the pair median
+    batch["flow"][1] = np.nan  # nothing triangulates: the fallback, without a warning
+    keys = ["flow", "intrinsics1", "intrinsics2", "rotation", "translation"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        outputs = classical.triangulate_batch(*(batch[key] for key in keys))
+    assert all(type(value) is np.ndarray for value in outputs.values())
+    jitted = classical.TriangulationGtPose().predict(batch)
+    np.testing.assert_array_equal(outputs["triangulated"], jitted["triangulated"])
+    np.testing.assert_array_equal(outputs["untriangulated"], [4 * WIDTH, HEIGHT * WIDTH])
+    np.testing.assert_allclose(outputs["inv_depth"], jitted["inv_depth"], rtol=1e-4)
+    np.testing.assert_allclose(outputs["inv_depth"][1], layers.INITIAL_INV_DEPTH)
 
 
 def test_untriangulable_pixels_get_the_pair_median_and_are_counted():
@@ -130,6 +148,46 @@ def test_dataset_mean_over_valid_pixels_in_unit_baseline_scale():
     np.testing.assert_allclose(outputs["depth"], 1.0 / method.inv_depth, rtol=1e-6)
 
 
+def test_oracle_predicts_each_pair_median_true_inverse_depth_over_valid_pixels():
+    depth = np.array(
+        [
+            # Valid inverse depths 0.1, 0.2, 0.4 -> 0.2. With the two pixels marked invalid
+            # (inverse 1 and 2) the median would be 0.4; with the zero depth, 0.3.
+            [[10.0, 5.0, 2.5], [1.0, 0.5, 0.0]],
+            # Valid 0.1, 0.2, 0.4, 0.5 -> 0.3 (an even count); inf and -1 are invalid.
+            [[10.0, 5.0, 2.5], [2.0, np.inf, -1.0]],
+        ]
+    )
+    depth_valid = np.array(
+        [
+            [[True, True, True], [False, False, True]],
+            [[True, True, True], [True, True, True]],
+        ]
+    )
+    method = classical.CLASSICAL["oracle_pair_median"]()
+    assert not method.needs_training_data
+    outputs = method.predict({"depth": depth, "depth_valid": depth_valid})
+    assert outputs["inv_depth"].shape == (2, 2, 3) and outputs["inv_depth"].dtype == np.float32
+    np.testing.assert_allclose(outputs["inv_depth"][0], 0.2, rtol=1e-6)
+    np.testing.assert_allclose(outputs["inv_depth"][1], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(outputs["depth"], 1.0 / outputs["inv_depth"])
+
+
+def test_oracle_without_depth_valid_uses_valid_depth_and_falls_back_on_empty_pairs():
+    depth = np.zeros((2, 1, 4))
+    depth[0] = [[10.0, 0.0, 5.0, 2.5]]  # 0.1, 0.2, 0.4; the 0 is invalid
+    outputs = classical.OraclePairMedian(fallback_inv_depth=0.3).predict({"depth": depth})
+    np.testing.assert_allclose(outputs["inv_depth"][0], 0.2, rtol=1e-6)
+    np.testing.assert_allclose(outputs["inv_depth"][1], 0.3, rtol=1e-6)
+    assert np.all(np.isfinite(outputs["depth"]))
+
+
+def test_oracle_is_labelled_as_seeing_the_truth():
+    assert "oracle" in classical.LABELS["oracle_pair_median"]
+    assert "sees the truth" in classical.LABELS["oracle_pair_median"]
+    assert set(classical.LABELS) <= set(classical.CLASSICAL)
+
+
 def test_every_method_follows_one_protocol_and_rejects_bad_batches():
     for name, method_class in classical.CLASSICAL.items():
         method = method_class()
@@ -144,3 +202,5 @@ def test_every_method_follows_one_protocol_and_rejects_bad_batches():
         )
     with pytest.raises(ValueError, match="no valid depth"):
         classical.DatasetMean().fit([{"depth": np.zeros((2, 2))}])
+    with pytest.raises(ValueError, match="depth"):
+        classical.OraclePairMedian().predict({"depth": np.ones((4, 4))})
