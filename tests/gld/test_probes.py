@@ -1,0 +1,131 @@
+"""Tests of gld/probes.py: pair statistics, rotation vectors, the pose probe, collect."""
+
+import numpy as np
+import pytest
+
+from gld import geometry, probes
+
+
+def test_rotation_vector_inverts_rodrigues():
+    rng = np.random.default_rng(0)
+    axis = rng.normal(size=(20, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    angles = rng.uniform(0.0, 3.0, size=(20, 1))
+    vectors = axis * angles
+    vectors[0] = 0.0  # the identity
+    recovered = probes.rotation_vector(geometry.rotation_matrix(vectors))
+    np.testing.assert_allclose(recovered, vectors, atol=1e-9)
+
+
+def _collected(pred_mean, true_mean, pred_std, true_std, correlation, global_params=None):
+    collected = {
+        "pred_mean": np.asarray(pred_mean, float),
+        "true_mean": np.asarray(true_mean, float),
+        "pred_std": np.asarray(pred_std, float),
+        "true_std": np.asarray(true_std, float),
+        "correlation": np.asarray(correlation, float),
+    }
+    if global_params is not None:
+        collected["global_params"] = np.asarray(global_params, float)
+    return collected
+
+
+def test_depth_statistics_on_hand_made_pairs():
+    # Predicted means are half the truth's: perfectly correlated, half the spread.
+    collected = _collected(
+        pred_mean=[0.05, 0.10, 0.15],
+        true_mean=[0.1, 0.2, 0.3],
+        pred_std=[0.0, 0.01, 0.03],
+        true_std=[0.02, 0.02, 0.02],
+        correlation=[0.1, 0.5, 0.9],
+        global_params=[[0.0, 1.0], [2.0, 1.0], [4.0, 1.0]],
+    )
+    statistics = probes.depth_statistics(collected)
+    assert statistics["pair_scale_correlation"] == pytest.approx(1.0)
+    assert statistics["pair_scale_ratio"] == pytest.approx(0.5)
+    assert statistics["within_pair_correlation"] == pytest.approx(0.5)
+    assert statistics["within_pair_std_ratio"] == pytest.approx(0.5)
+    # std of [0, 2, 4] is sqrt(8/3); the second parameter never varies.
+    assert statistics["global_params_std"] == pytest.approx(np.sqrt(8 / 3) / 2)
+
+
+def test_depth_statistics_of_a_constant_prediction():
+    collected = _collected([0.1] * 3, [0.1, 0.2, 0.3], [0.0] * 3, [0.02] * 3, [0.0] * 3)
+    statistics = probes.depth_statistics(collected)
+    assert statistics["pair_scale_correlation"] == 0.0
+    assert statistics["pair_scale_ratio"] == pytest.approx(0.0, abs=1e-12)
+    assert statistics["within_pair_std_ratio"] == 0.0
+    assert "global_params_std" not in statistics
+
+
+def test_pair_statistics_use_valid_pixels_only():
+    pred = np.array([[[1.0, 2.0], [3.0, 100.0]], [[1.0, 1.0], [1.0, 1.0]]])
+    true = np.array([[[2.0, 4.0], [6.0, -5.0]], [[1.0, 2.0], [3.0, 4.0]]])
+    valid = np.array([[[True, True], [True, False]], [[True, False], [False, False]]])
+    stats = probes.pair_statistics(pred, true, valid)
+    assert stats["pred_mean"][0] == pytest.approx(2.0)
+    assert stats["true_mean"][0] == pytest.approx(4.0)
+    assert stats["true_std"][0] == pytest.approx(np.std([2.0, 4.0, 6.0]))
+    assert stats["correlation"][0] == pytest.approx(1.0)
+    # One valid pixel carries no statistics.
+    assert np.isnan(stats["correlation"][1])
+
+
+def _pose_pairs(rng, count, informative):
+    rotation_vector = rng.normal(scale=0.1, size=(count, 3))
+    translation = rng.normal(size=(count, 3))
+    translation /= np.linalg.norm(translation, axis=-1, keepdims=True)
+    if informative:
+        # Global parameters = a fixed linear mix of the pose.
+        mix = np.random.default_rng(123).normal(size=(6, 6))
+        features = np.concatenate([rotation_vector, translation], -1) @ mix
+    else:
+        features = rng.normal(size=(count, 6))
+    return {
+        "global_params": features,
+        "rotation_vector": rotation_vector,
+        "translation": translation,
+    }
+
+
+def test_pose_probe_reads_the_pose_from_informative_parameters():
+    rng = np.random.default_rng(0)
+    train, test = _pose_pairs(rng, 256, True), _pose_pairs(rng, 64, True)
+    errors = probes.pose_probe(train, test, hidden=(32, 32), steps=600, learning_rate=3e-3)
+    assert errors["probe"]["rotation_deg"] < 0.5 * errors["mean_pose"]["rotation_deg"]
+    assert errors["probe"]["translation_deg"] < 0.5 * errors["mean_pose"]["translation_deg"]
+
+
+def test_pose_probe_finds_nothing_in_noise():
+    rng = np.random.default_rng(1)
+    train, test = _pose_pairs(rng, 256, False), _pose_pairs(rng, 64, False)
+    errors = probes.pose_probe(train, test, hidden=(32, 32), steps=300, learning_rate=3e-3)
+    # No information: the probe cannot beat the mean pose by much (it over-fits noise).
+    assert errors["probe"]["translation_deg"] > 0.9 * errors["mean_pose"]["translation_deg"]
+
+
+def test_pose_probe_needs_global_parameters():
+    rng = np.random.default_rng(2)
+    pairs = _pose_pairs(rng, 8, True)
+    del pairs["global_params"]
+    with pytest.raises(ValueError, match="no global parameters"):
+        probes.pose_probe(pairs, pairs, steps=1)
+
+
+def test_collect_reads_every_pair_once(tiny_scenes):
+    source = tiny_scenes.as_data_source("test")
+
+    def apply_fn(batch):
+        # An oracle that predicts the true inverse depth, and "global params" = translation.
+        depth = np.asarray(batch["depth"])
+        inv_depth = np.where(depth > 0, 1.0 / np.where(depth > 0, depth, 1.0), 0.5)
+        return {"inv_depth": inv_depth, "global_params": np.asarray(batch["translation"])}
+
+    collected = probes.collect(apply_fn, source, batch_size=5, max_examples=7)
+    assert collected["pred_mean"].shape == (7,)
+    assert collected["global_params"].shape == (7, 3)
+    np.testing.assert_allclose(collected["pred_mean"], collected["true_mean"], rtol=1e-6)
+    np.testing.assert_allclose(collected["correlation"], 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(collected["translation"], axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(collected["global_params"], collected["translation"], atol=1e-6)
+    assert probes.depth_statistics(collected)["pair_scale_correlation"] == pytest.approx(1.0)
