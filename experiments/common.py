@@ -24,6 +24,8 @@ TRAINING_FLAGS = (
     "batch_size",
     "steps",
     "learning_rate",
+    "lr_schedule",
+    "warmup_steps",
     "depth_weight",
     "smoothness_weight",
     "gt_pixels",
@@ -45,7 +47,11 @@ def define_training_flags(*, steps: int, eval_every: int) -> None:
     flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
     flags.DEFINE_integer("batch_size", 16, "Global batch size.")
     flags.DEFINE_integer("steps", steps, "Training steps (the paper: 94000 at 256x192).")
-    flags.DEFINE_float("learning_rate", 1e-4, "Adam learning rate.")
+    flags.DEFINE_float("learning_rate", 1e-4, "Adam (peak) learning rate.")
+    flags.DEFINE_enum(
+        "lr_schedule", "constant", ["constant", "cosine"], "constant (the paper) or cosine."
+    )
+    flags.DEFINE_integer("warmup_steps", 0, "Linear warm-up steps of the cosine schedule.")
     flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
     flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
     flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")

@@ -31,6 +31,9 @@ flags.DEFINE_bool("use_flow", True, "Ablation switch: optical flow as the local 
 flags.DEFINE_enum(
     "local_flow_units", "normalised", ["normalised", "pixels"], "Units of the local network flow."
 )
+flags.DEFINE_float("flow_scale", 10.0, "Factor on the normalised flow fed to both modules.")
+flags.DEFINE_enum("global_norm", "none", ["none", "batch"], "Normalisation of g.")
+flags.DEFINE_float("modulation_scale", 0.2, "Initial modulation of the filters by g.")
 flags.DEFINE_string(
     "filter_formulation", None, "apply_filter_banks formulation (default: fastest here)."
 )
@@ -54,6 +57,9 @@ def model_config_from_flags() -> dict:
         "use_global_module": FLAGS.use_global_module,
         "use_flow": FLAGS.use_flow,
         "local_flow_units": FLAGS.local_flow_units,
+        "flow_scale": FLAGS.flow_scale,
+        "global_norm": FLAGS.global_norm,
+        "modulation_scale": FLAGS.modulation_scale,
     }
     if FLAGS.filter_formulation:
         config["filter_formulation"] = FLAGS.filter_formulation

@@ -124,16 +124,18 @@ def _conv_stack_init(shapes: Sequence[tuple[int, int]], kernel_size: int):
     return init
 
 
-def _modulation_init(shapes: Sequence[tuple[int, int]], kernel_size: int):
+def _modulation_init(
+    shapes: Sequence[tuple[int, int]], kernel_size: int, modulation_scale: float = MODULATION_SCALE
+):
     """Initialiser of the [G, outputs] kernel: each output column has standard deviation
-    `MODULATION_SCALE * filter_std / sqrt(G)`, so that unit-variance global parameters
-    perturb every filter (and bias) by about `MODULATION_SCALE` of the filter scale."""
+    `modulation_scale * filter_std / sqrt(G)`, so that unit-variance global parameters
+    perturb every filter (and bias) by about `modulation_scale` of the filter scale."""
 
     def init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
         global_dim = shape[0]
         column_std = []
         for c_in, c_out in shapes:
-            std = MODULATION_SCALE * _initial_kernel_std(c_in, kernel_size)
+            std = modulation_scale * _initial_kernel_std(c_in, kernel_size)
             column_std.append(jnp.full((kernel_size * kernel_size * c_in * c_out + c_out,), std))
         scale = jnp.concatenate(column_std).astype(dtype) / math.sqrt(global_dim)
         if scale.shape[0] != shape[1]:
@@ -149,7 +151,9 @@ class HyperNetwork(nn.Module):
     Initialisation: the layer's bias is the flattened weights of a He-initialised
     static conv stack (zero conv biases), and its kernel is scaled so that a
     unit-variance `global_params` perturbs each generated filter by about
-    `MODULATION_SCALE` (20%) of its initial scale. The generated network thus starts
+    `modulation_scale` (20% by default) of its initial scale. (An untrained encoder's g
+    varies far less than that across pairs unless it is standardised;
+    `GlobalLocal.global_norm`.) The generated network thus starts
     as a sensible conv stack that the global parameters modulate rather than swamp,
     which matters when training from one supervised pixel per image.
 
@@ -162,6 +166,7 @@ class HyperNetwork(nn.Module):
     in_channels: int = 4
     bank_channels: Sequence[int] = (20, 10, 20)
     kernel_size: int = 3
+    modulation_scale: float = MODULATION_SCALE
 
     @nn.compact
     def __call__(self, global_params: jax.Array) -> list[FilterBank]:
@@ -171,7 +176,7 @@ class HyperNetwork(nn.Module):
         shapes = _bank_shapes(self.in_channels, self.bank_channels, self.kernel_size)
         flat = nn.Dense(
             hypernet_output_size(self.in_channels, self.bank_channels, self.kernel_size),
-            kernel_init=_modulation_init(shapes, self.kernel_size),
+            kernel_init=_modulation_init(shapes, self.kernel_size, self.modulation_scale),
             bias_init=_conv_stack_init(shapes, self.kernel_size),
             name="linear",
         )(global_params)

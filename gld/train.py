@@ -66,6 +66,8 @@ class TrainConfig:
     batch_size: int = 16  # global, over all processes and devices
     steps: int = 94_000
     learning_rate: float = 1e-4
+    lr_schedule: str = "constant"  # "constant" (the paper) or "cosine" (warm-up, decay)
+    warmup_steps: int = 0
     depth_weight: float = 5.0
     smoothness_weight: float = 2.0
     gt_pixels: int = 1  # supervised pixels per image; 0 = dense
@@ -87,7 +89,8 @@ class TrainConfig:
     def architecture(self) -> dict[str, Any]:
         """What a checkpoint's parameters depend on (a workdir refuses other values)."""
         speed_only = {"filter_formulation"}  # changes how, not what, the model computes
-        config = {k: v for k, v in self.model_config.items() if k not in speed_only}
+        full = model_lib.full_config(self.model, self.model_config)
+        config = {k: v for k, v in full.items() if k not in speed_only}
         return {"model": self.model, **dict(sorted(config.items()))}
 
     def loss_weights(self) -> losses.LossWeights:
@@ -129,9 +132,48 @@ def create_train_state(
     )
 
 
-def make_optimizer(learning_rate: float) -> optax.GradientTransformation:
-    """Adam with a constant learning rate (the paper's optimiser); the rate is logged."""
-    return optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def learning_rate_schedule(
+    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
+) -> optax.Schedule:
+    """The learning rate per step.
+
+    "constant" is the paper's. "cosine" rises linearly from 0 over `warmup_steps`, then
+    decays along a cosine to 1% of `learning_rate` at `steps`.
+    """
+    if schedule == "constant":
+        return optax.constant_schedule(learning_rate)
+    if schedule == "cosine":
+        if not 0 <= warmup_steps < steps:
+            raise ValueError(f"need 0 <= warmup_steps < steps, got {warmup_steps} and {steps}")
+        return optax.warmup_cosine_decay_schedule(
+            init_value=0.0,
+            peak_value=learning_rate,
+            warmup_steps=warmup_steps,
+            decay_steps=steps,
+            end_value=0.01 * learning_rate,
+        )
+    raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {schedule!r}")
+
+
+def make_optimizer(
+    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
+) -> optax.GradientTransformation:
+    """Adam (the paper's optimiser) with the given schedule; the rate is logged."""
+    rate = learning_rate_schedule(learning_rate, schedule, steps=steps, warmup_steps=warmup_steps)
+    return optax.inject_hyperparams(optax.adam)(learning_rate=rate)
+
+
+def config_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    """The optimiser of a run."""
+    return make_optimizer(
+        config.learning_rate,
+        config.lr_schedule,
+        steps=config.steps,
+        warmup_steps=config.warmup_steps,
+    )
 
 
 def make_train_step(
@@ -327,6 +369,13 @@ def write_run_config(workdir: Path, config: TrainConfig) -> None:
     if path.exists():
         previous = json.loads(path.read_text())
         saved_arch = previous.get("architecture", {})
+        if "model" in saved_arch:
+            saved_arch = {
+                "model": saved_arch["model"],
+                **model_lib.complete_stored_config(
+                    saved_arch["model"], {k: v for k, v in saved_arch.items() if k != "model"}
+                ),
+            }
         current_arch = json.loads(json.dumps(config.architecture()))
         differing = sorted(
             key
@@ -349,7 +398,13 @@ def write_run_config(workdir: Path, config: TrainConfig) -> None:
                     f"not {getattr(config, key)!r}"
                 )
     if jax.process_index() == 0:
-        payload = {"architecture": config.architecture(), "config": dataclasses.asdict(config)}
+        stored = dataclasses.asdict(config)
+        stored["model_config"] = {
+            k: v
+            for k, v in model_lib.full_config(config.model, config.model_config).items()
+            if k in config.model_config or k != "filter_formulation"
+        }
+        payload = {"architecture": config.architecture(), "config": stored}
         path.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
 
 
@@ -358,7 +413,11 @@ def load_run_config(workdir: str | Path) -> TrainConfig:
     path = Path(workdir) / "config.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: is {workdir} a gld training workdir?")
-    return TrainConfig(**json.loads(path.read_text())["config"])
+    values = json.loads(path.read_text())["config"]
+    values["model_config"] = model_lib.complete_stored_config(
+        values.get("model", "global_local"), values.get("model_config", {})
+    )
+    return TrainConfig(**values)
 
 
 def load_trained(
@@ -368,7 +427,7 @@ def load_trained(
     workdir = Path(workdir)
     config = load_run_config(workdir)
     model = model_lib.make_model(config.model, **config.model_config)
-    optimizer = make_optimizer(config.learning_rate)
+    optimizer = config_optimizer(config)
     template = create_train_state(model, optimizer, config.height, config.width, config.seed)
     manager = checkpoint_manager(workdir)
     if manager.latest_step() is None:
@@ -511,7 +570,7 @@ def train_and_evaluate(
     mesh = make_mesh()
     local_batch = per_process_batch_size(config.batch_size, mesh)
     model = model_lib.make_model(config.model, **config.model_config)
-    optimizer = make_optimizer(config.learning_rate)
+    optimizer = config_optimizer(config)
     state = create_train_state(model, optimizer, config.height, config.width, config.seed)
     if jax.process_index() == 0:
         for name, count in model_lib.parameter_counts(state.params).items():

@@ -125,3 +125,50 @@ def test_local_flow_units_scale_only_the_local_input():
         model_lib.GlobalLocal(local_flow_units="metres").init(
             jax.random.key(0), image1, image2, scaled
         )
+
+
+def test_flow_scale_multiplies_the_flow_both_modules_see():
+    image1, image2, flow = _inputs()
+    scaled = model_lib.GlobalLocal(flow_scale=10.0)
+    plain = model_lib.GlobalLocal(flow_scale=1.0)
+    variables = plain.init(jax.random.key(0), image1, image2, flow)
+    a = scaled.apply(variables, image1, image2, flow)
+    b = plain.apply(variables, image1, image2, flow * 10.0)
+    np.testing.assert_allclose(a["inv_depth"], b["inv_depth"], rtol=1e-5)
+    np.testing.assert_allclose(a["global_params"], b["global_params"], rtol=1e-5, atol=1e-7)
+    c = plain.apply(variables, image1, image2, flow)
+    assert not np.allclose(a["global_params"], c["global_params"])
+
+
+def test_batch_normalised_global_params_vary_across_pairs_from_initialisation():
+    image1, image2, flow = _inputs(batch=8)
+    spread = {}
+    for norm in ("none", "batch"):
+        model = model_lib.GlobalLocal(global_norm=norm)
+        variables = model.init(jax.random.key(0), image1, image2, flow)
+        outputs, _ = model.apply(
+            variables, image1, image2, flow, train=True, mutable=["batch_stats"]
+        )
+        spread[norm] = np.asarray(outputs["global_params"]).std(axis=0)
+    # The pooled encoder output barely differs between pairs; standardised, every
+    # global parameter has unit spread over the batch, so it steers the filters.
+    assert spread["none"].max() < 0.1
+    np.testing.assert_allclose(spread["batch"], 1.0, rtol=0.02)
+
+
+def test_batch_normalised_global_params_use_running_statistics_at_test_time():
+    image1, image2, flow = _inputs(batch=4)
+    model = model_lib.GlobalLocal(global_norm="batch")
+    variables = model.init(jax.random.key(0), image1, image2, flow)
+    assert set(variables["batch_stats"]["global_norm"]) == {"mean", "var"}
+    # Test time: one pair alone gets the same parameters as inside its batch.
+    alone = model.apply(variables, image1[:1], image2[:1], flow[:1])
+    together = model.apply(variables, image1, image2, flow)
+    np.testing.assert_allclose(
+        alone["global_params"][0], together["global_params"][0], rtol=1e-4, atol=1e-6
+    )
+    _, updates = model.apply(variables, image1, image2, flow, train=True, mutable=["batch_stats"])
+    moved = updates["batch_stats"]["global_norm"]["mean"]
+    assert not np.allclose(moved, variables["batch_stats"]["global_norm"]["mean"])
+    with pytest.raises(ValueError, match="global_norm"):
+        model_lib.GlobalLocal(global_norm="layer").init(jax.random.key(0), image1, image2, flow)
