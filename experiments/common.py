@@ -41,17 +41,29 @@ TRAINING_FLAGS = (
 )
 
 
-def define_training_flags(*, steps: int, eval_every: int) -> None:
-    """The run flags every training launcher shares (budget, loss, data order, logging)."""
+def define_training_flags(
+    *,
+    steps: int,
+    eval_every: int,
+    learning_rate: float = 1e-4,
+    lr_schedule: str = "constant",
+    warmup_steps: int = 0,
+) -> None:
+    """The run flags every training launcher shares (budget, loss, data order, logging).
+
+    The optimiser defaults are the paper's (Adam 1e-4, constant) unless a launcher
+    gives its own (the main job's recipe in `experiments.train`)."""
     flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
     flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
     flags.DEFINE_integer("batch_size", 16, "Global batch size.")
     flags.DEFINE_integer("steps", steps, "Training steps (the paper: 94000 at 256x192).")
-    flags.DEFINE_float("learning_rate", 1e-4, "Adam (peak) learning rate.")
+    flags.DEFINE_float("learning_rate", learning_rate, "Adam (peak) learning rate.")
     flags.DEFINE_enum(
-        "lr_schedule", "constant", ["constant", "cosine"], "constant (the paper) or cosine."
+        "lr_schedule", lr_schedule, ["constant", "cosine"], "constant (the paper) or cosine."
     )
-    flags.DEFINE_integer("warmup_steps", 0, "Linear warm-up steps of the cosine schedule.")
+    flags.DEFINE_integer(
+        "warmup_steps", warmup_steps, "Linear warm-up steps of the cosine schedule."
+    )
     flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
     flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
     flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")

@@ -36,3 +36,17 @@ def test_flagfile_parses_and_documents_itself(train_flags, path: Path):
         assert train_flags.workdir.startswith("runs/")
     finally:
         train_flags.unparse_flags()
+
+
+PAPER_FLAGFILES = [p for p in FLAGFILES if not p.stem.startswith(("compare_", "demo"))]
+
+
+@pytest.mark.parametrize("path", PAPER_FLAGFILES, ids=lambda p: p.stem)
+def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path):
+    # The trainer's defaults are the main job's recipe; a paper experiment must say so.
+    try:
+        train_flags(["train", f"--flagfile={path}"])
+        assert train_flags.learning_rate == 1e-4
+        assert train_flags.lr_schedule == "constant"
+    finally:
+        train_flags.unparse_flags()
