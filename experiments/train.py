@@ -40,7 +40,7 @@ flags.DEFINE_string(
 # The main job's recipe: the best measured within its 15-minute CPU budget (Adam 1e-3,
 # warm-up and cosine decay; WORKSPACE.md). Paper flagfiles set Adam 1e-4, constant.
 common.define_training_flags(
-    steps=3000, eval_every=1000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
+    steps=2000, eval_every=1000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
 )
 common.define_data_flags()
 common.define_distributed_flags()
