@@ -147,7 +147,10 @@ def learning_rate_schedule(
         return optax.constant_schedule(learning_rate)
     if schedule == "cosine":
         if not 0 <= warmup_steps < steps:
-            raise ValueError(f"need 0 <= warmup_steps < steps, got {warmup_steps} and {steps}")
+            raise ValueError(
+                f"warmup_steps ({warmup_steps}) must be in [0, steps ({steps})) for the "
+                "cosine schedule: lower --warmup_steps or use --lr_schedule=constant"
+            )
         return optax.warmup_cosine_decay_schedule(
             init_value=0.0,
             peak_value=learning_rate,

@@ -14,7 +14,8 @@ from conftest import REPO_ROOT
 
 from gld import train
 
-TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2"]
+# A few steps: the main job's 100 warm-up steps would not fit.
+TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2", "--warmup_steps=2"]
 
 
 def _launch(args, data_dir, **kwargs):

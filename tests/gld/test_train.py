@@ -200,7 +200,7 @@ def test_learning_rate_schedules():
     assert float(cosine(100)) == pytest.approx(1e-3)
     assert float(cosine(550)) == pytest.approx(0.5 * (1e-3 + 1e-5), rel=1e-3)
     assert float(cosine(1000)) == pytest.approx(1e-5)
-    with pytest.raises(ValueError, match="warmup_steps"):
+    with pytest.raises(ValueError, match="warmup_steps \\(100\\) must be in"):
         train.learning_rate_schedule(1e-3, "cosine", steps=100, warmup_steps=100)
     with pytest.raises(ValueError, match="lr_schedule"):
         train.learning_rate_schedule(1e-3, "step")
