@@ -358,6 +358,24 @@ class _RecordReader:
         return record, where
 
 
+class _FirstRecords:
+    def __init__(self, source: Sequence[Any], count: int):
+        self.source, self.count = source, min(count, len(source))
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int):
+        if not 0 <= index < self.count:
+            raise IndexError(index)
+        return self.source[index]
+
+
+def first_records(source: Sequence[Any], count: int) -> Sequence[Any]:
+    """The first `count` records of a random-access source (all of them when 0)."""
+    return _FirstRecords(source, count) if count else source
+
+
 def _check_sharding(num_examples: int, process_index: int, process_count: int) -> None:
     if process_count < 1 or not 0 <= process_index < process_count:
         raise ValueError(

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from gld import geometry, input_pipeline
+from gld import geometry, input_pipeline, losses
 
 
 def rotation_vector(rotation: np.ndarray) -> np.ndarray:
@@ -122,14 +122,13 @@ def collect(
       them); "rotation_vector" [N, 3] radians and "translation" [N, 3] unit norm, the
       true relative pose.
     """
-    count = min(max_examples, len(source)) if max_examples else len(source)
-    subset = _Subset(source, count)
+    subset = input_pipeline.first_records(source, max_examples)
     collected: dict[str, list] = {}
     for batch in input_pipeline.eval_batches(subset, batch_size=batch_size, flow_source=flow):
         outputs = apply_fn(batch)
         inv_pred = np.asarray(outputs["inv_depth"], np.float64)
         valid = np.asarray(batch["depth_valid"], bool) & (np.asarray(batch["depth"]) > 0)
-        inv_true = np.where(valid, 1.0 / np.where(valid, batch["depth"], 1.0), 0.0)
+        inv_true = np.asarray(losses.inverse_depth_target(batch["depth"], valid), np.float64)
         rows = np.flatnonzero(np.asarray(batch["example_mask"], bool))
         for name, values in pair_statistics(inv_pred[rows], inv_true[rows], valid[rows]).items():
             collected.setdefault(name, []).extend(values)
@@ -145,19 +144,6 @@ def collect(
                 np.asarray(batch["translation"][row], np.float64)
             )
     return {name: np.asarray(values) for name, values in collected.items()}
-
-
-class _Subset:
-    def __init__(self, source: Sequence[Any], count: int):
-        self.source, self.count = source, count
-
-    def __len__(self) -> int:
-        return self.count
-
-    def __getitem__(self, index: int):
-        if not 0 <= index < self.count:
-            raise IndexError(index)
-        return self.source[index]
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:

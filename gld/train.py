@@ -371,14 +371,10 @@ def write_run_config(workdir: Path, config: TrainConfig) -> None:
     path = workdir / "config.json"
     if path.exists():
         previous = json.loads(path.read_text())
-        saved_arch = previous.get("architecture", {})
+        saved_arch = dict(previous.get("architecture", {}))
         if "model" in saved_arch:
-            saved_arch = {
-                "model": saved_arch["model"],
-                **model_lib.complete_stored_config(
-                    saved_arch["model"], {k: v for k, v in saved_arch.items() if k != "model"}
-                ),
-            }
+            name = saved_arch.pop("model")
+            saved_arch = {"model": name, **model_lib.complete_stored_config(name, saved_arch)}
         current_arch = json.loads(json.dumps(config.architecture()))
         differing = sorted(
             key
@@ -402,10 +398,10 @@ def write_run_config(workdir: Path, config: TrainConfig) -> None:
                 )
     if jax.process_index() == 0:
         stored = dataclasses.asdict(config)
+        # Every architecture value is written out; the speed-only formulation only if given.
         stored["model_config"] = {
-            k: v
-            for k, v in model_lib.full_config(config.model, config.model_config).items()
-            if k in config.model_config or k != "filter_formulation"
+            **{k: v for k, v in config.architecture().items() if k != "model"},
+            **config.model_config,
         }
         payload = {"architecture": config.architecture(), "config": stored}
         path.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
@@ -491,7 +487,7 @@ def evaluate_source(
     mesh = mesh or make_mesh()
     local_batch = per_process_batch_size(batch_size, mesh)
     if max_examples:
-        source = _Prefix(source, max_examples)
+        source = input_pipeline.first_records(source, max_examples)
     eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
     variables = jax.device_put(variables, replicated(mesh))
     batches = input_pipeline.eval_batches(
@@ -526,21 +522,6 @@ def _gather_ids(ids: np.ndarray) -> list[str]:
     encoded = np.array([list(str(i).encode()[:120].ljust(120, b"\0")) for i in ids], np.uint8)
     gathered = multihost_utils.process_allgather(encoded, tiled=True)
     return [bytes(row).rstrip(b"\0").decode() for row in np.asarray(gathered)]
-
-
-class _Prefix:
-    """The first `n` records of a random-access source."""
-
-    def __init__(self, source, n: int):
-        self.source, self.n = source, min(n, len(source))
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, index):
-        if not 0 <= index < self.n:
-            raise IndexError(index)
-        return self.source[index]
 
 
 def train_and_evaluate(

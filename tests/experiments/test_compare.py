@@ -9,31 +9,39 @@ import pytest
 from conftest import REPO_ROOT
 
 
-def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path):
-    workdir = tmp_path / "compare"
+def _run_compare(data_dir, workdir, *flags):
+    """Runs `experiments.compare` on gld_scenes/tiny with true flow; asserts it succeeds."""
     command = [
         sys.executable,
         "-m",
         "experiments.compare",
         "--dataset=gld_scenes/tiny",
-        f"--data_dir={tiny_scenes_dir}",
+        f"--data_dir={data_dir}",
         f"--workdir={workdir}",
+        "--flow=gt",
+        *flags,
+    ]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    result = subprocess.run(
+        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path):
+    workdir = tmp_path / "compare"
+    flags = [
         "--models=small_encdec",
         "--classical=dataset_mean,triangulation_gt_pose,sfm_flow",
         "--steps=2",
         "--batch_size=4",
         "--checkpoint_every=2",
         "--log_every=1",
-        "--flow=gt",
     ]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
 
     def launch(*extra):
-        result = subprocess.run(
-            [*command, *extra], capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
-        )
-        assert result.returncode == 0, result.stderr[-3000:]
-        return result
+        return _run_compare(tiny_scenes_dir, workdir, *flags, *extra)
 
     first = launch()
     assert "small_encdec: training 2 steps" in first.stdout
@@ -80,22 +88,7 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
 def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tmp_path):
     # No learned model: nothing is trained, only the methods are evaluated.
     workdir = tmp_path / "compare"
-    command = [
-        sys.executable,
-        "-m",
-        "experiments.compare",
-        "--dataset=gld_scenes/tiny",
-        f"--data_dir={tiny_scenes_dir}",
-        f"--workdir={workdir}",
-        "--models=",
-        "--classical=triangulation_gt_pose",
-        "--flow=gt",
-    ]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    result = subprocess.run(
-        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
+    _run_compare(tiny_scenes_dir, workdir, "--models=", "--classical=triangulation_gt_pose")
     results = json.loads((workdir / "compare" / "results.json").read_text())
     methods = results["methods"]
     assert list(methods) == ["dataset_mean", "oracle_pair_median", "triangulation_gt_pose"]

@@ -242,7 +242,7 @@ def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scen
         state, _ = step(state, {k: batch[k] for k in keys}, jax.random.key(0))
     outputs = model.apply(state.variables(), batch["image1"], batch["image2"], batch["flow"])
     valid = batch["depth_valid"]
-    inv_true = np.where(valid, 1.0 / np.where(valid, batch["depth"], 1.0), 0.0)
+    inv_true = np.asarray(losses.inverse_depth_target(batch["depth"], valid))
     pairs = probes.pair_statistics(np.asarray(outputs["inv_depth"]), inv_true, valid)
     statistics = probes.depth_statistics(pairs)
     assert statistics["pair_scale_correlation"] > 0.95
