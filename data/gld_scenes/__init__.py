@@ -1,1 +1,1 @@
-"""The embedded benchmark: procedural two-view indoor scenes (renderer + TFDS builder)."""
+"""The embedded benchmark: procedural two-view indoor scenes (sampling, ray casting, builder)."""

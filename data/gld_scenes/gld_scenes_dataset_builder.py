@@ -1,10 +1,10 @@
 """`gld_scenes`: procedural two-view indoor scenes with exact geometry (TFDS builder).
 
 Each example is a pair of views of a random room with boxes, spheres and
-cylinders (see `renderer.py`), with both camera-z depth maps, both intrinsics,
-the relative pose, the exact flow and its validity, and the flow estimated from
-the two images by an off-the-shelf estimator (OpenCV DIS by default). Records
-follow `gld.records`.
+cylinders (drawn by `scenes.py`, ray cast by `raycast.py`, paired by `renderer.py`),
+with both camera-z depth maps, both intrinsics, the relative pose, the exact flow
+and its validity, and the flow estimated from the two images by an off-the-shelf
+estimator (OpenCV DIS by default). Records follow `gld.records`.
 
 Build with `data.prepare("gld_scenes/small", data_dir)` or
 `tfds build data/gld_scenes --config=small`. Rendering can be spread over
@@ -33,7 +33,7 @@ from gld import flow as flow_lib
 from gld import geometry, records
 from gld.baselines import classical
 
-from . import renderer
+from . import renderer, scenes
 
 _DESCRIPTION = """\
 Procedural two-view indoor scenes in the spirit of DeMoN's Scenes11: a room
@@ -85,8 +85,8 @@ class SceneConfig(tfds.core.BuilderConfig):
     intrinsics_jitter: float = 0.0
     flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR
 
-    def scene_settings(self) -> renderer.SceneSettings:
-        return renderer.SceneSettings(
+    def scene_settings(self) -> scenes.SceneSettings:
+        return scenes.SceneSettings(
             height=self.height, width=self.width, intrinsics_jitter=self.intrinsics_jitter
         )
 

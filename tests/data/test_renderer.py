@@ -1,29 +1,11 @@
-"""Tests of the procedural two-view renderer (data/gld_scenes/renderer.py), tiny renders."""
-
-import dataclasses
+"""Tests of the two-view renderer (data/gld_scenes/renderer.py): exact geometry, tiny renders."""
 
 import cv2
 import numpy as np
-import pytest
+from scene_pairs import HEIGHT, SETTINGS, WIDTH, rendered_pairs
 
-from data.gld_scenes import renderer
+from data.gld_scenes import raycast, renderer
 from gld import geometry
-
-HEIGHT, WIDTH = 48, 64
-SETTINGS = renderer.SceneSettings(height=HEIGHT, width=WIDTH)
-
-
-@pytest.fixture(scope="module")
-def pairs():
-    """A few rendered pairs with their scenes and cameras."""
-    result = []
-    for index in range(4):
-        example = renderer.render_pair(renderer.example_rng(7, "test", index), SETTINGS)
-        scene, camera1, camera2, _, _ = renderer.sample_pair(
-            renderer.example_rng(7, "test", index), SETTINGS
-        )
-        result.append((example, scene, camera1, camera2))
-    return result
 
 
 def _near_occlusion_boundary(depth2: np.ndarray, landing: np.ndarray) -> np.ndarray:
@@ -35,82 +17,9 @@ def _near_occlusion_boundary(depth2: np.ndarray, landing: np.ndarray) -> np.ndar
     return at_landing
 
 
-def _plain(color=(0.5, 0.5, 0.5)) -> renderer.Material:
-    return renderer.Material(
-        kind="plain",
-        color_a=np.asarray(color, np.float32),
-        color_b=np.asarray(color, np.float32),
-        scale=1.0,
-        direction=np.array([1.0, 0.0, 0.0], np.float32),
-        offset=np.zeros(3, np.float32),
-    )
-
-
-def _room_with(objects) -> renderer.Scene:
-    return renderer.Scene(
-        room_size=np.array([6.0, 3.0, 10.0], np.float32),
-        room_materials=tuple(_plain() for _ in range(6)),
-        objects=tuple(objects),
-        light_position=np.array([3.0, 2.9, 5.0], np.float32),
-        ambient=0.3,
-    )
-
-
-def _forward_camera(center, intrinsics=renderer.NOMINAL_INTRINSICS) -> renderer.Camera:
-    """A camera at `center` looking along world +z (camera y = world -y)."""
-    rotation = renderer.look_at_rotation(np.array([0.0, 0.0, 1.0]), 0.0)
-    center = np.asarray(center, np.float64)
-    return renderer.Camera(rotation, -rotation @ center, np.asarray(intrinsics))
-
-
-def _shape(shape, center, size):
-    return renderer.SceneObject(
-        shape=shape,
-        center=np.asarray(center, np.float32),
-        rotation=np.eye(3, dtype=np.float32),
-        size=np.asarray(size, np.float32),
-        material=_plain((0.9, 0.1, 0.1)),
-    )
-
-
-@pytest.mark.parametrize(
-    "shape, size, front_distance",
-    [("sphere", [0.5], 0.5), ("box", [0.3, 0.4, 0.6], 0.6), ("cylinder", [0.4, 0.5], 0.4)],
-)
-def test_ray_hits_known_distance(shape, size, front_distance):
-    # Camera at the room's mid-height; the object 4 m ahead on the optical axis. An odd
-    # image size puts a pixel exactly on the principal point.
-    center = np.array([3.0, 1.5, 2.0])
-    obj = _shape(shape, center + [0.0, 0.0, 4.0], size)
-    camera = _forward_camera(center)
-    depth, surface = renderer.cast(_room_with([obj]), camera, 49, 65)
-    assert surface[24, 32] == renderer.ROOM_SURFACES
-    np.testing.assert_allclose(depth[24, 32], 4.0 - front_distance, rtol=1e-5)
-    # Corner pixels see the room; its far wall is 8 m ahead (camera-z depth).
-    assert surface[0, 0] < renderer.ROOM_SURFACES
-    assert depth.max() <= 8.0 + 1e-4
-
-
-def test_room_depth_is_camera_z_of_far_wall():
-    center = np.array([3.0, 1.5, 2.0])
-    depth, surface = renderer.cast(_room_with([]), _forward_camera(center), 49, 65)
-    # The far wall (z = 10) is a plane of constant camera z = 8 around the image centre.
-    assert surface[24, 32] == 5
-    np.testing.assert_allclose(depth[20:29, 28:37], 8.0, rtol=1e-5)
-
-
-def test_screen_culling_matches_brute_force(pairs):
-    for _, scene, camera1, _ in pairs:
-        culled_depth, culled_surface = renderer.cast(scene, camera1, HEIGHT, WIDTH)
-        grid = geometry.pixel_grid(HEIGHT, WIDTH)
-        depth, surface = renderer.cast(scene, camera1, HEIGHT, WIDTH, pixels=grid)
-        np.testing.assert_array_equal(culled_surface, surface)
-        np.testing.assert_allclose(culled_depth, depth, rtol=1e-6)
-
-
-def test_warping_image2_with_true_flow_reproduces_image1(pairs):
+def test_warping_image2_with_true_flow_reproduces_image1():
     grid = geometry.pixel_grid(HEIGHT, WIDTH)
-    for example, *_ in pairs:
+    for example, *_ in rendered_pairs():
         image1 = example["image1"].astype(np.float32) / 255.0
         image2 = example["image2"].astype(np.float32) / 255.0
         warped, inside = geometry.sample_bilinear(image2, grid + example["gt_flow"])
@@ -122,8 +31,8 @@ def test_warping_image2_with_true_flow_reproduces_image1(pairs):
         assert warp_error < 0.3 * unwarped_error
 
 
-def test_depth_flow_triangulation_round_trip(pairs):
-    for example, *_ in pairs:
+def test_depth_flow_triangulation_round_trip():
+    for example, *_ in rendered_pairs():
         camera_matrix1 = geometry.intrinsics_matrix(example["intrinsics1"], HEIGHT, WIDTH)
         camera_matrix2 = geometry.intrinsics_matrix(example["intrinsics2"], HEIGHT, WIDTH)
         rotation, translation = example["rotation"], example["translation"]
@@ -160,13 +69,13 @@ def _reproject_view1(example):
     )
 
 
-def test_view2_depth_agrees_with_transformed_view1_depth(pairs):
-    for example, scene, _, camera2 in pairs:
+def test_view2_depth_agrees_with_transformed_view1_depth():
+    for example, scene, _, camera2 in rendered_pairs():
         flow, depth_in_view2 = _reproject_view1(example)
         valid = example["gt_flow_valid"]
         # Cast view-2 rays exactly through the sub-pixel landing points.
         landing = (geometry.pixel_grid(HEIGHT, WIDTH) + flow).astype(np.float32)
-        cast_depth, _ = renderer.cast(scene, camera2, HEIGHT, WIDTH, pixels=landing)
+        cast_depth, _ = raycast.cast(scene, camera2, HEIGHT, WIDTH, pixels=landing)
         # The nearest-pixel occlusion test cannot resolve sub-pixel occlusion boundaries:
         # disagreement is allowed only right at a depth jump of view 2.
         disagrees = valid & (np.abs(cast_depth / depth_in_view2 - 1.0) > 1e-4)
@@ -177,14 +86,14 @@ def test_view2_depth_agrees_with_transformed_view1_depth(pairs):
         assert np.median(np.abs(nearest[valid] / depth_in_view2[valid] - 1.0)) < 0.01
 
 
-def test_flow_validity_excludes_occlusions_and_out_of_view(pairs):
+def test_flow_validity_excludes_occlusions_and_out_of_view():
     occluded_total = outside_total = 0
-    for example, scene, _, camera2 in pairs:
+    for example, scene, _, camera2 in rendered_pairs():
         flow, depth_in_view2 = _reproject_view1(example)
         landing = geometry.pixel_grid(HEIGHT, WIDTH) + flow
         u, v = landing[..., 0], landing[..., 1]
         outside = (u < -0.5) | (u > WIDTH - 0.5) | (v < -0.5) | (v > HEIGHT - 0.5)
-        cast_depth, _ = renderer.cast(
+        cast_depth, _ = raycast.cast(
             scene, camera2, HEIGHT, WIDTH, pixels=landing.astype(np.float32)
         )
         # Occluded: something is clearly nearer to camera 2 along the landing ray.
@@ -200,21 +109,6 @@ def test_flow_validity_excludes_occlusions_and_out_of_view(pairs):
     assert occluded_total > 0 and outside_total > 0
 
 
-def test_scene_content_and_flow_range(pairs):
-    for example, scene, camera1, _ in pairs:
-        assert np.all(example["depth1"] > 0) and np.all(example["depth2"] > 0)
-        center = camera1.center
-        assert np.all(center > 0) and np.all(center < scene.room_size)
-        _, surface = renderer.cast(scene, camera1, HEIGHT, WIDTH)
-        assert (surface >= renderer.ROOM_SURFACES).mean() > 0.05  # objects are in view
-        magnitude = np.linalg.norm(example["gt_flow"], axis=-1)[example["gt_flow_valid"]]
-        max_flow = SETTINGS.max_flow_fraction * WIDTH
-        assert np.percentile(magnitude, 99) <= 1.05 * max_flow
-        translation_norm = np.linalg.norm(example["translation"])
-        assert 0.05 - 1e-6 <= translation_norm <= 0.5 + 1e-6
-        assert geometry.rotation_angle_degrees(example["rotation"]) <= 10.0 + 1e-3
-
-
 def test_render_is_deterministic_per_seed_and_index():
     first = renderer.render_pair(renderer.example_rng(3, "train", 5), SETTINGS)
     again = renderer.render_pair(renderer.example_rng(3, "train", 5), SETTINGS)
@@ -224,24 +118,3 @@ def test_render_is_deterministic_per_seed_and_index():
         np.testing.assert_array_equal(first[key], again[key])
     assert not np.array_equal(first["image1"], other["image1"])
     assert not np.array_equal(first["image1"], other_split["image1"])
-
-
-def test_varying_intrinsics_differ_between_views_within_20_percent():
-    varying = dataclasses.replace(SETTINGS, intrinsics_jitter=0.2)
-    nominal = np.asarray(renderer.NOMINAL_INTRINSICS, np.float32)
-    for index in range(3):
-        example = renderer.render_pair(renderer.example_rng(0, "train", index), varying)
-        intrinsics1, intrinsics2 = example["intrinsics1"], example["intrinsics2"]
-        assert np.all(np.abs(intrinsics1 - intrinsics2) > 0)
-        for intrinsics in (intrinsics1, intrinsics2):
-            assert np.all(np.abs(intrinsics / nominal - 1.0) <= 0.2 + 1e-6)
-    fixed = renderer.render_pair(renderer.example_rng(0, "train", 0), SETTINGS)
-    np.testing.assert_array_equal(fixed["intrinsics1"], nominal)
-    np.testing.assert_array_equal(fixed["intrinsics2"], nominal)
-
-
-def test_bad_settings_raise():
-    with pytest.raises(ValueError, match="intrinsics_jitter"):
-        renderer.SceneSettings(intrinsics_jitter=1.5)
-    with pytest.raises(ValueError, match="image size"):
-        renderer.SceneSettings(height=2, width=64)

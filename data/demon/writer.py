@@ -1,0 +1,193 @@
+"""Writes DeMoN-format HDF5 files: one view, and a whole recording for `demon/custom`.
+
+`write_view` stores a view as DeMoN does (WebP image, LZ4-block float16 depth,
+17-value camera from `demon_camera`); `write_recording` reads a recording
+(`recordings`), pairs its frames, splits them into train and test, and writes
+`custom_<split>.h5` (`output_path`), the files the `demon/custom` config reads.
+"""
+
+from __future__ import annotations
+
+import collections
+from pathlib import Path
+from typing import Any
+
+import cv2
+import h5py
+import lz4.block
+import numpy as np
+
+from data.demon import recordings
+
+
+def demon_camera(camera_matrix: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
+    """Pixel-index K, world-to-camera R, t -> DeMoN's 17 camera values.
+
+    DeMoN's K has its origin at the top-left corner and R is stored column-major.
+    """
+    return np.concatenate(
+        [
+            [camera_matrix[0, 0], camera_matrix[1, 1], 0.0],
+            [camera_matrix[0, 2] + 0.5, camera_matrix[1, 2] + 0.5],
+            rotation.T.reshape(-1),  # column-major
+            translation,
+        ]
+    ).astype(np.float64)
+
+
+def write_view(
+    view_group: h5py.Group,
+    image: np.ndarray,
+    depth: np.ndarray,
+    camera: np.ndarray,
+    depth_metric: str,
+    webp_quality: int,
+) -> None:
+    """Writes one DeMoN view: WebP image, LZ4-block float16 depth with extents, camera."""
+    ok, encoded = cv2.imencode(
+        ".webp", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_WEBP_QUALITY, webp_quality]
+    )
+    if not ok:
+        raise ValueError(f"OpenCV could not encode {view_group.name}/image as WebP")
+    dataset = view_group.create_dataset("image", data=np.frombuffer(encoded.tobytes(), np.int8))
+    dataset.attrs["format"] = np.bytes_("webp")
+    depth16 = np.ascontiguousarray(np.minimum(depth, np.finfo(np.float16).max), np.float16)
+    compressed = lz4.block.compress(depth16.tobytes(), store_size=False)
+    dataset = view_group.create_dataset("depth", data=np.frombuffer(compressed, np.int8))
+    dataset.attrs["format"] = np.bytes_("lz4half")
+    dataset.attrs["extents"] = np.asarray(depth.shape, np.int32)
+    dataset.attrs["depth_metric"] = np.bytes_(depth_metric)
+    dataset = view_group.create_dataset("camera", data=camera)
+    dataset.attrs["format"] = np.bytes_("pinhole")
+
+
+def output_path(output_dir: str | Path, split: str, recording: str | None = None) -> Path:
+    """`custom_<split>.h5` or `custom_<split>_<recording>.h5`, the names `demon/custom` reads."""
+    suffix = f"_{recording}" if recording else ""
+    return Path(output_dir).expanduser() / f"custom_{split}{suffix}.h5"
+
+
+def write_recording(
+    images: str | Path,
+    poses: str | Path,
+    intrinsics: str,
+    output_dir: str | Path,
+    *,
+    depth: str | Path,
+    pose_format: str = "tum",
+    pose_direction: str = "camera_to_world",
+    depth_scale: float = 1.0,
+    depth_metric: str = "camera_z",
+    frame_gap: int = 1,
+    min_baseline: float | None = None,
+    max_baseline: float | None = None,
+    max_frame_gap: int = 30,
+    test_fraction: float = 0.0,
+    split: str = "train",
+    recording: str | None = None,
+    webp_quality: int = 101,
+    max_time_difference: float = 0.02,
+) -> dict[str, Any]:
+    """Writes a recording as DeMoN-format file(s), pairing its frames and splitting them.
+
+    The arguments are `python -m data.demon.convert`'s flags; its docstring describes
+    the inputs, the pairing and the output.
+
+    Returns:
+      {"files": {split: path}, "pairs": {split: count}, "dropped": {reason: count}}.
+    """
+    if pose_format not in recordings.POSE_FORMATS:
+        raise ValueError(
+            f"pose_format must be one of {recordings.POSE_FORMATS}, got {pose_format!r}"
+        )
+    if depth_metric not in recordings.DEPTH_METRICS:
+        raise ValueError(
+            f"depth_metric must be one of {recordings.DEPTH_METRICS}, got {depth_metric!r}"
+        )
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    if not 0.0 <= test_fraction < 1.0:
+        raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
+    image_paths = recordings.list_images(images)
+    if pose_format == "tum":
+        timestamps, camera_to_world = recordings.read_tum_trajectory(poses)
+        rotations, translations = recordings.world_to_camera(camera_to_world, "camera_to_world")
+    else:
+        timestamps = None
+        rotations, translations = recordings.world_to_camera(
+            recordings.read_pose_matrices(poses), pose_direction
+        )
+    pose_index = recordings.associate_poses(
+        image_paths, timestamps, len(rotations), max_time_difference
+    )
+    rotations, translations = rotations[pose_index], translations[pose_index]
+    camera_matrix = recordings.read_intrinsics(str(intrinsics))
+    centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
+
+    first_image = recordings.read_image(image_paths[0])
+    depth_path = Path(depth).expanduser()
+    if depth_path.is_dir():
+        depth_maps = None
+        depth_files = recordings.associate_depth_files(depth_path, image_paths, max_time_difference)
+    elif depth_path.suffix.lower() == ".csv":
+        depth_maps = recordings.read_sparse_depth(
+            depth_path, image_paths, first_image.shape[:2], depth_scale
+        )
+    else:
+        raise FileNotFoundError(f"depth {depth_path} is neither a folder nor a .csv file")
+
+    def frame_depth(index: int) -> np.ndarray:
+        if depth_maps is not None:
+            return depth_maps[index]
+        return recordings.read_dense_depth(depth_files[index], depth_scale)
+
+    candidate_pairs = recordings.select_pairs(
+        centres, frame_gap, min_baseline, max_baseline, max_frame_gap
+    )
+    dropped: collections.Counter = collections.Counter()
+    first_test_frame = int(np.ceil(len(image_paths) * (1.0 - test_fraction)))
+    split_pairs: dict[str, list[tuple[int, int]]] = {}
+    for pair in candidate_pairs:
+        if test_fraction == 0.0:
+            split_pairs.setdefault(split, []).append(pair)
+        elif pair[1] < first_test_frame:
+            split_pairs.setdefault("train", []).append(pair)
+        elif pair[0] >= first_test_frame:
+            split_pairs.setdefault("test", []).append(pair)
+        else:
+            dropped["crosses_split_boundary"] += 1
+
+    files, counts = {}, {}
+    for split_name, pair_list in split_pairs.items():
+        path = output_path(output_dir, split_name, recording)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        written = 0
+        with h5py.File(path, "w") as h5_file:
+            h5_file.create_group(".config").attrs["source"] = np.bytes_(str(Path(images)))
+            for i, j in pair_list:
+                depths = {index: frame_depth(index) for index in (i, j)}
+                if not all(np.any(depth_map > 0) for depth_map in depths.values()):
+                    dropped["no_depth_reading"] += 1
+                    continue
+                group_name = f"{image_paths[i].stem}__{image_paths[j].stem}"
+                t0 = h5_file.create_group(f"{group_name}/frames/t0")
+                t0.attrs["viewpoint_pairs"] = np.array([0, 1], np.int32)
+                t0.attrs["frames"] = np.array([image_paths[i].name, image_paths[j].name], "S")
+                for view_index, frame in enumerate((i, j)):
+                    image = first_image if frame == 0 else recordings.read_image(image_paths[frame])
+                    if image.shape != first_image.shape:
+                        raise ValueError(
+                            f"{image_paths[frame]} is {image.shape}, the first image "
+                            f"{first_image.shape}; all images need one size and one camera"
+                        )
+                    write_view(
+                        t0.create_group(f"v{view_index}"),
+                        image,
+                        depths[frame],
+                        demon_camera(camera_matrix, rotations[frame], translations[frame]),
+                        depth_metric,
+                        webp_quality,
+                    )
+                written += 1
+        files[split_name], counts[split_name] = path, written
+    return {"files": files, "pairs": counts, "dropped": dict(dropped)}
