@@ -153,6 +153,10 @@ def test_a_model_is_reported_with_the_dataset_mean_and_the_oracle(tiny_scenes, u
     assert report["step"] == 0
     ratios = report["abs_inv_vs_dataset_mean"]
     assert set(ratios) == set(report["methods"]) and ratios["dataset_mean"] == 1.0
+    means = {name: summary["abs_inv"]["mean"] for name, summary in report["methods"].items()}
+    for name in ("global_local", "oracle_pair_median"):
+        assert ratios[name] == pytest.approx(means[name] / means["dataset_mean"]), name
+    assert report["methods"]["global_local"]["abs_inv"]["count"] == 16
     lines = (untrained_workdir / "eval" / "table.md").read_text().splitlines()
     assert lines[2].startswith("| global_local |")
     assert lines[2].endswith(f"| {ratios['global_local']:.2f}× |")

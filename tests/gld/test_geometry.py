@@ -77,6 +77,7 @@ def test_ground_truth_flow_marks_occlusion_and_leaving_the_image():
     )
     fx = 0.9 * width
     np.testing.assert_allclose(flow[..., 0], -fx * 0.5 / 2.0, rtol=1e-6)
+    np.testing.assert_allclose(flow[..., 1], 0.0, atol=1e-6)
     landing = np.arange(width) + flow[0, :, 0]
     assert not valid[:, landing < -0.5].any()
     assert not valid[:, np.rint(landing) == 5].any()

@@ -326,7 +326,9 @@ def test_train_batches_follow_the_contract(source):
     }
     for key, (shape, dtype) in expected.items():
         assert batch[key].shape == shape and batch[key].dtype == dtype, key
-    assert batch["id"].shape == (3,) and all(i.startswith("scene-") for i in batch["id"])
+    source_ids = {f"scene-{i:03d}" for i in range(len(source))}
+    assert batch["id"].shape == (3,) and len(set(batch["id"])) == 3
+    assert set(batch["id"]) <= source_ids
     np.testing.assert_array_equal(batch["sparse_mask"].sum(axis=(1, 2)), [16, 16, 16])
     np.testing.assert_allclose(np.linalg.norm(batch["translation"], axis=-1), 1.0, atol=1e-6)
 
@@ -398,6 +400,7 @@ def test_eval_batches_cover_every_example_once(source, process_count):
     batch_size = 2
     expected_batches = input_pipeline.num_eval_batches(len(source), batch_size, process_count)
     real_ids = []
+    padded_rows = 0
     for process_index in range(process_count):
         batches = list(
             input_pipeline.eval_batches(
@@ -408,13 +411,18 @@ def test_eval_batches_cover_every_example_once(source, process_count):
             )
         )
         assert len(batches) == expected_batches
+        # Padding rows are copies of the shard's first record (record process_index).
+        padding_id = f"scene-{process_index:03d}"
         for batch in batches:
             assert batch["image1"].shape[0] == batch_size
             assert batch["example_mask"].dtype == np.bool_
             np.testing.assert_array_equal(batch["sparse_mask"], batch["depth_valid"])
             real_ids += [str(i) for i in batch["id"][batch["example_mask"]]]
-            padded = batch["id"][~batch["example_mask"]]
-            assert all(str(i).startswith("scene-") for i in padded)
+            padded = ~batch["example_mask"]
+            assert [str(i) for i in batch["id"][padded]] == [padding_id] * int(padded.sum())
+            for row in np.flatnonzero(padded):
+                np.testing.assert_array_equal(batch["image1"][row], batches[0]["image1"][0])
+            padded_rows += int(padded.sum())
         # Unaugmented: the first real example equals the decoded record, scale-normalised.
         first = batches[0]
         reference = input_pipeline.normalise_scale(
@@ -423,7 +431,8 @@ def test_eval_batches_cover_every_example_once(source, process_count):
         np.testing.assert_array_equal(first["image1"][0], reference["image1"])
         np.testing.assert_allclose(first["depth"][0], reference["depth"])
     assert sorted(real_ids) == sorted(f"scene-{i:03d}" for i in range(len(source)))
-    assert expected_batches * batch_size * process_count - len(source) >= 0
+    # Every process yields the same number of rows: whatever is not real is padding.
+    assert padded_rows == expected_batches * batch_size * process_count - len(source)
 
 
 def test_num_eval_batches():

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gld import hypernet, losses
+from gld import hypernet, layers, losses
 from gld import model as model_lib
 
 
@@ -110,20 +110,49 @@ def test_bad_inputs_are_named():
         model_lib.make_model("resnet9000")
 
 
+def _local_network_by_hand(variables, filter_banks, local_flow):
+    """The local network on [local_flow, x, y] with the given banks and the final conv."""
+    batch, height, width, _ = local_flow.shape
+    y, x = jnp.meshgrid(
+        jnp.linspace(-1.0, 1.0, height), jnp.linspace(-1.0, 1.0, width), indexing="ij"
+    )
+    coordinates = jnp.broadcast_to(jnp.stack([x, y], -1), (batch, height, width, 2))
+    final_conv = variables["params"]["final_conv"]
+    logits = hypernet.apply_filter_banks(
+        filter_banks,
+        jnp.concatenate([local_flow, coordinates], -1),
+        head=hypernet.FilterBank(final_conv["kernel"], final_conv["bias"]),
+        formulation="vmap",
+    )
+    return layers.depth_outputs(logits)["inv_depth"]
+
+
 def test_local_flow_units_scale_only_the_local_input():
     image1, image2, flow = _inputs()
     normalised = model_lib.GlobalLocal()
     pixels = model_lib.GlobalLocal(local_flow_units="pixels")
     variables = normalised.init(jax.random.key(0), image1, image2, flow)
-    # same parameters; the pixel model sees flow * [W, H] where the other sees flow
-    scaled = flow / jnp.asarray([32.0, 24.0])
+    # Same parameters: the global module sees flow / [W, H] * flow_scale in both models,
+    # so both generate the same filters; the local network sees that same normalised
+    # flow in one and the flow in pixels in the other.
     a = pixels.apply(variables, image1, image2, flow)
     b = normalised.apply(variables, image1, image2, flow)
-    assert not np.allclose(a["inv_depth"], b["inv_depth"])
     np.testing.assert_allclose(a["global_params"], b["global_params"], rtol=1e-6)
+    for bank_a, bank_b in zip(a["filter_banks"], b["filter_banks"], strict=True):
+        np.testing.assert_allclose(bank_a.kernel, bank_b.kernel, rtol=1e-6)
+    normalised_flow = flow / jnp.asarray([32.0, 24.0]) * normalised.flow_scale
+    np.testing.assert_allclose(
+        a["inv_depth"], _local_network_by_hand(variables, a["filter_banks"], flow), rtol=1e-4
+    )
+    np.testing.assert_allclose(
+        b["inv_depth"],
+        _local_network_by_hand(variables, b["filter_banks"], normalised_flow),
+        rtol=1e-4,
+    )
+    assert not np.allclose(a["inv_depth"], b["inv_depth"], rtol=1e-3)
     with pytest.raises(ValueError, match="local_flow_units"):
         model_lib.GlobalLocal(local_flow_units="metres").init(
-            jax.random.key(0), image1, image2, scaled
+            jax.random.key(0), image1, image2, flow
         )
 
 

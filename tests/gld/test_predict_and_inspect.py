@@ -44,7 +44,9 @@ def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_wor
         predictor.variables, eval_batch["image1"], eval_batch["image2"], eval_batch["flow"]
     )
     np.testing.assert_allclose(batched["depth"], np.asarray(direct["depth"]), rtol=1e-4)
-    assert batched["global_params"].shape == (4, 6)
+    np.testing.assert_allclose(
+        batched["global_params"], np.asarray(direct["global_params"]), rtol=1e-4, atol=1e-7
+    )
 
 
 def test_predictor_names_bad_arguments(trained_workdir):
@@ -65,12 +67,18 @@ def test_predictor_names_bad_arguments(trained_workdir):
 def test_filter_inspection(trained_workdir, eval_batch, tmp_path):
     model, variables, _ = train.load_trained(trained_workdir)
     inspected = inspect_lib.filter_banks(variables, eval_batch, model=model)
-    assert inspected["global_params"].shape == (4, 6)
+    outputs = model.apply(variables, eval_batch["image1"], eval_batch["image2"], eval_batch["flow"])
+    np.testing.assert_allclose(inspected["global_params"], outputs["global_params"], rtol=1e-6)
     assert [k.shape for k in inspected["kernels"]] == [
         (4, 3, 3, 4, 20),
         (4, 3, 3, 20, 10),
         (4, 3, 3, 10, 20),
     ]
+    for kernel, bias, bank in zip(
+        inspected["kernels"], inspected["biases"], outputs["filter_banks"], strict=True
+    ):
+        np.testing.assert_allclose(kernel, bank.kernel, rtol=1e-6)
+        np.testing.assert_allclose(bias, bank.bias, rtol=1e-6)
     similarity = inspect_lib.filter_similarity(inspected["kernels"], inspected["biases"])
     np.testing.assert_allclose(np.diag(similarity), 1.0, rtol=1e-5)
     np.testing.assert_allclose(similarity, similarity.T, atol=1e-6)

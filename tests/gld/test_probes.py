@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gld import geometry, probes
+from gld import geometry, input_pipeline, probes
 
 
 def test_rotation_vector_inverts_rodrigues():
@@ -124,6 +124,10 @@ def test_collect_reads_every_pair_once(tiny_scenes):
     collected = probes.collect(apply_fn, source, batch_size=5, max_examples=7)
     assert collected["pred_mean"].shape == (7,)
     assert collected["global_params"].shape == (7, 3)
+    # The first 7 pairs, in order, once each (the 3 padding rows of batch 2 dropped).
+    translations = [input_pipeline.decode_example(source[i])["translation"] for i in range(7)]
+    expected = np.stack([t / np.linalg.norm(t) for t in translations])
+    np.testing.assert_allclose(collected["translation"], expected, atol=1e-6)
     np.testing.assert_allclose(collected["pred_mean"], collected["true_mean"], rtol=1e-6)
     np.testing.assert_allclose(collected["correlation"], 1.0, atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(collected["translation"], axis=-1), 1.0, atol=1e-5)

@@ -6,7 +6,9 @@ A plain module (not a conftest.py, whose module name would shadow tests/conftest
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
+
+from gld import losses as gld_losses
+from gld import train
 
 # The 'rbg' generator compiles several times faster than threefry on CPU; model
 # initialisation is most of a tiny test's time otherwise.
@@ -25,56 +27,50 @@ def tiny_batch(batch_size: int, height: int, width: int, seed: int = 0):
     return image1, image2, flow, target, mask
 
 
-def train_tiny(model, *, height=32, width=32, steps=25, learning_rate=1e-3):
-    """Adam on a sparse L1 inverse-depth loss over one tiny batch.
+def train_tiny(model, *, height=32, width=32, steps=35, learning_rate=1e-3):
+    """The trainer's step (`train.make_train_step`, Adam) on one tiny batch, with only
+    the sparse L1 inverse-depth term (smoothness weight 0); multi-scale models get it at
+    every scale, as in training.
 
     Returns:
       the losses of every step (each of the parameters before that step's update), the
       outputs of the trained model in evaluation mode (`train=False`), and its variables.
     """
     image1, image2, flow, target, mask = tiny_batch(2, height, width)
+    batch = {
+        "image1": image1,
+        "image2": image2,
+        "flow": flow,
+        "depth": 1.0 / target,
+        "sparse_mask": mask,
+    }
     variables = jax.jit(model.init)(jax.random.key(0, impl=INIT_KEY_IMPL), image1, image2, flow)
-    params = variables["params"]
-    batch_stats = variables.get("batch_stats")
-    optimizer = optax.adam(learning_rate)
-    opt_state = optimizer.init(params)
-
-    def loss_fn(params, batch_stats, dropout_key):
-        rngs = {"dropout": dropout_key}
-        if batch_stats is not None:
-            outputs, updates = model.apply(
-                {"params": params, "batch_stats": batch_stats},
-                image1,
-                image2,
-                flow,
-                train=True,
-                rngs=rngs,
-                mutable=["batch_stats"],
-            )
-            batch_stats = updates["batch_stats"]
-        else:
-            outputs = model.apply({"params": params}, image1, image2, flow, train=True, rngs=rngs)
-        error = jnp.abs(outputs["inv_depth"] - target)
-        return jnp.sum(error * mask) / jnp.sum(mask), batch_stats
-
-    @jax.jit
-    def step(params, batch_stats, opt_state, dropout_key):
-        (loss, batch_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, batch_stats, dropout_key
+    optimizer = train.make_optimizer(learning_rate)
+    # As `train.create_train_state`, but initialised with the faster key.
+    state = train.TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=variables["params"],
+        batch_stats=variables.get("batch_stats", {}),
+        opt_state=optimizer.init(variables["params"]),
+        rng=jax.random.key_data(jax.random.key(1, impl=INIT_KEY_IMPL)),
+    )
+    step = jax.jit(
+        train.make_train_step(
+            model=model,
+            optimizer=optimizer,
+            loss_weights=gld_losses.LossWeights(depth=1.0, smoothness=0.0),
         )
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), batch_stats, opt_state, loss
+    )
 
     losses = []
     for index in range(steps):
         dropout_key = jax.random.key(index, impl=INIT_KEY_IMPL)
-        params, batch_stats, opt_state, loss = step(params, batch_stats, opt_state, dropout_key)
-        losses.append(float(loss))
+        state, step_metrics = step(state, batch, dropout_key)
+        losses.append(float(step_metrics["loss"]))
     assert np.all(np.isfinite(losses)), losses
+    assert int(state.step) == steps
 
-    trained = {"params": params}
-    if batch_stats is not None:
-        trained["batch_stats"] = batch_stats
+    trained = state.variables()
     outputs = jax.jit(lambda variables: model.apply(variables, image1, image2, flow))(trained)
     return np.asarray(losses), jax.tree.map(np.asarray, outputs), trained
 
