@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from absl import flags
 
@@ -16,72 +18,83 @@ def define_data_flags(default_dataset: str = "gld_scenes/small") -> None:
     )
     flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
     flags.DEFINE_string("manual_dir", None, "Manual-download dir (DeMoN .h5 files).")
-    flags.DEFINE_enum("flow", "estimated", ["estimated", "gt"], "Which flow the model is given.")
 
 
-# TrainConfig fields set by the training flags below (shared by train and compare).
-TRAINING_FLAGS = (
-    "batch_size",
-    "steps",
-    "learning_rate",
-    "lr_schedule",
-    "warmup_steps",
-    "depth_weight",
-    "smoothness_weight",
-    "gt_pixels",
-    "fixed_sparse_pixels",
-    "flow",
-    "augment",
-    "seed",
-    "log_every",
-    "eval_every",
-    "eval_examples",
-    "checkpoint_every",
-    "worker_count",
-)
+def define_flow_source_flag() -> None:
+    """--flow_source for launchers that use a trained workdir (default: the workdir's)."""
+    from gld.config import FLOW_SOURCES
 
-
-def define_training_flags(
-    *,
-    steps: int,
-    eval_every: int,
-    learning_rate: float = 1e-4,
-    lr_schedule: str = "constant",
-    warmup_steps: int = 0,
-) -> None:
-    """The run flags every training launcher shares (budget, loss, data order, logging).
-
-    The optimiser defaults are the paper's (Adam 1e-4, constant) unless a launcher
-    gives its own (the main job's recipe in `experiments.train`)."""
-    flags.DEFINE_integer("gt_pixels", 1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
-    flags.DEFINE_bool("fixed_sparse_pixels", False, "Keep the same supervised pixels every epoch.")
-    flags.DEFINE_integer("batch_size", 16, "Global batch size.")
-    flags.DEFINE_integer("steps", steps, "Training steps (the paper: 94000 at 256x192).")
-    flags.DEFINE_float("learning_rate", learning_rate, "Adam (peak) learning rate.")
     flags.DEFINE_enum(
-        "lr_schedule", lr_schedule, ["constant", "cosine"], "constant (the paper) or cosine."
+        "flow_source",
+        None,
+        list(FLOW_SOURCES),
+        "Which flow the model is given (default: the workdir's; estimated for a method "
+        "without training).",
     )
-    flags.DEFINE_integer(
-        "warmup_steps", warmup_steps, "Linear warm-up steps of the cosine schedule."
-    )
-    flags.DEFINE_float("depth_weight", 5.0, "Weight of the sparse L1 inverse-depth loss.")
-    flags.DEFINE_float("smoothness_weight", 2.0, "Weight of the edge-aware smoothness loss.")
-    flags.DEFINE_bool("augment", True, "Rotate-180 / mirror-x augmentation.")
-    flags.DEFINE_integer("seed", 0, "Seed of initialisation, data order, augmentation, sparsity.")
-    flags.DEFINE_integer("log_every", 50, "Steps between metrics.jsonl / TensorBoard records.")
-    flags.DEFINE_integer(
-        "eval_every", eval_every, "Steps between evaluations on the test split (0: off)."
-    )
-    flags.DEFINE_integer(
-        "eval_examples", 0, "Periodic evaluation on the first N test pairs; 0 = all."
-    )
-    flags.DEFINE_integer("checkpoint_every", 250, "Steps between checkpoints.")
-    flags.DEFINE_integer("worker_count", 0, "grain worker processes for the input pipeline.")
 
 
-def training_options() -> dict:
-    """The TrainConfig fields given by the training flags."""
-    return {name: FLAGS[name].value for name in TRAINING_FLAGS}
+def _define(name: str, default: Any, help_text: str, choices: Sequence[str] | None) -> None:
+    """One flag, typed by its choices or its default."""
+    if choices:
+        flags.DEFINE_enum(name, default, list(choices), help_text)
+    elif isinstance(default, bool):
+        flags.DEFINE_bool(name, default, help_text)
+    elif isinstance(default, int):
+        flags.DEFINE_integer(name, default, help_text)
+    elif isinstance(default, float):
+        flags.DEFINE_float(name, default, help_text)
+    elif isinstance(default, list | tuple):
+        flags.DEFINE_list(name, [str(value) for value in default], help_text)
+    else:
+        flags.DEFINE_string(name, default, help_text)
+
+
+def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> None:
+    """A flag for every option of `gld.config.TrainConfig` (its help, choices and
+    default) but `exclude`; `defaults` replaces a default for this launcher (the main
+    job's recipe in `experiments.train`)."""
+    from gld import config
+
+    fields = [field for field in config.flag_fields() if field.name not in exclude]
+    unknown = sorted(set(defaults) - {field.name for field in fields})
+    if unknown:
+        raise ValueError(f"no TrainConfig option(s) {unknown} to give a default")
+    for field in fields:
+        default = defaults.get(field.name, field.default)
+        _define(field.name, default, field.metadata["help"], field.metadata["choices"])
+
+
+def training_options() -> dict[str, Any]:
+    """The TrainConfig fields given by this launcher's training flags."""
+    from gld import config
+
+    return {
+        field.name: FLAGS[field.name].value for field in config.flag_fields() if field.name in FLAGS
+    }
+
+
+def define_architecture_flags() -> None:
+    """A flag for every architecture option of the global-local model
+    (`gld.model.architecture_options`: its default, help and choices)."""
+    from gld import model
+
+    for name, (default, help_text, choices) in model.architecture_options().items():
+        _define(name, default, help_text, choices)
+
+
+def architecture_options() -> dict[str, Any]:
+    """The global-local model's constructor arguments from the architecture flags (lists
+    as ints; an option left at None, like the speed-only formulation, is omitted)."""
+    from gld import model
+
+    values = {}
+    for name, (default, _, _) in model.architecture_options().items():
+        value = FLAGS[name].value
+        if isinstance(default, list | tuple):
+            value = [int(item) for item in value]
+        if value is not None:
+            values[name] = value
+    return values
 
 
 def define_distributed_flags() -> None:

@@ -40,20 +40,19 @@ flags.DEFINE_list("models", LEARNED_DEFAULT, "Learned models to train and compar
 flags.DEFINE_list(
     "classical", CLASSICAL_DEFAULT, "Classical baselines to compare (the references always)."
 )
-common.define_training_flags(steps=2500, eval_every=0)
+common.define_training_flags(exclude=("model",), steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
-flags.DEFINE_integer("eval_batch_size", 16, "Evaluation batch size (last batch padded).")
 flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
 common.define_data_flags()
 
 
 def _finished_step(workdir: Path) -> int | None:
     """The last checkpointed step of a run directory, or None."""
-    from gld import train
+    from gld import workdir as workdir_lib
 
     if not (workdir / "checkpoints").exists():
         return None
-    manager = train.checkpoint_manager(workdir)
+    manager = workdir_lib.checkpoint_manager(workdir)
     step = manager.latest_step()
     manager.close()
     return step
@@ -87,7 +86,7 @@ def run_comparison(
       models: names in gld.model.MODELS.
       classical_methods: names in gld.baselines.CLASSICAL; the REFERENCES are evaluated
         (first among them) whether listed or not.
-      train_config: gld.train.TrainConfig fields shared by every model (budget, seed,
+      train_config: gld.config.TrainConfig fields shared by every model (budget, seed,
         loss weights, supervision, flow, ...); `model`, dataset and size are set here.
       split: the evaluation split.
       eval_batch_size, max_examples: evaluation batching; 0 examples = the whole split.
@@ -96,8 +95,9 @@ def run_comparison(
     Returns:
       The content of results.json.
     """
-    from gld import evaluation, metrics, train
+    from gld import config, evaluation, metrics, train
     from gld import model as model_lib
+    from gld import workdir as workdir_lib
     from gld.baselines import CLASSICAL
     from gld.baselines.classical import LABELS
 
@@ -112,13 +112,13 @@ def run_comparison(
     height, width = common.dataset_resolution(builder)
     train_source = common.data_source(builder, "train")
     eval_source = common.data_source(builder, split)
-    flow = train_config.get("flow", "estimated")
+    flow_source = train_config.get("flow_source", "estimated")
 
     results: dict[str, dict] = {}
     runs: dict[str, dict] = {}
     num_examples = 0
     for name in models:
-        config = train.TrainConfig(
+        run_config = config.TrainConfig(
             **train_config,
             model=name,
             dataset=builder.info.full_name,
@@ -128,20 +128,22 @@ def run_comparison(
         run_dir = workdir / name
         done = _finished_step(run_dir)
         started = time.perf_counter()
-        if done is not None and done >= config.steps:
+        if done is not None and done >= run_config.steps:
             print_fn(f"{name}: reusing the finished run in {run_dir} (step {done})")
             train_seconds = None
         else:
-            print_fn(f"{name}: training {config.steps} steps in {run_dir}")
-            train.train_and_evaluate(config, run_dir, train_source, eval_source, print_fn=print_fn)
+            print_fn(f"{name}: training {run_config.steps} steps in {run_dir}")
+            train.train_and_evaluate(
+                run_config, run_dir, train_source, eval_source, print_fn=print_fn
+            )
             train_seconds = time.perf_counter() - started
-        model, variables, saved = train.load_trained(run_dir)
-        per_example, _ = train.evaluate_source(
+        model, variables, saved = workdir_lib.load_trained(run_dir)
+        per_example, _ = evaluation.evaluate_source(
             model,
             variables,
             eval_source,
             batch_size=eval_batch_size,
-            flow=flow,
+            flow_source=flow_source,
             max_examples=max_examples,
         )
         results[name], num_examples = _summarise(per_example)
@@ -156,12 +158,12 @@ def run_comparison(
     for name in classical_methods:
         print_fn(f"{name}: evaluating")
         started = time.perf_counter()
-        method = evaluation.fit_classical(name, train_source, flow)
+        method = evaluation.fit_classical(name, train_source, flow_source)
         per_example, _ = evaluation.evaluate_predictor(
             method.predict,
             eval_source,
             batch_size=eval_batch_size,
-            flow=flow,
+            flow_source=flow_source,
             max_examples=max_examples,
         )
         results[name], num_examples = _summarise(per_example)
@@ -173,7 +175,7 @@ def run_comparison(
     budget = (
         f"learned models: {train_config.get('steps')} steps at batch "
         f"{train_config.get('batch_size')}, {train_config.get('gt_pixels')} supervised "
-        f"pixel(s) per image, seed {train_config.get('seed')}; {flow} flow for every method"
+        f"pixel(s) per image, seed {train_config.get('seed')}; {flow_source} flow for every method"
     )
     stamp = metrics.protocol_stamp(height, width, num_examples, extra=budget)
     report = {

@@ -1,8 +1,8 @@
 r"""Evaluates a trained workdir or a classical baseline on a whole split.
 
     python -m experiments.evaluate --workdir=runs/demo
-    python -m experiments.evaluate --model=triangulation_gt_pose --dataset=gld_scenes/small \
-        --workdir=runs/triangulation [--flow=gt]
+    python -m experiments.evaluate --method=triangulation_gt_pose --dataset=gld_scenes/small \
+        --workdir=runs/triangulation [--flow_source=gt]
 
 Writes <workdir>/eval/: metrics.json, table.md (mean ± std per metric, Abs-Inv as a
 multiple of the dataset mean's, protocol stamp), per_example_<method>.csv and figures/
@@ -21,7 +21,7 @@ FLAGS = flags.FLAGS
 
 flags.DEFINE_string("workdir", "runs/demo", "Run directory; results go to <workdir>/eval.")
 flags.DEFINE_string(
-    "model", None, "A classical baseline (no training) instead of the workdir's model."
+    "method", None, "A classical method (no training) instead of the workdir's model."
 )
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_integer("batch_size", 16, "Evaluation batch size (last batch padded).")
@@ -33,20 +33,22 @@ flags.DEFINE_bool(
 )
 flags.DEFINE_integer("step", None, "Checkpoint step to evaluate (default: latest).")
 common.define_data_flags(default_dataset=None)
+common.define_flow_source_flag()
 common.define_distributed_flags()
 
 
 def main(argv):
     del argv
     common.initialise()
-    from gld import evaluation, train
+    from gld import evaluation
+    from gld import workdir as workdir_lib
 
-    if FLAGS.model:
+    if FLAGS.method:
         if not FLAGS.dataset:
-            raise app.UsageError("--dataset is needed with --model")
+            raise app.UsageError("--dataset is needed with --method")
         dataset = FLAGS.dataset
     else:
-        config = train.load_run_config(FLAGS.workdir)
+        config = workdir_lib.load_run_config(FLAGS.workdir)
         dataset = FLAGS.dataset or config.dataset
     builder = common.prepare_dataset(dataset)
     height, width = common.dataset_resolution(builder)
@@ -60,13 +62,13 @@ def main(argv):
         split=FLAGS.split,
         print_fn=print,
         num_figures=FLAGS.num_figures,
-        with_dataset_mean=FLAGS.dataset_mean and FLAGS.model != "dataset_mean",
+        with_dataset_mean=FLAGS.dataset_mean and FLAGS.method != "dataset_mean",
         with_oracle=FLAGS.oracle,
         batch_size=FLAGS.batch_size,
         max_examples=FLAGS.max_examples,
         step=FLAGS.step,
-        classical_method=FLAGS.model,
-        flow=FLAGS.flow if FLAGS["flow"].present or FLAGS.model else None,
+        classical_method=FLAGS.method,
+        flow_source=FLAGS.flow_source,
     )
 
 

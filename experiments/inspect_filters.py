@@ -25,23 +25,29 @@ flags.DEFINE_string("split", "test", "Split the pairs come from.")
 flags.DEFINE_integer("num_pairs", 8, "Pairs to inspect (the first N of the split).")
 flags.DEFINE_integer("num_figures", 4, "Pairs whose filter banks are drawn.")
 common.define_data_flags(default_dataset=None)
+common.define_flow_source_flag()
 
 
 def main(argv):
     del argv
     common.initialise()
-    from gld import input_pipeline, train
-    from gld import inspect as inspect_lib
+    from gld import evaluation
+    from gld import filter_inspection as inspect_lib
+    from gld import workdir as workdir_lib
 
-    model, variables, config = train.load_trained(FLAGS.workdir)
+    model, variables, config = workdir_lib.load_trained(FLAGS.workdir)
     if config.model != "global_local":
         raise app.UsageError(f"{FLAGS.workdir} holds a {config.model!r} model, not global_local")
     builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
     source = common.data_source(builder, FLAGS.split)
     count = min(FLAGS.num_pairs, len(source))
     batch = next(
-        input_pipeline.eval_batches(
-            [source[i] for i in range(count)], batch_size=count, flow_source=config.flow
+        evaluation.split_batches(
+            source,
+            batch_size=count,
+            flow_source=FLAGS.flow_source or config.flow_source,
+            max_examples=count,
+            all_processes=False,
         )
     )
     inspected = inspect_lib.filter_banks(variables, batch, model=model)

@@ -29,6 +29,7 @@ flags.DEFINE_integer("batch_size", 16, "Batch size of the forward passes.")
 flags.DEFINE_bool("pose_probe", True, "Fit the pose probe on the training pairs.")
 flags.DEFINE_integer("probe_steps", 2000, "Full-batch Adam steps of the pose probe.")
 common.define_data_flags(default_dataset=None)
+common.define_flow_source_flag()
 
 
 def main(argv):
@@ -36,11 +37,12 @@ def main(argv):
     common.initialise()
     import jax
 
-    from gld import probes, train
+    from gld import probes
+    from gld import workdir as workdir_lib
 
-    model, variables, config = train.load_trained(FLAGS.workdir, step=FLAGS.step)
+    model, variables, config = workdir_lib.load_trained(FLAGS.workdir, step=FLAGS.step)
     builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
-    flow = FLAGS.flow if FLAGS["flow"].present else config.flow
+    flow_source = FLAGS.flow_source or config.flow_source
 
     @jax.jit
     def forward(variables, image1, image2, flow_field):
@@ -55,12 +57,16 @@ def main(argv):
             apply_fn,
             common.data_source(builder, split),
             batch_size=FLAGS.batch_size,
-            flow=flow,
+            flow_source=flow_source,
             max_examples=FLAGS.max_examples,
         )
 
     test = run("test")
-    report = {"workdir": FLAGS.workdir, "flow": flow, "num_test_pairs": len(test["pred_mean"])}
+    report = {
+        "workdir": FLAGS.workdir,
+        "flow_source": flow_source,
+        "num_test_pairs": len(test["pred_mean"]),
+    }
     report["depth"] = probes.depth_statistics(test)
     for name, value in report["depth"].items():
         print(f"{name}: {value:.4f}")

@@ -1,28 +1,155 @@
-"""Evaluation reports: metrics.json, table.md, a per-example CSV and example figures.
+"""Evaluation: one loop over a split for learned models and host-side methods alike.
 
-Learned models are evaluated by `gld.train.evaluate_source` (jit, sharded, exact means
-over padded batches); methods without parameters (the classical baselines) by
-`evaluate_predictor`, which runs any `predict(batch) -> {"depth", ...}` on the host.
-Every report carries its references on the same split: the dataset mean and the
-per-pair oracle constant, with each method's Abs-Inv as a multiple of the dataset mean's.
+`evaluate_source` runs a learned model (jit, sharded over a mesh, exact means over
+padded batches); `evaluate_predictor` runs any host-side `predict(batch) -> {"depth",
+...}` (the classical baselines and references). Both go through `evaluate_batches`, the
+one loop, and score with `score_batch`, the one rule for which rows count. Training's
+periodic evaluation, `experiments.evaluate`, `experiments.compare` and
+`experiments.inspect_filters` read splits through `split_batches`. `evaluate_workdir`
+evaluates a trained workdir (or a classical method) with its references on the same
+examples: the dataset mean and the per-pair oracle constant (`gld.reports` writes it).
 """
 
 from __future__ import annotations
 
-import csv
-import json
-import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import flax.linen as nn
 import jax
 import numpy as np
+from jax.sharding import Mesh
 
-from gld import input_pipeline, metrics
+from gld import input_pipeline, metrics, reports, sharding
+from gld import workdir as workdir_lib
 
 # The per-pair oracle constant reported next to every method (`classical.OraclePairMedian`).
 ORACLE = "oracle_pair_median"
+
+# Keys of an evaluation batch that go to the devices (the rest, like "id", stay on the host).
+EVAL_KEYS = ("image1", "image2", "flow", "depth", "depth_valid", "example_mask")
+
+
+def score_batch(depth: jax.Array, batch: dict) -> dict[str, jax.Array]:
+    """Per-example metrics of predicted depth [B, H, W] against the batch's truth, with
+    "example_mask": the rows that count (not padding, at least one valid pixel)."""
+    per_example = metrics.depth_metrics(depth, batch["depth"], batch["depth_valid"])
+    per_example["example_mask"] = batch["example_mask"] & (per_example["num_pixels"] > 0)
+    return per_example
+
+
+def make_eval_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
+    """Builds the pure `eval_step(variables, batch) -> per-example metrics` ([B] each)."""
+
+    def eval_step(variables: dict, batch: dict) -> dict:
+        outputs = model.apply(
+            variables, batch["image1"], batch["image2"], batch["flow"], train=False
+        )
+        return score_batch(outputs["depth"], batch)
+
+    return eval_step
+
+
+def jit_eval_step(eval_step: Callable, mesh: Mesh) -> Callable:
+    """`eval_step` compiled with replicated variables and a sharded batch."""
+    jitted = jax.jit(
+        eval_step,
+        in_shardings=(sharding.replicated(mesh), sharding.batch_sharded(mesh)),
+        out_shardings=sharding.batch_sharded(mesh),
+    )
+    return sharding.under_mesh(jitted, mesh)
+
+
+def split_batches(
+    source,
+    *,
+    batch_size: int,
+    flow_source: str = "estimated",
+    max_examples: int = 0,
+    keys: Sequence[str] | None = None,
+    progress: bool = False,
+    all_processes: bool = True,
+) -> Iterator[dict[str, np.ndarray]]:
+    """Unaugmented, padded batches of a split (or of its first `max_examples` records):
+    this process's share when `all_processes`, else every batch (a host-side method on
+    one process), with only `keys` and "id" when given (`input_pipeline.eval_batches`).
+    Process 0 shows a progress bar when asked."""
+    if max_examples:
+        source = input_pipeline.first_records(source, max_examples)
+    process_index, process_count = (
+        (jax.process_index(), jax.process_count()) if all_processes else (0, 1)
+    )
+    batches = input_pipeline.eval_batches(
+        source,
+        batch_size=batch_size,
+        flow_source=flow_source,
+        keys=keys,
+        process_index=process_index,
+        process_count=process_count,
+    )
+    if progress and jax.process_index() == 0:
+        from tqdm import tqdm
+
+        total = input_pipeline.num_eval_batches(len(source), batch_size, process_count)
+        batches = tqdm(batches, total=total, desc="evaluate", unit="batch", leave=False)
+    return batches
+
+
+def evaluate_batches(
+    batches,
+    score: Callable[[dict[str, np.ndarray]], dict[str, Any]],
+    *,
+    all_processes: bool = True,
+) -> tuple[dict[str, np.ndarray], list[str]]:
+    """The evaluation loop: `score(batch)` ([B]-shaped values incl. "example_mask") over
+    all batches, concatenated, with the examples' ids (of every process's rows when
+    `all_processes`, as `score` then returns them)."""
+    collected: dict[str, list] = {}
+    ids: list[str] = []
+    for batch in batches:
+        for name, values in score(batch).items():
+            collected.setdefault(name, []).append(np.asarray(values))
+        ids.extend(sharding.gather_strings(batch["id"]) if all_processes else map(str, batch["id"]))
+    return {name: np.concatenate(values) for name, values in collected.items()}, ids
+
+
+def evaluate_source(
+    model: nn.Module,
+    variables: dict,
+    source,
+    *,
+    batch_size: int,
+    flow_source: str = "estimated",
+    mesh: Mesh | None = None,
+    max_examples: int = 0,
+    eval_step: Callable | None = None,
+    progress: bool = False,
+) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Per-example metrics of a learned model over a whole split (or its first
+    `max_examples`), on all devices of all processes.
+
+    Returns:
+      (name -> [N] values incl. "example_mask", ids [N]); padded rows have mask False.
+    """
+    mesh = mesh or sharding.make_mesh()
+    local_batch = sharding.per_process_batch_size(batch_size, mesh)
+    eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
+    variables = jax.device_put(variables, sharding.replicated(mesh))
+
+    def score(batch):
+        device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
+        return sharding.gather(eval_step(variables, device_batch))
+
+    batches = split_batches(
+        source,
+        batch_size=local_batch,
+        flow_source=flow_source,
+        max_examples=max_examples,
+        keys=EVAL_KEYS,
+        progress=progress,
+    )
+    return evaluate_batches(batches, score)
 
 
 def evaluate_predictor(
@@ -30,7 +157,7 @@ def evaluate_predictor(
     source,
     *,
     batch_size: int = 16,
-    flow: str = "estimated",
+    flow_source: str = "estimated",
     max_examples: int = 0,
     progress: bool = False,
 ) -> tuple[dict[str, np.ndarray], list[str]]:
@@ -39,159 +166,30 @@ def evaluate_predictor(
     `predict` gets an example-contract batch (numpy) and returns at least "depth"
     [B, H, W]; any other [B]-shaped outputs (e.g. "failed") are kept per example.
     """
-    if max_examples:
-        source = [source[i] for i in range(min(max_examples, len(source)))]
-    batches = input_pipeline.eval_batches(source, batch_size=batch_size, flow_source=flow)
-    if progress:
-        from tqdm import tqdm
+    jit_score = jax.jit(score_batch)
 
-        batches = tqdm(
-            batches,
-            total=math.ceil(len(source) / batch_size),
-            desc="evaluate",
-            unit="batch",
-            leave=False,
-        )
-    depth_metrics = jax.jit(metrics.depth_metrics)
-    collected: dict[str, list] = {}
-    ids: list[str] = []
-    for batch in batches:
+    def score(batch):
         outputs = predict(batch)
-        per_example = {
-            k: np.asarray(v)
-            for k, v in depth_metrics(
-                outputs["depth"], batch["depth"], batch["depth_valid"]
-            ).items()
-        }
-        per_example["example_mask"] = np.asarray(batch["example_mask"]) & (
-            per_example["num_pixels"] > 0
-        )
+        truth = {key: batch[key] for key in ("depth", "depth_valid", "example_mask")}
+        per_example = {k: np.asarray(v) for k, v in jit_score(outputs["depth"], truth).items()}
         for key, value in outputs.items():
             value = np.asarray(value)
             if key not in per_example and value.shape == (len(batch["id"]),):
                 per_example[key] = value.astype(np.float64)
-        for key, value in per_example.items():
-            collected.setdefault(key, []).append(value)
-        ids.extend(str(i) for i in batch["id"])
-    return {k: np.concatenate(v) for k, v in collected.items()}, ids
+        return per_example
+
+    batches = split_batches(
+        source,
+        batch_size=batch_size,
+        flow_source=flow_source,
+        max_examples=max_examples,
+        progress=progress,
+        all_processes=False,
+    )
+    return evaluate_batches(batches, score, all_processes=False)
 
 
-def write_report(
-    out_dir: str | Path,
-    results: dict[str, tuple[dict[str, np.ndarray], list[str]]],
-    *,
-    height: int,
-    width: int,
-    info: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
-
-    Methods appear in the order of `results`; references that see the ground truth are
-    labelled (`gld.baselines.classical.LABELS`) in the table and in metrics.json, which
-    also holds each method's Abs-Inv as a multiple of the dataset mean's when the
-    dataset mean is among the methods.
-
-    Args:
-      out_dir: the directory (created).
-      results: method name -> (per-example metrics incl. "example_mask", ids).
-      height, width: evaluation resolution, for the protocol stamp.
-      info: extra fields for metrics.json (dataset, split, step, ...).
-
-    Returns:
-      The metrics.json content.
-    """
-    from gld.baselines import classical
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    summaries = {}
-    num_examples = 0
-    for method, (per_example, ids) in results.items():
-        per_example = dict(per_example)
-        mask = per_example.pop("example_mask").astype(bool)
-        num_examples = int(mask.sum())
-        summaries[method] = metrics.summarise(per_example, mask)
-        with (out_dir / f"per_example_{method}.csv").open("w", newline="") as stream:
-            writer = csv.writer(stream)
-            names = sorted(per_example)
-            writer.writerow(["id", *names])
-            for row, example_id in enumerate(ids):
-                if mask[row]:
-                    writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
-    stamp = metrics.protocol_stamp(height, width, num_examples)
-    labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
-    report = {
-        "protocol": stamp,
-        **(info or {}),
-        "methods": summaries,
-        "labels": labels,
-        "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(summaries.items()),
-    }
-    (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
-    table = metrics.markdown_table(summaries.items(), stamp, labels=labels)
-    (out_dir / "table.md").write_text(table)
-    return report
-
-
-def render_examples(
-    out_dir: str | Path,
-    examples: Sequence[dict[str, np.ndarray]],
-    predictions: Sequence[np.ndarray],
-    *,
-    max_inv_depth: float | None = None,
-) -> list[Path]:
-    """One PNG per example: image 1, ground truth, prediction, |error| (inverse depth).
-
-    All panels of all examples share one colour scale (`max_inv_depth`, by default the
-    99th percentile of the ground truth over the examples); the supervised pixels
-    (`sparse_mask`) are circled on image 1.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    truths = [
-        np.where(e["depth_valid"], 1.0 / np.where(e["depth_valid"], e["depth"], 1), np.nan)
-        for e in examples
-    ]
-    if max_inv_depth is None:
-        values = np.concatenate([t[np.isfinite(t)] for t in truths] or [np.ones(1)])
-        max_inv_depth = float(np.percentile(values, 99)) if values.size else 1.0
-    paths = []
-    for example, truth, prediction in zip(examples, truths, predictions, strict=True):
-        inv_prediction = 1.0 / np.asarray(prediction)
-        error = np.where(np.isfinite(truth), np.abs(inv_prediction - truth), np.nan)
-        figure, axes = plt.subplots(1, 4, figsize=(14, 3.0))
-        axes[0].imshow(np.clip(example["image1"] + 0.5, 0, 1))
-        supervised_v, supervised_u = np.nonzero(example.get("sparse_mask", np.zeros(1, bool)))
-        axes[0].scatter(supervised_u, supervised_v, s=60, facecolors="none", edgecolors="red")
-        axes[0].set_title("image 1 (supervised pixel circled)")
-        for axis, data, title in (
-            (axes[1], truth, "ground truth 1/depth"),
-            (axes[2], inv_prediction, "prediction 1/depth"),
-            (axes[3], error, "|error|"),
-        ):
-            shown = axis.imshow(data, cmap="magma", vmin=0.0, vmax=max_inv_depth)
-            axis.set_title(title)
-        figure.colorbar(shown, ax=axes[1:].tolist(), fraction=0.02)
-        for axis in axes:
-            axis.set_axis_off()
-        name = str(example["id"]).replace("/", "_")
-        path = out_dir / f"{name}.png"
-        figure.savefig(path, dpi=80, bbox_inches="tight")
-        plt.close(figure)
-        paths.append(path)
-    return paths
-
-
-def _training_batches(train_source, flow: str):
-    return input_pipeline.eval_batches(train_source, batch_size=16, flow_source=flow)
-
-
-def fit_classical(name: str, train_source, flow: str = "estimated"):
+def fit_classical(name: str, train_source, flow_source: str = "estimated"):
     """A classical baseline by name, fitted on the training split when it needs to be."""
     from gld.baselines import classical
 
@@ -201,19 +199,21 @@ def fit_classical(name: str, train_source, flow: str = "estimated"):
     if method.needs_training_data:
         method.fit(
             {key: batch[key][batch["example_mask"]] for key in ("depth", "depth_valid")}
-            for batch in _training_batches(train_source, flow)
+            for batch in input_pipeline.eval_batches(
+                train_source, batch_size=16, flow_source=flow_source
+            )
         )
     return method
 
 
-def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow: str, split: str):
+def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow_source: str, split: str):
     return [
         input_pipeline.prepare_example(
             source[index],
             epoch=0,
             seed=seed,
             gt_pixels=gt_pixels,
-            flow_source=flow,
+            flow_source=flow_source,
             augment=False,
             fixed_sparse_pixels=True,
             where=f"{split}[{index}]",
@@ -238,79 +238,86 @@ def evaluate_workdir(
     max_examples: int = 0,
     step: int | None = None,
     classical_method: str | None = None,
-    flow: str | None = None,
+    flow_source: str | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Evaluates a workdir's trained model (or a classical method) on `source`.
 
-    Writes <workdir>/eval (see `write_report` and `render_examples`). The references are
+    Writes <workdir>/eval (`gld.reports`). The references are
     evaluated alongside on the same examples with the same flow, when asked: the dataset
     mean (fitted on `train_source`, so only when it is given) and the per-pair oracle
-    constant. Rows: the method, then dataset_mean, then oracle_pair_median.
+    constant, with the workdir's flow unless `flow_source` is given. Rows: the method,
+    then dataset_mean, then oracle_pair_median.
     """
-    from gld import train
-
     results, info = {}, {"dataset": dataset, "split": split}
     if classical_method:
-        flow = flow or "estimated"
-        method = fit_classical(classical_method, train_source, flow)
+        flow_source = flow_source or "estimated"
+        method = fit_classical(classical_method, train_source, flow_source)
         results[classical_method] = evaluate_predictor(
             method.predict,
             source,
             batch_size=batch_size,
-            flow=flow,
+            flow_source=flow_source,
             max_examples=max_examples,
             progress=True,
         )
         predict_depth = lambda batch: method.predict(batch)["depth"]  # noqa: E731
         gt_pixels, seed = 1, 0
-        info.update(model=classical_method, flow=flow)
+        info.update(model=classical_method, flow_source=flow_source)
     else:
-        model, variables, config = train.load_trained(workdir, step=step)
-        flow = flow or config.flow
-        results[config.model] = train.evaluate_source(
+        model, variables, config = workdir_lib.load_trained(workdir, step=step)
+        flow_source = flow_source or config.flow_source
+        results[config.model] = evaluate_source(
             model,
             variables,
             source,
             batch_size=batch_size,
-            flow=flow,
+            flow_source=flow_source,
             max_examples=max_examples,
             progress=True,
         )
         apply = jax.jit(lambda v, b: model.apply(v, b["image1"], b["image2"], b["flow"]))
         predict_depth = lambda batch: apply(variables, batch)["depth"]  # noqa: E731
         gt_pixels, seed = config.gt_pixels, config.seed
-        manager = train.checkpoint_manager(workdir)
+        manager = workdir_lib.checkpoint_manager(workdir)
         info.update(
             model=config.model,
             gt_pixels=config.gt_pixels,
-            flow=flow,
+            flow_source=flow_source,
             step=int(manager.latest_step() if step is None else step),
         )
         manager.close()
     if with_dataset_mean and train_source is not None and jax.process_index() == 0:
-        mean = fit_classical("dataset_mean", train_source, flow)
+        mean = fit_classical("dataset_mean", train_source, flow_source)
         results["dataset_mean"] = evaluate_predictor(
-            mean.predict, source, batch_size=batch_size, flow=flow, max_examples=max_examples
+            mean.predict,
+            source,
+            batch_size=batch_size,
+            flow_source=flow_source,
+            max_examples=max_examples,
         )
         info["dataset_mean_inv_depth"] = mean.inv_depth
     if with_oracle and classical_method != ORACLE and jax.process_index() == 0:
-        oracle = fit_classical(ORACLE, train_source, flow)
+        oracle = fit_classical(ORACLE, train_source, flow_source)
         results[ORACLE] = evaluate_predictor(
-            oracle.predict, source, batch_size=batch_size, flow=flow, max_examples=max_examples
+            oracle.predict,
+            source,
+            batch_size=batch_size,
+            flow_source=flow_source,
+            max_examples=max_examples,
         )
     if jax.process_index() != 0:
         return {}
     out_dir = Path(workdir) / "eval"
-    report = write_report(out_dir, results, height=height, width=width, info=info)
+    report = reports.write_report(out_dir, results, height=height, width=width, info=info)
     if num_figures:
-        examples = _figure_examples(source, num_figures, gt_pixels, seed, flow, split)
+        examples = _figure_examples(source, num_figures, gt_pixels, seed, flow_source, split)
         batch = {
             key: np.stack([example[key] for example in examples])
             for key, value in examples[0].items()
             if isinstance(value, np.ndarray)
         }
         predictions = np.asarray(predict_depth(batch))
-        render_examples(out_dir / "figures", examples, list(predictions))
+        reports.render_examples(out_dir / "figures", examples, list(predictions))
     print_fn((out_dir / "table.md").read_text())
     return report

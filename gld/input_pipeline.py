@@ -32,6 +32,22 @@ import numpy as np
 from gld import geometry, records
 
 FLOW_SOURCES = ("estimated", "gt")
+# The fields of an example (the example contract of the design notes).
+CONTRACT_KEYS = (
+    "image1",
+    "image2",
+    "flow",
+    "depth",
+    "depth_valid",
+    "sparse_mask",
+    "intrinsics1",
+    "intrinsics2",
+    "rotation",
+    "translation",
+    "gt_flow",
+    "gt_flow_valid",
+    "id",
+)
 # Stored fields no example of the contract is made from.
 UNUSED_RECORD_KEYS = ("depth2",)
 # Maps with the image's spatial layout; vector fields are listed separately.
@@ -65,7 +81,8 @@ def _check_finite(value: np.ndarray, key: str, where: str) -> None:
 def decode_example(
     record: dict[str, Any], *, flow_source: str = "estimated", where: str = ""
 ) -> dict[str, Any]:
-    """A stored record -> an example before scale normalisation and sparse sampling.
+    """A stored record -> an example before scale normalisation and sparse sampling:
+    `records.decode`, then the checks of the contract and its names and ranges.
 
     Args:
       record: a record as read from a data source (see `gld.records`).
@@ -91,17 +108,9 @@ def decode_example(
     height, width = raw["image1"].shape[:2]
     _check_shape(raw["image2"], (height, width, 3), "image2", where)
 
-    try:
-        depth = np.asarray(raw["depth1"], np.float32)
-        gt_flow = np.asarray(raw["gt_flow"], np.float32)
-        estimated_flow = np.asarray(raw["flow"], np.float32)
-        gt_flow_valid = np.asarray(raw["gt_flow_valid"], bool)
-        intrinsics1 = np.asarray(raw["intrinsics1"], np.float32)
-        intrinsics2 = np.asarray(raw["intrinsics2"], np.float32)
-        rotation = np.asarray(raw["rotation"], np.float32)
-        translation = np.asarray(raw["translation"], np.float32)
-    except (TypeError, ValueError) as error:
-        raise ValueError(f"{where}: undecodable value ({error})") from None
+    depth, gt_flow, estimated_flow = raw["depth1"], raw["gt_flow"], raw["flow"]
+    gt_flow_valid, rotation, translation = raw["gt_flow_valid"], raw["rotation"], raw["translation"]
+    intrinsics1, intrinsics2 = raw["intrinsics1"], raw["intrinsics2"]
     _check_shape(depth, (height, width), "depth1", where)
     _check_shape(gt_flow, (height, width, 2), "gt_flow", where)
     _check_shape(estimated_flow, (height, width, 2), "flow", where)
@@ -171,13 +180,16 @@ def _flip_frame(example: dict[str, Any], axes: tuple[int, ...]) -> dict[str, Any
             for axis in axes:
                 flipped[key][..., 1 - axis] *= -1.0  # flow channel 0 is u, 1 is v
     for key in ("intrinsics1", "intrinsics2"):
+        if key not in example:
+            continue
         intrinsics = np.array(example[key], np.float32)
         for axis in axes:
             principal_index = 3 - axis  # cx/W at index 2 (axis 1), cy/H at index 3 (axis 0)
             intrinsics[principal_index] = 1.0 - intrinsics[principal_index]
         flipped[key] = intrinsics
     flip = np.diag(frame_signs)
-    flipped["rotation"] = (flip @ example["rotation"] @ flip).astype(np.float32)
+    if "rotation" in example:
+        flipped["rotation"] = (flip @ example["rotation"] @ flip).astype(np.float32)
     flipped["translation"] = (frame_signs * example["translation"]).astype(np.float32)
     return flipped
 
@@ -268,6 +280,7 @@ def prepare_example(
     flow_source: str = "estimated",
     augment: bool = True,
     fixed_sparse_pixels: bool = False,
+    keys: Sequence[str] | None = None,
     where: str = "",
 ) -> dict[str, Any]:
     """A stored record -> one example of the contract: decode, augment, normalise, sparsify.
@@ -281,12 +294,21 @@ def prepare_example(
       augment: rotate 180 degrees (p = 0.5), then mirror along x (p = 0.5).
       fixed_sparse_pixels: draw the same supervised pixels in every epoch (the epoch is
         dropped from their seed), as for a robot that measured each frame once.
+      keys: the contract's fields the consumer reads ("id" is always kept); the others
+        are dropped after decoding, before augmentation and batching. None keeps all.
       where: names the record in errors.
 
     Returns:
       the example dict of the contract, with `sparse_mask` [H, W] bool.
     """
     example = decode_example(record, flow_source=flow_source, where=where)
+    if keys is not None:
+        unknown = sorted(set(keys) - set(CONTRACT_KEYS))
+        if unknown:
+            raise ValueError(f"unknown example keys {unknown}; valid: {CONTRACT_KEYS}")
+        # The pipeline itself reads depth, its validity and the translation.
+        needed = {*keys, "id", "depth", "depth_valid", "translation"}
+        example = {key: value for key, value in example.items() if key in needed}
     if augment:
         augment_rng = example_rng(seed, example["id"], epoch, _AUGMENT_STREAM)
         do_rotate, do_mirror = augment_rng.random(2) < 0.5
@@ -298,6 +320,8 @@ def prepare_example(
     sparse_epoch = 0 if fixed_sparse_pixels else epoch
     sparse_rng = example_rng(seed, example["id"], sparse_epoch, _SPARSE_STREAM)
     example["sparse_mask"] = sample_sparse_mask(example["depth_valid"], gt_pixels, sparse_rng)
+    if keys is not None:
+        example = {key: example[key] for key in ("id", *keys) if key in example}
     return example
 
 
@@ -428,6 +452,7 @@ def train_dataset(
     augment: bool = True,
     fixed_sparse_pixels: bool = False,
     worker_count: int = 0,
+    keys: Sequence[str] | None = None,
     process_index: int = 0,
     process_count: int = 1,
 ) -> grain.IterDataset:
@@ -444,6 +469,8 @@ def train_dataset(
       fixed_sparse_pixels: the same supervised pixels in every epoch.
       worker_count: grain worker processes (0 = in the calling process). The batch
         sequence is deterministic for a given worker count.
+      keys: the fields the consumer reads (e.g. `gld.train.TRAIN_KEYS`); the others are
+        not augmented or batched. None keeps the whole contract.
       process_index, process_count: this process's shard is records
         `process_index::process_count`; the shards are disjoint and cover the split.
 
@@ -478,6 +505,7 @@ def train_dataset(
         flow_source=flow_source,
         augment=augment,
         fixed_sparse_pixels=fixed_sparse_pixels,
+        keys=keys,
     )
     # Shuffle then repeat: grain reshuffles with shuffle_seed + epoch in every epoch. The
     # seed is scrambled so that run seeds s and s + 1 do not share shifted permutations.
@@ -513,9 +541,10 @@ def num_eval_batches(num_examples: int, batch_size: int, process_count: int = 1)
 class _PrepareEvalExample:
     """(record index, is real) -> unaugmented example with dense mask and example_mask."""
 
-    def __init__(self, reader: _RecordReader, flow_source: str):
+    def __init__(self, reader: _RecordReader, flow_source: str, keys: Sequence[str] | None):
         self.reader = reader
         self.flow_source = flow_source
+        self.keys = keys
 
     def __call__(self, entry: tuple[int, bool]) -> dict[str, Any]:
         record_index, is_real = entry
@@ -527,6 +556,7 @@ class _PrepareEvalExample:
             gt_pixels=0,
             flow_source=self.flow_source,
             augment=False,
+            keys=self.keys,
             where=where,
         )
         example["example_mask"] = np.bool_(is_real)
@@ -538,6 +568,7 @@ def eval_batches(
     *,
     batch_size: int,
     flow_source: str = "estimated",
+    keys: Sequence[str] | None = None,
     process_index: int = 0,
     process_count: int = 1,
 ) -> Iterator[dict[str, Any]]:
@@ -549,11 +580,14 @@ def eval_batches(
     evaluation steps stay in lockstep.
 
     Yields:
-      batch dicts of the example contract plus `example_mask`.
+      batch dicts of the example contract (only `keys` and "id", when given) plus
+      `example_mask`.
     """
     if flow_source not in FLOW_SOURCES:
         raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
     _check_sharding(len(source), process_index, process_count)
+    # example_mask is made here, not by `prepare_example`.
+    example_keys = None if keys is None else tuple(k for k in keys if k != "example_mask")
     num_batches = num_eval_batches(len(source), batch_size, process_count)
     shard = list(range(len(source))[process_index::process_count])
     # A process whose shard is empty still pads with a real example (the split's first).
@@ -562,7 +596,7 @@ def eval_batches(
     entries += [(padding_index, False)] * (num_batches * batch_size - len(entries))
     dataset = (
         grain.MapDataset.source(entries)
-        .map(_PrepareEvalExample(_RecordReader(source), flow_source))
+        .map(_PrepareEvalExample(_RecordReader(source), flow_source, example_keys))
         .batch(batch_size)
     )
     yield from dataset

@@ -11,20 +11,19 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 from gld import baselines, geometry, layers
+from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
 from gld.global_encoder import GlobalEncoder
-from gld.hypernet import (
-    MODULATION_SCALE,
-    FilterBank,
-    HyperNetwork,
-    StaticFilterBanks,
-    apply_filter_banks,
-)
+from gld.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
+
+LOCAL_FLOW_UNITS = ("normalised", "pixels")
+GLOBAL_NORMS = ("none", "batch")
 
 
 class GlobalLocal(nn.Module):
@@ -54,7 +53,7 @@ class GlobalLocal(nn.Module):
         paper's) leaves it as it is.
       modulation_scale: how far unit-variance global parameters move the generated
         filters at initialisation, as a fraction of the filters' scale.
-      filter_formulation: how per-example banks are applied (see `gld.hypernet`);
+      filter_formulation: how per-example banks are applied (see `gld.filter_banks`);
         None picks the fastest for the platform.
     """
 
@@ -100,9 +99,9 @@ class GlobalLocal(nn.Module):
         image_pair = jnp.concatenate([image1, image2], axis=-1)
         normalised_flow = layers.normalise_flow(flow) * self.flow_scale
 
-        if self.local_flow_units not in ("pixels", "normalised"):
+        if self.local_flow_units not in LOCAL_FLOW_UNITS:
             raise ValueError(
-                f"local_flow_units must be 'pixels' or 'normalised', got {self.local_flow_units!r}"
+                f"local_flow_units must be one of {LOCAL_FLOW_UNITS}, got {self.local_flow_units!r}"
             )
         if self.use_flow:
             local_inputs = flow if self.local_flow_units == "pixels" else normalised_flow
@@ -143,7 +142,9 @@ class GlobalLocal(nn.Module):
                     name="global_norm",
                 )(global_params)
             elif self.global_norm != "none":
-                raise ValueError(f"global_norm must be 'none' or 'batch', got {self.global_norm!r}")
+                raise ValueError(
+                    f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}"
+                )
             filter_banks = HyperNetwork(
                 **bank_kwargs, modulation_scale=self.modulation_scale, name="hypernet"
             )(global_params)
@@ -179,12 +180,12 @@ class ConvParameters(nn.Module):
     kernel_size: int = 3
 
     @nn.compact
-    def __call__(self) -> FilterBank:
-        """Returns FilterBank(kernel [k, k, C_in, C_out], bias [C_out])."""
+    def __call__(self) -> SharedConv:
+        """Returns SharedConv(kernel [k, k, C_in, C_out], bias [C_out])."""
         shape = (self.kernel_size, self.kernel_size, self.in_channels, self.out_channels)
         kernel = self.param("kernel", nn.initializers.lecun_normal(), shape)
         bias = self.param("bias", nn.initializers.zeros_init(), (self.out_channels,))
-        return FilterBank(kernel=kernel, bias=bias)
+        return SharedConv(kernel=kernel, bias=bias)
 
 
 def _check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None:
@@ -201,22 +202,38 @@ def _check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None
 # Every learned depth network, by name (`--model`).
 MODELS: dict[str, type[nn.Module]] = {"global_local": GlobalLocal, **baselines.LEARNED}
 
-# Architecture fields of GlobalLocal that launchers expose as flags.
-ARCHITECTURE_FIELDS = (
-    "encoder_channels",
-    "encoder_strides",
-    "global_dim",
-    "bank_channels",
-    "kernel_size",
-    "use_image_pair",
-    "use_coordinates",
-    "use_global_module",
-    "use_flow",
-    "local_flow_units",
-    "flow_scale",
-    "global_norm",
-    "modulation_scale",
-)
+# Help of GlobalLocal's options that launchers expose as flags (`--<name>`); defaults
+# and types come from the class, choices from `ARCHITECTURE_CHOICES`.
+ARCHITECTURE_FLAGS = {
+    "encoder_channels": "Global encoder channels.",
+    "encoder_strides": "Global encoder strides.",
+    "global_dim": "Size of the global parameter vector.",
+    "bank_channels": "Output channels of the generated banks.",
+    "kernel_size": "Kernel size of generated filters and the final conv.",
+    "use_image_pair": "Ablation switch: image pair into the global module.",
+    "use_coordinates": "Ablation switch: CoordConv channels.",
+    "use_global_module": "Ablation switch: filters generated from g.",
+    "use_flow": "Ablation switch: optical flow as the local input.",
+    "local_flow_units": "Units of the local network's flow.",
+    "flow_scale": "Factor on the normalised flow fed to both modules.",
+    "global_norm": "Normalisation of g.",
+    "modulation_scale": "Initial modulation of the filters by g.",
+    "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
+}
+ARCHITECTURE_CHOICES = {
+    "local_flow_units": LOCAL_FLOW_UNITS,
+    "global_norm": GLOBAL_NORMS,
+    "filter_formulation": tuple(FORMULATIONS),
+}
+
+
+def architecture_options() -> dict[str, tuple[Any, str, tuple[str, ...] | None]]:
+    """name -> (default, help, choices) of every GlobalLocal option with a flag."""
+    defaults = {field.name: field.default for field in dataclasses.fields(GlobalLocal)}
+    return {
+        name: (defaults[name], help_text, ARCHITECTURE_CHOICES.get(name))
+        for name, help_text in ARCHITECTURE_FLAGS.items()
+    }
 
 
 # Architecture fields added after the first runs were written, with the value those

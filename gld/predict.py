@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from gld import flow as flow_lib
-from gld import train
+from gld import workdir as workdir_lib
 
 
 def _as_float_images(image: np.ndarray, name: str) -> np.ndarray:
@@ -54,7 +54,7 @@ class DepthPredictor:
     @classmethod
     def from_workdir(cls, workdir: str | Path, step: int | None = None) -> DepthPredictor:
         """Loads the latest (or given) checkpoint of a training workdir."""
-        model, variables, config = train.load_trained(workdir, step=step)
+        model, variables, config = workdir_lib.load_trained(workdir, step=step)
         return cls(model, variables, config.height, config.width)
 
     def predict(

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from gld import geometry, input_pipeline, losses
+from gld import evaluation, geometry, losses
 
 
 def rotation_vector(rotation: np.ndarray) -> np.ndarray:
@@ -103,7 +103,7 @@ def collect(
     source: Sequence[Any],
     *,
     batch_size: int = 16,
-    flow: str = "estimated",
+    flow_source: str = "estimated",
     max_examples: int = 0,
 ) -> dict[str, np.ndarray]:
     """Runs a model over a split (unaugmented, ||t|| = 1) and keeps per-pair values.
@@ -113,7 +113,7 @@ def collect(
         [B, H, W], and `global_params` [B, G] for the global-local model).
       source: random-access records of the split.
       batch_size: evaluation batch size.
-      flow: the flow the model is given ("estimated" or "gt").
+      flow_source: the flow the model is given ("estimated" or "gt").
       max_examples: only the first N pairs (0 = all).
 
     Returns:
@@ -122,9 +122,15 @@ def collect(
       them); "rotation_vector" [N, 3] radians and "translation" [N, 3] unit norm, the
       true relative pose.
     """
-    subset = input_pipeline.first_records(source, max_examples)
     collected: dict[str, list] = {}
-    for batch in input_pipeline.eval_batches(subset, batch_size=batch_size, flow_source=flow):
+    batches = evaluation.split_batches(
+        source,
+        batch_size=batch_size,
+        flow_source=flow_source,
+        max_examples=max_examples,
+        all_processes=False,
+    )
+    for batch in batches:
         outputs = apply_fn(batch)
         inv_pred = np.asarray(outputs["inv_depth"], np.float64)
         valid = np.asarray(batch["depth_valid"], bool) & (np.asarray(batch["depth"]) > 0)

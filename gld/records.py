@@ -27,6 +27,18 @@ import numpy as np
 import tensorflow_datasets as tfds
 
 IMAGE_KEYS = ("image1", "image2")
+# The decoded dtype of every array a consumer reads (depth2, which the input pipeline
+# skips, is left as the source gives it).
+DECODED_DTYPES = {
+    "depth1": np.float32,
+    "intrinsics1": np.float32,
+    "intrinsics2": np.float32,
+    "rotation": np.float32,
+    "translation": np.float32,
+    "flow": np.float32,
+    "gt_flow": np.float32,
+    "gt_flow_valid": np.bool_,
+}
 RECORD_KEYS = (
     "image1",
     "image2",
@@ -103,7 +115,8 @@ def encode(example: dict[str, Any]) -> dict[str, Any]:
 
 
 def decode(record: dict[str, Any], where: str = "record") -> dict[str, Any]:
-    """A record read from a TFDS data source -> numpy arrays (decoded form above).
+    """A record read from a TFDS data source -> numpy arrays (decoded form above): the
+    one place stored values are decoded (images from PNG, arrays to `DECODED_DTYPES`).
 
     `where` names the record (file and index) in the error raised for corrupt data.
     """
@@ -113,6 +126,10 @@ def decode(record: dict[str, Any], where: str = "record") -> dict[str, Any]:
         raise ValueError(f"{where}: missing key {error}") from None
     for key in IMAGE_KEYS:
         example[key] = decode_png(record[key], f"{where}/{key}")
-    example["flow"] = np.asarray(record["flow"], np.float32)
+    for key, dtype in DECODED_DTYPES.items():
+        try:
+            example[key] = np.asarray(record[key], dtype)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{where}: {key} is undecodable ({error})") from None
     example["id"] = record["id"].decode() if isinstance(record["id"], bytes) else str(record["id"])
     return example

@@ -39,7 +39,7 @@ TINY_MODEL = {"encoder_channels": [4, 8, 8, 8, 8]}
 def tiny_train_config(**overrides):
     """A TrainConfig for `gld_scenes/tiny` with TINY_MODEL: batch 4, 4 steps, a checkpoint
     every 2 steps, no periodic evaluation; `overrides` replace any field."""
-    from gld import train
+    from gld import config
 
     values = dict(
         model_config=dict(TINY_MODEL),
@@ -53,7 +53,7 @@ def tiny_train_config(**overrides):
         width=64,
     )
     values.update(overrides)
-    return train.TrainConfig(**values)
+    return config.TrainConfig(**values)
 
 
 @pytest.fixture(scope="session")
@@ -71,3 +71,29 @@ def tiny_scenes(tiny_scenes_dir):
     import data
 
     return data.get_builder("gld_scenes/tiny", tiny_scenes_dir)
+
+
+@pytest.fixture(scope="session")
+def trained_workdir(tiny_scenes, tmp_path_factory):
+    """A tiny global-local run trained for 2 steps."""
+    from gld import train
+
+    workdir = tmp_path_factory.mktemp("trained")
+    config = tiny_train_config(steps=2, log_every=1)
+    train.train_and_evaluate(
+        config,
+        workdir,
+        tiny_scenes.as_data_source("train"),
+        progress=False,
+        print_fn=lambda _: None,
+    )
+    return workdir
+
+
+@pytest.fixture(scope="session")
+def eval_batch(tiny_scenes):
+    """The first 4 test pairs as one evaluation batch."""
+    from gld import input_pipeline
+
+    source = tiny_scenes.as_data_source("test")
+    return next(input_pipeline.eval_batches([source[i] for i in range(4)], batch_size=4))

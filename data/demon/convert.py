@@ -53,8 +53,31 @@ from absl import app, flags
 
 from data.demon import recordings, writer
 
-# experiments/benchmarks/demon.py writes its views with these under their old home.
-from data.demon.writer import demon_camera, write_view  # noqa: F401
+flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
+flags.DEFINE_string("poses", None, "Trajectory file (see --pose_format).", required=True)
+flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy in pixels, or a file.", required=True)
+flags.DEFINE_string("depth", None, "Folder of depth images, or frame,u,v,depth CSV.", required=True)
+flags.DEFINE_string("output_dir", None, "Where custom_<split>.h5 go.", required=True)
+flags.DEFINE_enum("pose_format", "tum", recordings.POSE_FORMATS, "TUM lines or 4x4 matrices.")
+flags.DEFINE_enum(
+    "pose_direction",
+    "camera_to_world",
+    recordings.POSE_DIRECTIONS,
+    "What --pose_format=matrix poses map.",
+)
+flags.DEFINE_float("depth_scale", 1.0, "Metres per stored depth unit (TUM PNG: 0.0002).")
+flags.DEFINE_enum(
+    "depth_metric", "camera_z", recordings.DEPTH_METRICS, "z, or distance along the ray."
+)
+flags.DEFINE_integer("frame_gap", 1, "Pair frame i with frame i + frame_gap.")
+flags.DEFINE_float("min_baseline", None, "Metres; pairs by baseline range instead.")
+flags.DEFINE_float("max_baseline", None, "Metres; pairs by baseline range instead.")
+flags.DEFINE_integer("max_frame_gap", 30, "Farthest partner searched by baseline.")
+flags.DEFINE_float("test_fraction", 0.0, "Last share of frames written as the test split.")
+flags.DEFINE_enum("split", "train", ("train", "test"), "Split when test_fraction is 0.")
+flags.DEFINE_string("recording", None, "Name suffix: custom_<split>_<recording>.h5.")
+flags.DEFINE_integer("webp_quality", 101, "WebP quality; > 100 is lossless.")
+flags.DEFINE_float("max_time_difference", 0.02, "Seconds between image and pose stamps.")
 
 
 def main(argv: Sequence[str]) -> None:
@@ -86,38 +109,5 @@ def main(argv: Sequence[str]) -> None:
         print(f"pairs left out, {reason}: {count}")
 
 
-def _define_flags() -> None:
-    # Defined only when run as a program: launchers with flags of their own import this
-    # module (experiments/benchmarks/demon.py), and its required flags would fail theirs.
-    flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
-    flags.DEFINE_string("poses", None, "Trajectory file (see --pose_format).", required=True)
-    flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy in pixels, or a file.", required=True)
-    flags.DEFINE_string(
-        "depth", None, "Folder of depth images, or frame,u,v,depth CSV.", required=True
-    )
-    flags.DEFINE_string("output_dir", None, "Where custom_<split>.h5 go.", required=True)
-    flags.DEFINE_enum("pose_format", "tum", recordings.POSE_FORMATS, "TUM lines or 4x4 matrices.")
-    flags.DEFINE_enum(
-        "pose_direction",
-        "camera_to_world",
-        recordings.POSE_DIRECTIONS,
-        "What --pose_format=matrix poses map.",
-    )
-    flags.DEFINE_float("depth_scale", 1.0, "Metres per stored depth unit (TUM PNG: 0.0002).")
-    flags.DEFINE_enum(
-        "depth_metric", "camera_z", recordings.DEPTH_METRICS, "z, or distance along the ray."
-    )
-    flags.DEFINE_integer("frame_gap", 1, "Pair frame i with frame i + frame_gap.")
-    flags.DEFINE_float("min_baseline", None, "Metres; pairs by baseline range instead.")
-    flags.DEFINE_float("max_baseline", None, "Metres; pairs by baseline range instead.")
-    flags.DEFINE_integer("max_frame_gap", 30, "Farthest partner searched by baseline.")
-    flags.DEFINE_float("test_fraction", 0.0, "Last share of frames written as the test split.")
-    flags.DEFINE_enum("split", "train", ("train", "test"), "Split when test_fraction is 0.")
-    flags.DEFINE_string("recording", None, "Name suffix: custom_<split>_<recording>.h5.")
-    flags.DEFINE_integer("webp_quality", 101, "WebP quality; > 100 is lossless.")
-    flags.DEFINE_float("max_time_difference", 0.02, "Seconds between image and pose stamps.")
-
-
 if __name__ == "__main__":
-    _define_flags()
     app.run(main)

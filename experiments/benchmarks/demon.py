@@ -25,8 +25,8 @@ import numpy as np
 from absl import app, flags
 
 import data
-from data.demon import convert, pairs, reader
-from data.gld_scenes import renderer
+from data.demon import pairs, reader, writer
+from data.gld_scenes import renderer, scenes
 from experiments.benchmarks import format_table
 from gld import geometry, records
 
@@ -40,7 +40,7 @@ def write_synthetic_file(
 
     View 1 defines the world frame (R = I, t = 0); view 2 has the rendered relative pose.
     """
-    settings = renderer.SceneSettings(height=height, width=width)
+    settings = scenes.SceneSettings(height=height, width=width)
     with h5py.File(path, "w") as h5_file:
         for index in range(num_pairs):
             example = renderer.render_pair(renderer.example_rng(0, "demon_bench", index), settings)
@@ -53,11 +53,11 @@ def write_synthetic_file(
             for view, (rotation, translation) in enumerate(poses):
                 intrinsics = example[f"intrinsics{view + 1}"].astype(np.float64)
                 camera_matrix = geometry.intrinsics_matrix(intrinsics, height, width)
-                convert.write_view(
+                writer.write_view(
                     t0.create_group(f"v{view}"),
                     example[f"image{view + 1}"],
                     example[f"depth{view + 1}"],
-                    convert.demon_camera(camera_matrix, rotation, translation),
+                    writer.demon_camera(camera_matrix, rotation, translation),
                     "camera_z",
                     webp_quality,
                 )

@@ -4,7 +4,7 @@
     python -m experiments.benchmark --torch_python=.torchref/bin/python
 
 For every model of `gld.model.MODELS` asked for (the global-local model once per
-formulation of `gld.hypernet.FORMULATIONS`) it measures, each in a fresh process so
+formulation of `gld.filter_banks.FORMULATIONS`) it measures, each in a fresh process so
 that peak memory is the row's own: compile time of the train step, forward latency
 at batch 1 (median and p90), forward throughput at the forward batch sizes, the time
 of a whole Adam train step (the model's loss, `gld.train.make_train_step`), peak host
@@ -86,6 +86,7 @@ def measure_one(
 
     from gld import losses
     from gld import model as model_lib
+    from gld import state as state_lib
     from gld import train as train_lib
 
     config = {"filter_formulation": formulation} if formulation is not None else {}
@@ -112,8 +113,8 @@ def measure_one(
             "sparse_mask": jnp.asarray(sparse_mask),
         }
 
-    optimizer = train_lib.make_optimizer(1e-4)
-    state = train_lib.create_train_state(model, optimizer, height, width, seed=0)
+    optimizer = state_lib.make_optimizer(1e-4)
+    state = state_lib.create_train_state(model, optimizer, height, width, seed=0)
     params = state.params
     # Every collection (batch-norm statistics too), with the parameters swapped in.
     extra_collections = {k: v for k, v in state.variables().items() if k != "params"}
@@ -273,7 +274,7 @@ def run(
 
     Args:
       models: names in `gld.model.MODELS`; only "global_local" has formulations.
-      formulations: keys of `gld.hypernet.FORMULATIONS` (None = all).
+      formulations: keys of `gld.filter_banks.FORMULATIONS` (None = all).
       height, width: image size.
       forward_batch_sizes: batch sizes of the throughput measurements (batch 1 is
         always measured, for latency).
@@ -289,12 +290,14 @@ def run(
     Returns:
       {"rows": [...], "torch": {...}, "default_formulation": ..., "settings": {...}}.
     """
-    from gld import hypernet
+    from gld import filter_banks
 
-    names = list(hypernet.FORMULATIONS) if formulations is None else list(formulations)
-    unknown = sorted(set(names) - set(hypernet.FORMULATIONS))
+    names = list(filter_banks.FORMULATIONS) if formulations is None else list(formulations)
+    unknown = sorted(set(names) - set(filter_banks.FORMULATIONS))
     if unknown:
-        raise ValueError(f"unknown formulations {unknown}; valid: {sorted(hypernet.FORMULATIONS)}")
+        raise ValueError(
+            f"unknown formulations {unknown}; valid: {sorted(filter_banks.FORMULATIONS)}"
+        )
     if torch_python is not None and not Path(torch_reference).is_file():
         raise FileNotFoundError(f"PyTorch reference not found: {torch_reference}")
 
@@ -341,7 +344,7 @@ def run(
         "rows": rows,
         "torch": {"rounds": torch_rounds_results, "median_s": torch_summary},
         "default_formulation": {
-            backend: hypernet.default_formulation(backend) for backend in ("cpu", "gpu")
+            backend: filter_banks.default_formulation(backend) for backend in ("cpu", "gpu")
         },
         "settings": dict(
             height=height,

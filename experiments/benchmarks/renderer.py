@@ -20,7 +20,7 @@ from absl import app, flags
 
 import data
 from data.gld_scenes import gld_scenes_dataset_builder as builder_module
-from data.gld_scenes import renderer
+from data.gld_scenes import renderer, scenes
 from experiments.benchmarks import format_table
 from gld import flow
 
@@ -64,7 +64,7 @@ def run(
       `dis_pairs_per_s_w{n}` (render + DIS flow + encoding as the builder does),
       `dis_ms`, and for the build `build_s`, `build_bytes`, `flow_epe_test`.
     """
-    settings = renderer.SceneSettings(height=height, width=width)
+    settings = scenes.SceneSettings(height=height, width=width)
     config = builder_module.SceneConfig(name="benchmark", height=height, width=width)
     results: dict[str, Any] = {"height": height, "width": width, "num_pairs": num_pairs}
 

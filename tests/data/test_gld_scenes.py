@@ -233,7 +233,7 @@ def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
     source = tiny.as_data_source()["test"]
     for flow, key in (("estimated", "estimated_flow"), ("gt", "gt_flow")):
         per_example, _ = evaluation.evaluate_predictor(
-            classical.TriangulationGtPose().predict, source, flow=flow
+            classical.TriangulationGtPose().predict, source, flow_source=flow
         )
         assert per_example["example_mask"].all()
         expected = per_example["abs_inv"].mean()

@@ -10,7 +10,7 @@ import pytest
 from conftest import REPO_ROOT
 
 from experiments.benchmarks import model as model_benchmark
-from gld import hypernet
+from gld import filter_banks
 
 FAKE_TORCH_FIGURES = {
     "eager": {"forward_b1_ms": 12.0, "forward_b16_ms": 400.0, "train_b16_ms": 1250.0},
@@ -77,7 +77,7 @@ def test_quick_run_writes_every_figure(tmp_path, fake_torch_reference):
     # 16x24 at batch 2 is not the reference's problem: no goal ratios.
     assert not result["settings"]["torch_comparable"]
     assert all("vs_torch" not in row for row in result["rows"])
-    assert result["default_formulation"]["cpu"] in hypernet.FORMULATIONS
+    assert result["default_formulation"]["cpu"] in filter_banks.FORMULATIONS
 
 
 def test_goal_ratios_against_the_reference():

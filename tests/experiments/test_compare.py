@@ -18,7 +18,7 @@ def _run_compare(data_dir, workdir, *flags):
         "--dataset=gld_scenes/tiny",
         f"--data_dir={data_dir}",
         f"--workdir={workdir}",
-        "--flow=gt",
+        "--flow_source=gt",
         *flags,
     ]
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))

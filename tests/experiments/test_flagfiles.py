@@ -54,3 +54,27 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         assert train_flags.lr_schedule == "constant"
     finally:
         train_flags.unparse_flags()
+
+
+SCENES11 = [p for p in FLAGFILES if p.stem.startswith("scenes11_")]
+
+
+@pytest.mark.parametrize("path", SCENES11, ids=lambda p: p.stem)
+def test_scenes11_flagfiles_share_the_base_and_change_one_setting(train_flags, path: Path):
+    base = REPO_ROOT / "experiments" / "flags" / "base" / "scenes11.flags"
+    lines = [line for line in path.read_text().splitlines() if line.startswith("--")]
+    assert lines[0] == "--flagfile=experiments/flags/base/scenes11.flags"
+    assert len(lines) <= 3  # the base, the workdir and at most one change
+    try:
+        train_flags(["train", f"--flagfile={base}"])
+        base_values = train_flags.flag_values_dict()
+    finally:
+        train_flags.unparse_flags()
+    try:
+        train_flags(["train", f"--flagfile={path}"])
+        values = train_flags.flag_values_dict()
+    finally:
+        train_flags.unparse_flags()
+    changed = {name for name in values if values[name] != base_values[name]}
+    assert values["dataset"] == "demon/scenes11" and values["steps"] == 94_000
+    assert changed - {"workdir", "flagfile"} == {line.split("=")[0][2:] for line in lines[2:]}

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT
 
-from gld import train
+from gld import workdir as workdir_lib
 
 # A few steps: the main job's 100 warm-up steps would not fit.
 TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2", "--warmup_steps=2"]
@@ -139,8 +139,8 @@ def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_di
     straight = _launch([*common, f"--workdir={tmp_path / 'straight'}"], tiny_scenes_dir)
     assert straight.returncode == 0, straight.stderr[-3000:]
 
-    _, resumed_vars, _ = train.load_trained(killed_dir)
-    _, straight_vars, _ = train.load_trained(tmp_path / "straight")
+    _, resumed_vars, _ = workdir_lib.load_trained(killed_dir)
+    _, straight_vars, _ = workdir_lib.load_trained(tmp_path / "straight")
     jax.tree_util.tree_map(
         lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
         resumed_vars,
@@ -154,9 +154,9 @@ def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
     result = _launch(
         [
             "experiments.evaluate",
-            f"--model={method}",
+            f"--method={method}",
             f"--workdir={workdir}",
-            "--flow=gt",
+            "--flow_source=gt",
             "--num_figures=1",
         ],
         tiny_scenes_dir,

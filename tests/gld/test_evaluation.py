@@ -1,55 +1,18 @@
-"""Tests of the evaluation reports (gld/evaluation.py): every table carries its references."""
+"""The evaluation loop and a workdir's evaluation (gld/evaluation.py): every table
+carries its references."""
 
 import csv
-import json
 
 import numpy as np
 import pytest
 from conftest import tiny_train_config
 
-from gld import evaluation, input_pipeline, train
+from gld import evaluation, input_pipeline
 from gld import model as model_lib
+from gld import state as state_lib
+from gld import workdir as workdir_lib
 
 ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
-
-
-def _per_example(abs_inv, mask):
-    count = len(abs_inv)
-    return {
-        "abs_inv": np.asarray(abs_inv, np.float64),
-        "abs_rel": np.full(count, 0.5),
-        "s_rmse": np.full(count, 0.25),
-        "example_mask": np.asarray(mask, bool),
-    }, [f"pair/{index}" for index in range(count)]
-
-
-def test_report_labels_the_oracle_and_gives_each_method_as_a_multiple_of_the_mean(tmp_path):
-    # The third row of each method is padding (mask False): it must not count.
-    results = {
-        "global_local": _per_example([0.02, 0.04, 9.0], [True, True, False]),
-        "dataset_mean": _per_example([0.03, 0.05, 9.0], [True, True, False]),
-        "oracle_pair_median": _per_example([0.01, 0.01, 9.0], [True, True, False]),
-    }
-    report = evaluation.write_report(tmp_path, results, height=48, width=64, info={"split": "x"})
-
-    assert list(report["methods"]) == ["global_local", "dataset_mean", "oracle_pair_median"]
-    assert report["methods"]["global_local"]["abs_inv"]["mean"] == pytest.approx(0.03)
-    assert report["abs_inv_vs_dataset_mean"] == pytest.approx(
-        {"global_local": 0.75, "dataset_mean": 1.0, "oracle_pair_median": 0.25}
-    )
-    assert report["labels"] == {"oracle_pair_median": "per-pair oracle constant (sees the truth)"}
-    assert json.loads((tmp_path / "metrics.json").read_text()) == report
-
-    lines = (tmp_path / "table.md").read_text().splitlines()
-    assert lines[0].endswith("| Abs-Inv ÷ dataset_mean |")
-    assert lines[2].startswith("| global_local | 0.0300 ± 0.0100 |") and lines[2].endswith(
-        "| 0.75× |"
-    )
-    assert lines[3].startswith("| dataset_mean |") and lines[3].endswith("| 1.00× |")
-    assert lines[4].startswith(ORACLE_ROW) and lines[4].endswith("| 0.25× |")
-    with (tmp_path / "per_example_oracle_pair_median.csv").open() as stream:
-        rows = list(csv.DictReader(stream))
-    assert [row["id"] for row in rows] == ["pair/0", "pair/1"]
 
 
 def _oracle_abs_inv_by_hand(source) -> list[float]:
@@ -76,7 +39,7 @@ def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tin
         width=64,
         num_figures=0,
         classical_method="triangulation_gt_pose",
-        flow="gt",
+        flow_source="gt",
         print_fn=printed.append,
     )
     methods = report["methods"]
@@ -122,18 +85,18 @@ def untrained_workdir(tiny_scenes, tmp_path):
     config = tiny_train_config()
     workdir = tmp_path / "run"
     workdir.mkdir()
-    train.write_run_config(workdir, config)
+    workdir_lib.write_run_config(workdir, config)
     model = model_lib.make_model(config.model, **config.model_config)
-    state = train.create_train_state(
-        model, train.make_optimizer(config.learning_rate), config.height, config.width, 0
+    state = state_lib.create_train_state(
+        model, state_lib.make_optimizer(config.learning_rate), config.height, config.width, 0
     )
     iterator = iter(
         input_pipeline.train_dataset(
             tiny_scenes.as_data_source("train"), batch_size=4, seed=0, gt_pixels=1
         )
     )
-    manager = train.checkpoint_manager(workdir)
-    train.save_checkpoint(manager, state, iterator)
+    manager = workdir_lib.checkpoint_manager(workdir)
+    workdir_lib.save_checkpoint(manager, state, iterator)
     manager.wait_until_finished()
     manager.close()
     return workdir
@@ -161,3 +124,37 @@ def test_a_model_is_reported_with_the_dataset_mean_and_the_oracle(tiny_scenes, u
     assert lines[2].startswith("| global_local |")
     assert lines[2].endswith(f"| {ratios['global_local']:.2f}× |")
     assert lines[4].startswith(ORACLE_ROW)
+
+
+def test_a_learned_model_and_a_host_predictor_go_through_the_same_loop(
+    tiny_scenes, untrained_workdir
+):
+    model, variables, _ = workdir_lib.load_trained(untrained_workdir)
+    source = tiny_scenes.as_data_source("test")
+    on_devices, device_ids = evaluation.evaluate_source(
+        model, variables, source, batch_size=3, max_examples=5
+    )
+
+    def predict(batch):
+        outputs = model.apply(variables, batch["image1"], batch["image2"], batch["flow"])
+        return {"depth": outputs["depth"]}
+
+    on_host, host_ids = evaluation.evaluate_predictor(predict, source, batch_size=3, max_examples=5)
+    # 5 pairs in batches of 3: one padded row, masked out by the same rule in both.
+    assert device_ids == host_ids and len(set(device_ids[:5])) == 5
+    np.testing.assert_array_equal(on_devices["example_mask"], [True] * 5 + [False])
+    np.testing.assert_array_equal(on_host["example_mask"], on_devices["example_mask"])
+    for name in ("abs_inv", "abs_rel", "s_rmse", "num_pixels"):
+        np.testing.assert_allclose(on_host[name][:5], on_devices[name][:5], rtol=1e-5)
+
+
+def test_a_pair_without_valid_pixels_does_not_count():
+    depth = np.ones((2, 4, 4), np.float32)
+    batch = {
+        "depth": np.full((2, 4, 4), 2.0, np.float32),
+        "depth_valid": np.stack([np.ones((4, 4), bool), np.zeros((4, 4), bool)]),
+        "example_mask": np.array([True, True]),
+    }
+    scored = evaluation.score_batch(depth, batch)
+    np.testing.assert_array_equal(scored["example_mask"], [True, False])
+    assert float(scored["abs_inv"][0]) == pytest.approx(0.5)

@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from gld import filter_banks as filter_banks_lib
 from gld import hypernet, layers, losses
 from gld import model as model_lib
 
@@ -118,10 +119,10 @@ def _local_network_by_hand(variables, filter_banks, local_flow):
     )
     coordinates = jnp.broadcast_to(jnp.stack([x, y], -1), (batch, height, width, 2))
     final_conv = variables["params"]["final_conv"]
-    logits = hypernet.apply_filter_banks(
+    logits = filter_banks_lib.apply_filter_banks(
         filter_banks,
         jnp.concatenate([local_flow, coordinates], -1),
-        head=hypernet.FilterBank(final_conv["kernel"], final_conv["bias"]),
+        head=filter_banks_lib.SharedConv(final_conv["kernel"], final_conv["bias"]),
         formulation="vmap",
     )
     return layers.depth_outputs(logits)["inv_depth"]

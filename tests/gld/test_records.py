@@ -120,3 +120,5 @@ def test_a_corrupt_record_names_the_record_and_the_field():
     missing = {key: value for key, value in stored.items() if key != "gt_flow"}
     with pytest.raises(ValueError, match=r"shard-2\[5\]: missing key 'gt_flow'"):
         records.decode(missing, where="shard-2[5]")
+    with pytest.raises(ValueError, match=r"shard-2\[5\]: translation is undecodable"):
+        records.decode(dict(stored, translation=["a", "b", "c"]), where="shard-2[5]")

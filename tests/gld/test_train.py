@@ -11,10 +11,12 @@ from conftest import REPO_ROOT, TINY_MODEL, run_on_cpu_devices, tiny_train_confi
 
 from gld import input_pipeline, losses, train
 from gld import model as model_lib
+from gld import state as state_lib
+from gld import workdir as workdir_lib
 
 
 def _params_of(workdir):
-    _, variables, _ = train.load_trained(workdir)
+    _, variables, _ = workdir_lib.load_trained(workdir)
     return variables["params"]
 
 
@@ -34,23 +36,10 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
             progress=False,
             print_fn=lambda _: None,
         )
-    manager = train.checkpoint_manager(tmp_path)
+    manager = workdir_lib.checkpoint_manager(tmp_path)
     assert manager.latest_step() == 4
     manager.close()
     jax.tree_util.tree_map(np.testing.assert_array_equal, _params_of(tmp_path), good)
-
-
-def test_a_workdir_refuses_another_architecture_listing_the_flags(tiny_scenes, tmp_path):
-    source = tiny_scenes.as_data_source("train")
-    train.train_and_evaluate(
-        tiny_train_config(steps=2), tmp_path, source, progress=False, print_fn=lambda _: None
-    )
-    other = tiny_train_config(model_config=dict(TINY_MODEL, global_dim=3, use_coordinates=False))
-    with pytest.raises(ValueError, match="global_dim.*use_coordinates"):
-        train.train_and_evaluate(other, tmp_path, source, progress=False, print_fn=lambda _: None)
-    # a speed-only choice is not architecture
-    same = tiny_train_config(steps=2, model_config=dict(TINY_MODEL, filter_formulation="vmap"))
-    train.write_run_config(tmp_path, same)
 
 
 def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
@@ -61,8 +50,8 @@ def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
     batch = {key: batch[key] for key in ("image1", "image2", "flow", "depth")}
     batch["sparse_mask"] = batch["depth"] > 0  # dense supervision
     model = model_lib.make_model("global_local", **TINY_MODEL)
-    optimizer = train.make_optimizer(3e-3)
-    state = train.create_train_state(model, optimizer, 48, 64, seed=0)
+    optimizer = state_lib.make_optimizer(3e-3)
+    state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
     step = jax.jit(
         train.make_train_step(
             model=model, optimizer=optimizer, loss_weights=losses.LossWeights(smoothness=0.0)
@@ -80,12 +69,13 @@ SHARDED_SCRIPT = textwrap.dedent(
     """
     import json
     import jax, numpy as np
-    from gld import losses, train
+    from gld import losses, sharding, train
     from gld import model as model_lib
+    from gld import state as state_lib
 
     assert len(jax.devices()) == 4
     model = model_lib.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8])
-    optimizer = train.make_optimizer(1e-3)
+    optimizer = state_lib.make_optimizer(1e-3)
     rng = np.random.default_rng(0)
     batch = {
         "image1": rng.uniform(-0.5, 0.5, (8, 24, 32, 3)).astype(np.float32),
@@ -96,15 +86,14 @@ SHARDED_SCRIPT = textwrap.dedent(
     }
     results = {}
     for name, devices in (("one", jax.devices()[:1]), ("four", jax.devices())):
-        mesh = train.make_mesh(devices)
-        state = jax.device_put(
-            train.create_train_state(model, optimizer, 24, 32, seed=0), train.replicated(mesh)
-        )
+        mesh = sharding.make_mesh(devices)
+        state = state_lib.create_train_state(model, optimizer, 24, 32, seed=0)
+        state = jax.device_put(state, sharding.replicated(mesh))
         step = train.jit_train_step(
             train.make_train_step(model=model, optimizer=optimizer,
                                   loss_weights=losses.LossWeights()), mesh)
         for _ in range(2):
-            global_batch = train.to_global_batch(batch, mesh, train.TRAIN_KEYS)
+            global_batch = sharding.to_global_batch(batch, mesh, train.TRAIN_KEYS)
             state, _ = step(state, global_batch, jax.random.key(1))
         leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
         results[name] = np.concatenate([np.ravel(leaf) for leaf in leaves])
@@ -137,9 +126,9 @@ TWO_PROCESS_SCRIPT = textwrap.dedent(
     jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2,
                                process_id=int(sys.argv[2]))
     import data
-    from gld import train
+    from gld import config as config_lib, train
     builder = data.get_builder("gld_scenes/tiny", sys.argv[3])
-    config = train.TrainConfig(model_config={"encoder_channels": [4, 8, 8, 8, 8]},
+    config = config_lib.TrainConfig(model_config={"encoder_channels": [4, 8, 8, 8, 8]},
                                batch_size=4, steps=3, log_every=1, eval_every=0,
                                checkpoint_every=3, dataset="gld_scenes/tiny", height=48,
                                width=64)
@@ -191,34 +180,6 @@ def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path
     assert [r["step"] for r in records] == [1, 2, 3]
 
 
-def test_learning_rate_schedules():
-    constant = train.learning_rate_schedule(1e-4, "constant")
-    assert float(constant(0)) == float(constant(10_000)) == pytest.approx(1e-4)
-    cosine = train.learning_rate_schedule(1e-3, "cosine", steps=1000, warmup_steps=100)
-    assert float(cosine(0)) == 0.0
-    assert float(cosine(50)) == pytest.approx(5e-4)
-    assert float(cosine(100)) == pytest.approx(1e-3)
-    assert float(cosine(550)) == pytest.approx(0.5 * (1e-3 + 1e-5), rel=1e-3)
-    assert float(cosine(1000)) == pytest.approx(1e-5)
-    with pytest.raises(ValueError, match="warmup_steps \\(100\\) must be in"):
-        train.learning_rate_schedule(1e-3, "cosine", steps=100, warmup_steps=100)
-    with pytest.raises(ValueError, match="lr_schedule"):
-        train.learning_rate_schedule(1e-3, "step")
-
-
-def test_the_optimiser_follows_the_schedule_and_logs_it():
-    optimizer = train.make_optimizer(1e-3, "cosine", steps=10, warmup_steps=2)
-    params = {"w": np.ones(3, np.float32)}
-    state = optimizer.init(params)
-    rates = []
-    for _ in range(4):
-        _, state = optimizer.update({"w": np.ones(3, np.float32)}, state, params)
-        rates.append(float(state.hyperparams["learning_rate"]))
-    # inject_hyperparams records the rate of the step just taken: 0 (warm-up start), 5e-4, 1e-3.
-    assert rates[:3] == pytest.approx([0.0, 5e-4, 1e-3])
-    assert rates[3] < 1e-3
-
-
 def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scenes):
     """With flow on the scale of the other inputs (the model's default flow_scale), 300
     Adam steps on 16 pairs with true flow and dense labels learn every pair's scale and
@@ -232,8 +193,8 @@ def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scen
     )
     batch["sparse_mask"] = batch["depth_valid"]
     model = model_lib.make_model("global_local", **TINY_MODEL)
-    optimizer = train.make_optimizer(1e-3)
-    state = train.create_train_state(model, optimizer, 48, 64, seed=0)
+    optimizer = state_lib.make_optimizer(1e-3)
+    state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
     step = jax.jit(
         train.make_train_step(model=model, optimizer=optimizer, loss_weights=losses.LossWeights())
     )
@@ -247,27 +208,3 @@ def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scen
     statistics = probes.depth_statistics(pairs)
     assert statistics["pair_scale_correlation"] > 0.95
     assert statistics["within_pair_correlation"] > 0.93
-
-
-def test_a_run_stores_every_architecture_value_and_old_runs_keep_theirs(tmp_path):
-    config = tiny_train_config()
-    train.write_run_config(tmp_path, config)
-    stored = json.loads((tmp_path / "config.json").read_text())
-    # Defaults are written out, so a later change of a default cannot change this run.
-    assert stored["architecture"]["flow_scale"] == 10.0
-    assert stored["config"]["model_config"]["global_norm"] == "none"
-    assert train.load_run_config(tmp_path).model_config["flow_scale"] == 10.0
-
-    # A workdir written before flow_scale existed was trained on unscaled flow.
-    old = tmp_path / "old"
-    old.mkdir()
-    for section in ("architecture", "config"):
-        values = stored[section] if section == "architecture" else stored[section]["model_config"]
-        for key in ("flow_scale", "global_norm", "modulation_scale"):
-            values.pop(key)
-    (old / "config.json").write_text(json.dumps(stored))
-    loaded = train.load_run_config(old)
-    assert loaded.model_config["flow_scale"] == 1.0
-    assert model_lib.make_model(loaded.model, **loaded.model_config).flow_scale == 1.0
-    with pytest.raises(ValueError, match="flow_scale: 1.0 in the workdir vs 10.0 now"):
-        train.write_run_config(old, config)

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gld import losses as gld_losses
+from gld import state as state_lib
 from gld import train
 
 # The 'rbg' generator compiles several times faster than threefry on CPU; model
@@ -45,9 +46,9 @@ def train_tiny(model, *, height=32, width=32, steps=35, learning_rate=1e-3):
         "sparse_mask": mask,
     }
     variables = jax.jit(model.init)(jax.random.key(0, impl=INIT_KEY_IMPL), image1, image2, flow)
-    optimizer = train.make_optimizer(learning_rate)
-    # As `train.create_train_state`, but initialised with the faster key.
-    state = train.TrainState(
+    optimizer = state_lib.make_optimizer(learning_rate)
+    # As `state_lib.create_train_state`, but initialised with the faster key.
+    state = state_lib.TrainState(
         step=jnp.zeros((), jnp.int32),
         params=variables["params"],
         batch_stats=variables.get("batch_stats", {}),

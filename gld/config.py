@@ -1,0 +1,89 @@
+"""A training run's configuration: one definition of every option, with its help text.
+
+`TrainConfig` is the single source: the launchers derive their command-line flags from
+its fields (`experiments.common.define_training_flags`), and a workdir's `config.json`
+stores it (`gld.workdir`). A field's metadata holds the flag's help and choices; fields
+without help (the model's constructor arguments, the dataset and its resolution) are
+set by the launcher, not by a flag. Defaults are the paper's; a launcher may give its
+own (the main job's recipe in `experiments.train`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+from gld import losses
+from gld import model as model_lib
+
+FLOW_SOURCES = ("estimated", "gt")
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def option(default: Any, help: str, choices: Sequence[str] | None = None) -> Any:  # noqa: A002
+    """A TrainConfig field that launchers expose as `--<name>`."""
+    metadata = {"help": help, "choices": tuple(choices) if choices else None}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """A training run, as plain values."""
+
+    model: str = option("global_local", "Learned model (gld.model.MODELS).")
+    model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    batch_size: int = option(16, "Global batch size, over all processes and devices.")
+    steps: int = option(94_000, "Training steps (the paper: 94000 at 256x192).")
+    learning_rate: float = option(1e-4, "Adam (peak) learning rate.")
+    lr_schedule: str = option(
+        "constant", "constant (the paper) or cosine (warm-up, then decay).", LR_SCHEDULES
+    )
+    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.")
+    depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.")
+    smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.")
+    gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
+    fixed_sparse_pixels: bool = option(False, "Keep the same supervised pixels every epoch.")
+    flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
+    augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
+    seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.")
+    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.")
+    eval_every: int = option(1000, "Steps between evaluations on the test split (0: off).")
+    checkpoint_every: int = option(250, "Steps between checkpoints.")
+    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.")
+    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.")
+    eval_examples: int = option(0, "Periodic evaluation on the first N test pairs; 0 = all.")
+    worker_count: int = option(0, "grain worker processes for the input pipeline.")
+    dataset: str = ""
+    height: int = 0
+    width: int = 0
+
+    def architecture(self) -> dict[str, Any]:
+        """What a checkpoint's parameters depend on (a workdir refuses other values)."""
+        speed_only = {"filter_formulation"}  # changes how, not what, the model computes
+        full = model_lib.full_config(self.model, self.model_config)
+        config = {k: v for k, v in full.items() if k not in speed_only}
+        return {"model": self.model, **dict(sorted(config.items()))}
+
+    def loss_weights(self) -> losses.LossWeights:
+        return losses.LossWeights(depth=self.depth_weight, smoothness=self.smoothness_weight)
+
+
+def flag_fields() -> list[dataclasses.Field]:
+    """The TrainConfig fields that are command-line options."""
+    return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]
+
+
+# Stored config keys renamed since the first workdirs were written: old name -> new.
+RENAMED_FIELDS = {"flow": "flow_source"}
+
+
+def from_stored(values: dict[str, Any]) -> TrainConfig:
+    """The TrainConfig of a stored `config.json` "config" entry, written by any version:
+    renamed fields take their new names and model options added later take the values
+    the run was trained with (`gld.model.FIELDS_ADDED_LATER`)."""
+    values = {RENAMED_FIELDS.get(key, key): value for key, value in values.items()}
+    values["model_config"] = model_lib.complete_stored_config(
+        values.get("model", "global_local"), values.get("model_config", {})
+    )
+    return TrainConfig(**values)

@@ -1,0 +1,130 @@
+"""Evaluation reports: metrics.json, table.md, per-example CSVs and example figures.
+
+`write_report` writes the numbers of several methods evaluated on the same examples
+(`gld.evaluation`), with the references' labels and each method's Abs-Inv as a
+multiple of the dataset mean's; `render_examples` draws image, truth, prediction and
+error with one colour scale for all.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gld import metrics
+
+
+def write_report(
+    out_dir: str | Path,
+    results: dict[str, tuple[dict[str, np.ndarray], list[str]]],
+    *,
+    height: int,
+    width: int,
+    info: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
+
+    Methods appear in the order of `results`; references that see the ground truth are
+    labelled (`gld.baselines.classical.LABELS`) in the table and in metrics.json, which
+    also holds each method's Abs-Inv as a multiple of the dataset mean's when the
+    dataset mean is among the methods.
+
+    Args:
+      out_dir: the directory (created).
+      results: method name -> (per-example metrics incl. "example_mask", ids).
+      height, width: evaluation resolution, for the protocol stamp.
+      info: extra fields for metrics.json (dataset, split, step, ...).
+
+    Returns:
+      The metrics.json content.
+    """
+    from gld.baselines import classical
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summaries = {}
+    num_examples = 0
+    for method, (per_example, ids) in results.items():
+        per_example = dict(per_example)
+        mask = per_example.pop("example_mask").astype(bool)
+        num_examples = int(mask.sum())
+        summaries[method] = metrics.summarise(per_example, mask)
+        with (out_dir / f"per_example_{method}.csv").open("w", newline="") as stream:
+            writer = csv.writer(stream)
+            names = sorted(per_example)
+            writer.writerow(["id", *names])
+            for row, example_id in enumerate(ids):
+                if mask[row]:
+                    writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
+    stamp = metrics.protocol_stamp(height, width, num_examples)
+    labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
+    report = {
+        "protocol": stamp,
+        **(info or {}),
+        "methods": summaries,
+        "labels": labels,
+        "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(summaries.items()),
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
+    table = metrics.markdown_table(summaries.items(), stamp, labels=labels)
+    (out_dir / "table.md").write_text(table)
+    return report
+
+
+def render_examples(
+    out_dir: str | Path,
+    examples: Sequence[dict[str, np.ndarray]],
+    predictions: Sequence[np.ndarray],
+    *,
+    max_inv_depth: float | None = None,
+) -> list[Path]:
+    """One PNG per example: image 1, ground truth, prediction, |error| (inverse depth).
+
+    All panels of all examples share one colour scale (`max_inv_depth`, by default the
+    99th percentile of the ground truth over the examples); the supervised pixels
+    (`sparse_mask`) are circled on image 1.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    truths = [
+        np.where(e["depth_valid"], 1.0 / np.where(e["depth_valid"], e["depth"], 1), np.nan)
+        for e in examples
+    ]
+    if max_inv_depth is None:
+        values = np.concatenate([t[np.isfinite(t)] for t in truths] or [np.ones(1)])
+        max_inv_depth = float(np.percentile(values, 99)) if values.size else 1.0
+    paths = []
+    for example, truth, prediction in zip(examples, truths, predictions, strict=True):
+        inv_prediction = 1.0 / np.asarray(prediction)
+        error = np.where(np.isfinite(truth), np.abs(inv_prediction - truth), np.nan)
+        figure, axes = plt.subplots(1, 4, figsize=(14, 3.0))
+        axes[0].imshow(np.clip(example["image1"] + 0.5, 0, 1))
+        supervised_v, supervised_u = np.nonzero(example.get("sparse_mask", np.zeros(1, bool)))
+        axes[0].scatter(supervised_u, supervised_v, s=60, facecolors="none", edgecolors="red")
+        axes[0].set_title("image 1 (supervised pixel circled)")
+        for axis, data, title in (
+            (axes[1], truth, "ground truth 1/depth"),
+            (axes[2], inv_prediction, "prediction 1/depth"),
+            (axes[3], error, "|error|"),
+        ):
+            shown = axis.imshow(data, cmap="magma", vmin=0.0, vmax=max_inv_depth)
+            axis.set_title(title)
+        figure.colorbar(shown, ax=axes[1:].tolist(), fraction=0.02)
+        for axis in axes:
+            axis.set_axis_off()
+        name = str(example["id"]).replace("/", "_")
+        path = out_dir / f"{name}.png"
+        figure.savefig(path, dpi=80, bbox_inches="tight")
+        plt.close(figure)
+        paths.append(path)
+    return paths

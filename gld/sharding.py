@@ -1,0 +1,126 @@
+"""Data parallelism, written once: the mesh, batch sharding, and gathering results.
+
+Training and evaluation run on a 1-D `Mesh` of all devices (of all processes) whose
+axis `BATCH_AXIS` shards the batch while parameters are replicated. Each process feeds
+its own rows (`per_process_batch_size`, `to_global_batch`); results come back to every
+host with `gather`. Per-example code that XLA cannot partition by itself (the `lax.map`
+filter-bank formulations of `gld.filter_banks`) runs on each device's shard through
+`on_batch_shards`, which reads the mesh that `under_mesh` sets around a jitted step.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+# Name of the mesh axis that shards the batch.
+BATCH_AXIS = "data"
+
+
+def make_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A 1-D data-parallel mesh over all devices (of all processes)."""
+    devices = np.asarray(devices if devices is not None else jax.devices())
+    return Mesh(devices, (BATCH_AXIS,))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, PartitionSpec())
+
+
+def batch_sharded(mesh: Mesh) -> NamedSharding:
+    return NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+
+
+def to_global_batch(local_batch: dict[str, np.ndarray], mesh: Mesh, keys: Sequence[str]) -> dict:
+    """This process's rows -> global arrays sharded on the batch axis."""
+    sharding = batch_sharded(mesh)
+    return {
+        key: jax.make_array_from_process_local_data(sharding, np.asarray(local_batch[key]))
+        for key in keys
+    }
+
+
+def per_process_batch_size(global_batch_size: int, mesh: Mesh) -> int:
+    """Rows each process feeds; the global batch must split evenly over devices."""
+    if global_batch_size % mesh.devices.size:
+        raise ValueError(
+            f"batch_size {global_batch_size} is not divisible by the {mesh.devices.size} devices"
+        )
+    return global_batch_size // jax.process_count()
+
+
+def under_mesh(jitted: Callable, mesh: Mesh) -> Callable:
+    """Calls (and so traces) `jitted` with `mesh` set, so that `on_batch_shards` finds
+    the mesh's batch axis."""
+
+    @functools.wraps(jitted)
+    def call(*args):
+        with jax.set_mesh(mesh):
+            return jitted(*args)
+
+    return call
+
+
+def gather(tree: Any) -> Any:
+    """Fully materialise a (possibly multi-process) sharded pytree as numpy on every host."""
+    if jax.process_count() == 1:
+        return jax.tree_util.tree_map(np.asarray, tree)
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def gather_strings(values: Sequence[Any], max_bytes: int = 120) -> list[str]:
+    """Every process's strings (e.g. example ids, at most `max_bytes` each), in process
+    order, on every host."""
+    if jax.process_count() == 1:
+        return [str(value) for value in values]
+    from jax.experimental import multihost_utils
+
+    encoded = np.array(
+        [list(str(value).encode()[:max_bytes].ljust(max_bytes, b"\0")) for value in values],
+        np.uint8,
+    )
+    gathered = multihost_utils.process_allgather(encoded, tiled=True)
+    return [bytes(row).rstrip(b"\0").decode() for row in np.asarray(gathered)]
+
+
+def on_batch_shards(apply: Callable, batch_size: int) -> Callable:
+    """`apply(banks, inputs, head)` run on each device's shard of the batch.
+
+    XLA's partitioner cannot split a `lax.map` over its mapped axis: given a batch
+    sharded over devices, it gathers the whole batch on every device and each device
+    loops over all examples. When a mesh with a `BATCH_AXIS` axis is set (`jax.set_mesh`,
+    as `under_mesh` does around the jitted steps) and divides the batch, `shard_map` gives each
+    device its own examples; banks and inputs are split on the batch axis, the shared
+    head is replicated (its gradient is summed over devices).
+    """
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or BATCH_AXIS not in mesh.axis_names:
+        return apply
+    devices = mesh.shape[BATCH_AXIS]
+    if devices == 1 or batch_size % devices:
+        return apply
+    batch = PartitionSpec(BATCH_AXIS)
+    sharded = jax.shard_map(
+        apply,
+        mesh=mesh,
+        in_specs=(batch, batch, PartitionSpec()),
+        out_specs=batch,
+        check_vma=False,
+    )
+    axis_type = mesh.axis_types[mesh.axis_names.index(BATCH_AXIS)]
+    if axis_type != jax.sharding.AxisType.Explicit:
+        return sharded
+
+    def resharded(banks, inputs, head):
+        # Explicit sharding: the arguments' types must already carry the specs.
+        banks, inputs = jax.reshard((banks, inputs), batch)
+        return sharded(banks, inputs, jax.reshard(head, PartitionSpec()))
+
+    return resharded

@@ -1,0 +1,58 @@
+"""The run configuration: one definition of every training option."""
+
+import dataclasses
+
+import pytest
+from absl import flags
+
+from gld import config
+
+
+def test_every_option_has_help_and_valid_choices():
+    fields = config.flag_fields()
+    assert {field.name for field in fields} >= {"steps", "learning_rate", "flow_source", "seed"}
+    for field in fields:
+        assert field.metadata["help"].strip(), field.name
+        choices = field.metadata["choices"]
+        assert choices is None or field.default in choices, field.name
+    # What the launcher sets from the data, not from a flag.
+    settable = {field.name for field in fields}
+    assert not settable & {"model_config", "dataset", "height", "width"}
+
+
+def test_launcher_flags_are_derived_from_the_config():
+    import experiments.train  # noqa: F401  (defines the trainer's flags)
+    from experiments import common
+
+    main_job = {"steps": 2000, "learning_rate": 1e-3, "lr_schedule": "cosine", "warmup_steps": 100}
+    for field in config.flag_fields():
+        flag = flags.FLAGS[field.name]
+        assert flag.help.endswith(field.metadata["help"])
+        assert flag.default == main_job.get(field.name, field.default), field.name
+    try:
+        flags.FLAGS(["train", "--learning_rate=0.5", "--flow_source=gt", "--seed=3"])
+        options = common.training_options()
+    finally:
+        flags.FLAGS.unparse_flags()
+    assert set(options) == {field.name for field in config.flag_fields()}
+    built = config.TrainConfig(**options)
+    assert (built.learning_rate, built.flow_source, built.seed) == (0.5, "gt", 3)
+    assert built.checkpoint_every == config.TrainConfig().checkpoint_every  # one default
+
+
+def test_a_launcher_default_must_name_an_option():
+    from experiments import common
+
+    with pytest.raises(ValueError, match="stepz"):
+        common.define_training_flags(stepz=3)
+
+
+def test_a_stored_config_is_read_whatever_version_wrote_it():
+    current = dataclasses.asdict(config.TrainConfig(flow_source="gt", steps=5))
+    old = dict(current)
+    old["flow"] = old.pop("flow_source")
+    old["model_config"] = {}
+    loaded = config.from_stored(old)
+    assert (loaded.flow_source, loaded.steps) == ("gt", 5)
+    # Model options added after the first runs take the values those runs trained with.
+    assert loaded.model_config["flow_scale"] == 1.0

@@ -1,0 +1,69 @@
+"""Evaluation reports (gld/reports.py): tables carry their references; figures share one
+colour scale."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from gld import reports
+
+ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
+
+
+def _per_example(abs_inv, mask):
+    count = len(abs_inv)
+    return {
+        "abs_inv": np.asarray(abs_inv, np.float64),
+        "abs_rel": np.full(count, 0.5),
+        "s_rmse": np.full(count, 0.25),
+        "example_mask": np.asarray(mask, bool),
+    }, [f"pair/{index}" for index in range(count)]
+
+
+def test_report_labels_the_oracle_and_gives_each_method_as_a_multiple_of_the_mean(tmp_path):
+    # The third row of each method is padding (mask False): it must not count.
+    results = {
+        "global_local": _per_example([0.02, 0.04, 9.0], [True, True, False]),
+        "dataset_mean": _per_example([0.03, 0.05, 9.0], [True, True, False]),
+        "oracle_pair_median": _per_example([0.01, 0.01, 9.0], [True, True, False]),
+    }
+    report = reports.write_report(tmp_path, results, height=48, width=64, info={"split": "x"})
+
+    assert list(report["methods"]) == ["global_local", "dataset_mean", "oracle_pair_median"]
+    assert report["methods"]["global_local"]["abs_inv"]["mean"] == pytest.approx(0.03)
+    assert report["abs_inv_vs_dataset_mean"] == pytest.approx(
+        {"global_local": 0.75, "dataset_mean": 1.0, "oracle_pair_median": 0.25}
+    )
+    assert report["labels"] == {"oracle_pair_median": "per-pair oracle constant (sees the truth)"}
+    assert json.loads((tmp_path / "metrics.json").read_text()) == report
+
+    lines = (tmp_path / "table.md").read_text().splitlines()
+    assert lines[0].endswith("| Abs-Inv ÷ dataset_mean |")
+    assert lines[2].startswith("| global_local | 0.0300 ± 0.0100 |") and lines[2].endswith(
+        "| 0.75× |"
+    )
+    assert lines[3].startswith("| dataset_mean |") and lines[3].endswith("| 1.00× |")
+    assert lines[4].startswith(ORACLE_ROW) and lines[4].endswith("| 0.25× |")
+    with (tmp_path / "per_example_oracle_pair_median.csv").open() as stream:
+        rows = list(csv.DictReader(stream))
+    assert [row["id"] for row in rows] == ["pair/0", "pair/1"]
+
+
+def test_example_figures_are_written_one_per_example(tmp_path):
+    rng = np.random.default_rng(0)
+    examples = [
+        {
+            "id": f"scene/{index}",
+            "image1": rng.uniform(-0.5, 0.5, (12, 16, 3)).astype(np.float32),
+            "depth": rng.uniform(1.0, 4.0, (12, 16)).astype(np.float32),
+            "depth_valid": np.ones((12, 16), bool),
+            "sparse_mask": np.eye(12, 16, dtype=bool),
+        }
+        for index in range(2)
+    ]
+    predictions = [np.full((12, 16), 2.0, np.float32)] * 2
+    paths = reports.render_examples(tmp_path, examples, predictions)
+    assert [path.name for path in paths] == ["scene_0.png", "scene_1.png"]
+    assert all(path.stat().st_size > 1000 for path in paths)
