@@ -1,8 +1,15 @@
 """gld's TFDS dataset builders, chosen by name: `gld_scenes/small`, `demon/sun3d`, ...
 
 Each builder lives in `data/<name>/<name>_dataset_builder.py` as class `Builder`
-(the TFDS convention, so `tfds build data/<name>` works too). Launchers call
-`prepare()`, which builds a dataset on first use and returns the builder.
+(the TFDS convention). Launchers call `prepare()`, which builds a dataset on first
+use and returns the builder. The builders write array_record by default, so the
+plain TFDS API works without TensorFlow too once the builder module is imported:
+
+    import data.gld_scenes.gld_scenes_dataset_builder  # registers `gld_scenes`
+    tfds.builder("gld_scenes/tiny", data_dir="datasets").download_and_prepare()
+
+(`tfds build` does not: TFDS's command line imports TensorFlow at start-up, so
+`python -m data.build` is the command line.)
 """
 
 from __future__ import annotations
@@ -20,6 +27,10 @@ DATASETS = {
 }
 
 DEFAULT_DATA_DIR = os.environ.get("GLD_DATA_DIR", "datasets")
+
+# The builders' default file format. TFDS's own default, TFRecord, needs TensorFlow to
+# write; array_record does not, and gives the random access the input pipeline uses.
+FILE_FORMAT = "array_record"
 
 
 def builder_class(name: str) -> type[tfds.core.GeneratorBasedBuilder]:
@@ -48,9 +59,7 @@ def get_builder(
     """The (possibly not yet built) builder of `dataset` ('name/config') under `data_dir`."""
     name, config = parse_name(dataset)
     data_dir = Path(data_dir or DEFAULT_DATA_DIR)
-    return builder_class(name)(
-        config=config, data_dir=str(data_dir), file_format="array_record", **builder_kwargs
-    )
+    return builder_class(name)(config=config, data_dir=str(data_dir), **builder_kwargs)
 
 
 def prepare(

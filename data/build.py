@@ -1,9 +1,14 @@
-r"""Builds a gld dataset (TensorFlow-free; `tfds build`'s command line needs TensorFlow).
+r"""Builds a gld dataset without TensorFlow (`tfds build` imports TensorFlow at start-up).
 
     python -m data.build --dataset=gld_scenes/full --workers=8
     python -m data.build --dataset=demon/sun3d --manual_dir=~/demon --max_bad_fraction=0.01
+    python -m data.build --dataset=demon/sun3d --manual_dir=~/demon \
+        --depth_resampling=centred --data_dir=datasets_gld_convention
+    python -m data.build --dataset=demon/sun3d --manual_dir=~/demon --image_decoder=demon \
+        --data_dir=datasets_demon_cpp_reader   # WebP as DeMoN's C++ reader (needs `webp`)
 
-Launchers build on first use too; this command exposes the builders' options.
+Launchers build on first use too; this command exposes the builders' options. A
+built dataset is reused as it is: build with other options into another --data_dir.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 from absl import app, flags
 
 import data
+from data.demon import pairs, reader
 
 FLAGS = flags.FLAGS
 
@@ -22,17 +28,33 @@ flags.DEFINE_bool("strict", None, "demon: fail at the first damaged pair.")
 flags.DEFINE_float("max_bad_fraction", None, "demon: fail when more pairs than this are bad.")
 flags.DEFINE_bool("verify_checksums", None, "demon: check known files' published MD5 sums.")
 flags.DEFINE_string("flow_estimator", None, "demon: flow estimator stored with the records.")
+flags.DEFINE_float(
+    "min_relative_baseline",
+    None,
+    "demon: skip pairs whose baseline is at most this x the median depth, in every split "
+    "(default: 1e-4 for train, 0 for test, which keeps every pair DeMoN evaluates).",
+)
+flags.DEFINE_enum(
+    "depth_resampling",
+    None,
+    sorted(pairs.DEPTH_RESAMPLING),
+    "demon: depth resampling, 'demon' (DeMoN's INTER_NEAREST) or 'centred' (centre-aligned, "
+    "holes filled) (default: the config's; 'centred' for custom).",
+)
+flags.DEFINE_enum(
+    "image_decoder",
+    None,
+    list(reader.IMAGE_DECODERS),
+    "demon: WebP decoding, 'demon' (libwebp as DeMoN's C++ reader; needs the webp package) "
+    "or 'opencv' (default: 'demon' if webp is installed).",
+)
 
 
 def main(argv):
     del argv
-    options = {
-        name: FLAGS[name].value
-        for name in ("workers", "strict", "max_bad_fraction", "verify_checksums")
-        if FLAGS[name].value is not None
-    }
-    if FLAGS.flow_estimator:
-        options["flow_estimator"] = FLAGS.flow_estimator
+    names = ("workers", "strict", "max_bad_fraction", "verify_checksums", "flow_estimator")
+    names += ("min_relative_baseline", "depth_resampling", "image_decoder")
+    options = {name: FLAGS[name].value for name in names if FLAGS[name].value is not None}
     builder = data.prepare(FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, **options)
     for split, info in builder.info.splits.items():
         print(f"{FLAGS.dataset} {split}: {info.num_examples} pairs")

@@ -1,17 +1,25 @@
 """TFDS builder of DeMoN's HDF5 benchmarks: `demon/scenes11`, `sun3d`, `rgbd` and `custom`.
 
 Every pair becomes a `gld.records` record at 256x192 (images INTER_AREA, depth
-resized without mixing valid and invalid pixels, normalised intrinsics, raw metric
-depth and the unnormalised relative pose, DIS flow and ground-truth flow).
+resampled by nearest neighbour, normalised intrinsics, raw metric depth and the
+unnormalised relative pose, DIS flow and ground-truth flow), read as DeMoN's own
+reader reads it (data/demon/README.md lists what matches and what is optional).
 Damaged pairs are skipped and counted by reason; the report is printed and stored
-in the dataset's metadata (`builder.info.metadata["build_report"]`).
+in the dataset's metadata (`builder.info.metadata["build_report"]`), next to the
+options the records were built with (`["build_options"]`).
 
     data.prepare("demon/sun3d", data_dir, manual_dir="~/demon", strict=True)
 
 Builder keyword arguments: `strict` (fail at the first damaged pair),
 `max_bad_fraction` (fail when more of a split's pairs are damaged, default 0.05),
 `verify_checksums` (check files against their published MD5 sums, default True),
-`flow_estimator` (a `gld.flow.ESTIMATORS` name) and `min_relative_baseline`.
+`flow_estimator` (a `gld.flow.ESTIMATORS` name), `min_relative_baseline` (skip pairs
+whose baseline is at most this x the median depth; default 1e-4 for train and 0 for
+test, so the test split keeps every pair DeMoN evaluates), `depth_resampling`
+(`demon`: DeMoN's INTER_NEAREST, the default of scenes11 / sun3d / rgbd; `centred`:
+centre-aligned with hole filling, the default of custom) and `image_decoder`
+(`opencv`, the default: libwebp's defaults, as DeMoN's Python reader; `demon`: libwebp
+as DeMoN's C++ reader, with the optional `webp` package).
 """
 
 from __future__ import annotations
@@ -19,10 +27,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import Any
 
 import tensorflow_datasets as tfds
 
-from data.demon import checksums, pairs
+import data
+from data.demon import checksums, pairs, reader
 from gld import flow as flow_lib
 from gld import records
 
@@ -62,11 +72,13 @@ Config `custom` reads a robot's own recordings written by `python -m data.demon.
 
 @dataclasses.dataclass(kw_only=True)
 class DemonConfig(tfds.core.BuilderConfig):
-    """Which files of the manual directory make each split (glob patterns when `custom`)."""
+    """Which files of the manual directory make each split (glob patterns when `custom`),
+    and the depth resampling (`pairs.DEPTH_RESAMPLING`) its records default to."""
 
     train_files: tuple[str, ...] = ()
     test_files: tuple[str, ...] = ()
     globs: bool = False
+    depth_resampling: str = pairs.DEFAULT_DEPTH_RESAMPLING
 
 
 _SUN3D_TRAIN = tuple(
@@ -86,8 +98,13 @@ _RGBD_TRAIN = (
 class Builder(tfds.core.GeneratorBasedBuilder):
     """DeMoN's Scenes11, SUN3D and RGB-D SLAM benchmarks, and converted recordings."""
 
-    VERSION = tfds.core.Version("1.0.0")
-    RELEASE_NOTES = {"1.0.0": "Records at 256x192 with DIS flow and ground-truth flow."}
+    VERSION = tfds.core.Version("1.1.0")
+    RELEASE_NOTES = {
+        "1.0.0": "Records at 256x192 with DIS flow and ground-truth flow.",
+        "1.1.0": "DeMoN's protocol: the test split keeps small-baseline pairs (only "
+        "||t|| < 1e-6 is skipped), depth resampled with OpenCV INTER_NEAREST; WebP decoded "
+        "as DeMoN's C++ reader on request (image_decoder=demon).",
+    }
     MANUAL_DOWNLOAD_INSTRUCTIONS = MANUAL_DOWNLOAD_INSTRUCTIONS
     BUILDER_CONFIGS = [
         DemonConfig(
@@ -114,6 +131,8 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             train_files=("custom_train.h5", "custom_train_*.h5"),
             test_files=("custom_test.h5", "custom_test_*.h5"),
             globs=True,
+            # Sparse range readings must survive downsampling (see pairs.resize_depth_centred).
+            depth_resampling="centred",
         ),
     ]
 
@@ -124,21 +143,50 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         max_bad_fraction: float = 0.05,
         verify_checksums: bool = True,
         flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR,
-        min_relative_baseline: float = 1e-4,
+        min_relative_baseline: float | None = None,
+        depth_resampling: str | None = None,
+        image_decoder: str | None = None,
+        file_format: str | None = None,
         **kwargs,
     ):
+        """Args: see the module docstring; `min_relative_baseline` None: per split
+        (`pairs.MIN_RELATIVE_BASELINE`); `depth_resampling` None: the config's;
+        `image_decoder` None: see `reader.resolve_image_decoder`; `file_format` None:
+        `data.FILE_FORMAT`. Other arguments go to TFDS."""
         if not 0.0 <= max_bad_fraction <= 1.0:
             raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
         if flow_estimator not in flow_lib.ESTIMATORS:
             raise ValueError(
                 f"unknown flow_estimator {flow_estimator!r}; valid: {sorted(flow_lib.ESTIMATORS)}"
             )
+        if depth_resampling is not None and depth_resampling not in pairs.DEPTH_RESAMPLING:
+            raise ValueError(
+                f"unknown depth_resampling {depth_resampling!r}; "
+                f"valid: {sorted(pairs.DEPTH_RESAMPLING)}"
+            )
+        if min_relative_baseline is not None and not min_relative_baseline >= 0.0:
+            raise ValueError(f"min_relative_baseline must be >= 0, got {min_relative_baseline}")
         self._strict = strict
         self._max_bad_fraction = max_bad_fraction
         self._verify_checksums = verify_checksums
         self._flow_estimator = flow_estimator
         self._min_relative_baseline = min_relative_baseline
-        super().__init__(**kwargs)
+        self._depth_resampling = depth_resampling
+        self._image_decoder = reader.resolve_image_decoder(image_decoder)
+        super().__init__(file_format=file_format or data.FILE_FORMAT, **kwargs)
+
+    def build_options(self, split: str) -> dict[str, Any]:
+        """The options that shape the records of `split` (stored in the metadata)."""
+        min_relative_baseline = self._min_relative_baseline
+        if min_relative_baseline is None:
+            min_relative_baseline = pairs.MIN_RELATIVE_BASELINE[split]
+        return {
+            "min_baseline": pairs.MIN_BASELINE,
+            "min_relative_baseline": min_relative_baseline,
+            "depth_resampling": self._depth_resampling or self.builder_config.depth_resampling,
+            "image_decoder": self._image_decoder,
+            "flow_estimator": self._flow_estimator,
+        }
 
     def _info(self) -> tfds.core.DatasetInfo:
         return tfds.core.DatasetInfo(
@@ -205,15 +253,19 @@ class Builder(tfds.core.GeneratorBasedBuilder):
 
     def _generate_examples(self, paths: list[Path], split: str):
         report = pairs.BuildReport(split)
+        options = self.build_options(split)
         for example_id, example in pairs.generate(
             paths,
             split,
             strict=self._strict,
             max_bad_fraction=self._max_bad_fraction,
-            flow_estimator=self._flow_estimator,
-            min_relative_baseline=self._min_relative_baseline,
+            flow_estimator=options["flow_estimator"],
+            min_relative_baseline=options["min_relative_baseline"],
+            depth_resampling=options["depth_resampling"],
+            image_decoder=options["image_decoder"],
             report=report,
         ):
             yield example_id, records.encode(example)
         print(report.format(), flush=True)
         self.info.metadata.setdefault("build_report", {})[split] = report.as_dict()
+        self.info.metadata.setdefault("build_options", {})[split] = options

@@ -5,6 +5,12 @@ examples in the `gld.records` format at 256x192 and skips damaged pairs, countin
 them by reason in a `BuildReport`. It fails only when the bad share exceeds
 `max_bad_fraction` (or at the first bad pair with `strict=True`), so a
 multi-hour build never dies on one bad group.
+
+Which pairs are kept follows DeMoN: a pair is skipped for its baseline only when
+||t|| < 1e-6 (`MIN_BASELINE`). gld's relative threshold (baseline <= 1e-4 x median
+depth, no usable parallax) is a build option applied by default to the training
+split only (`MIN_RELATIVE_BASELINE`), so the test split holds every pair DeMoN
+evaluates; the report counts the small-baseline pairs it keeps.
 """
 
 from __future__ import annotations
@@ -24,13 +30,43 @@ from gld import geometry
 
 HEIGHT, WIDTH = 192, 256
 
+# DeMoN skips a pair with ||t|| below this; `gld.input_pipeline.normalise_scale`
+# refuses the same pairs (it divides depth by ||t||).
+MIN_BASELINE = 1e-6
+# Default per split of the relative-baseline threshold (a build option): a pair with
+# baseline <= this x view 1's median depth is skipped as `small_baseline`. Off (0) for
+# the test split, which must keep every pair DeMoN evaluates.
+MIN_RELATIVE_BASELINE = {"train": 1e-4, "test": 0.0}
+# The build report counts the kept pairs at or below this relative baseline.
+SMALL_RELATIVE_BASELINE = 1e-4
 
-def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Resizes a depth map without mixing valid and invalid (or fore- and background) values.
 
-    Every output pixel takes the value of one input pixel: the centre-aligned
-    nearest sample (OpenCV's INTER_NEAREST_EXACT; DeMoN's reader also resizes depth
-    with nearest), so measured depths are kept and no "flying pixels" appear at
+def resize_depth_demon(depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resizes a depth map as DeMoN's reader op does: OpenCV's plain INTER_NEAREST.
+
+    Output pixel (y, x) takes input pixel (floor(y * h / height), floor(x * w / width))
+    (top-left aligned), valid or not; no hole is filled, so a sparse reading
+    survives only if it lies on a sampled pixel.
+
+    Args:
+      depth: [h, w] float32, 0 (or non-finite / negative) where invalid.
+      height, width: output size.
+
+    Returns:
+      [height, width] float32, 0 where invalid.
+    """
+    depth = np.where(geometry.valid_depth(depth), depth, 0.0).astype(np.float32)
+    if depth.shape == (height, width):
+        return depth
+    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def resize_depth_centred(depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resizes a depth map by centred nearest sampling, filling holes from covered pixels.
+
+    gld's convention (DeMoN's is `resize_depth_demon`). Every output pixel takes
+    the value of one input pixel: the centre-aligned nearest sample (OpenCV's
+    INTER_NEAREST_EXACT), so measured depths are kept and no "flying pixels" appear at
     depth edges, as averaging would create. Where that sample is invalid but the
     output pixel covers valid input pixels, the valid one closest to the output
     pixel's centre is taken, so sparse readings (one range-sensor pixel per frame)
@@ -73,12 +109,58 @@ def resize_depth(depth: np.ndarray, height: int, width: int) -> np.ndarray:
     return resized
 
 
-def resize_view(view: reader.View, height: int = HEIGHT, width: int = WIDTH) -> reader.View:
-    """Image with INTER_AREA, depth with `resize_depth`; normalised intrinsics are unchanged."""
+# Depth resampling conventions by name (a build option; see data/demon/README.md).
+DEPTH_RESAMPLING = {"demon": resize_depth_demon, "centred": resize_depth_centred}
+DEFAULT_DEPTH_RESAMPLING = "demon"
+
+
+def resize_view(
+    view: reader.View,
+    height: int = HEIGHT,
+    width: int = WIDTH,
+    depth_resampling: str = DEFAULT_DEPTH_RESAMPLING,
+) -> reader.View:
+    """Image with INTER_AREA, depth by a `DEPTH_RESAMPLING` convention.
+
+    Normalised intrinsics are unchanged. With `demon`, ray-length depth is resampled
+    as ray length and converted to camera z at the output resolution, in DeMoN's order.
+    """
+    if depth_resampling not in DEPTH_RESAMPLING:
+        raise ValueError(
+            f"unknown depth resampling {depth_resampling!r}; valid: {sorted(DEPTH_RESAMPLING)}"
+        )
     image = view.image
     if image.shape[:2] != (height, width):
         image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-    return dataclasses.replace(view, image=image, depth=resize_depth(view.depth, height, width))
+    resize_depth = DEPTH_RESAMPLING[depth_resampling]
+    depth = view.depth
+    if depth_resampling == "demon" and view.depth_metric == "ray_length":
+        ray_length = depth * reader.ray_norms(view.intrinsics, *depth.shape)
+        depth = reader.ray_length_to_camera_z(
+            resize_depth(ray_length, height, width), view.intrinsics
+        )
+    else:
+        depth = resize_depth(depth, height, width)
+    return dataclasses.replace(view, image=image, depth=depth)
+
+
+def relative_baseline(view1: reader.View, view2: reader.View, example_id: str) -> float:
+    """The pair's baseline ||t|| over view 1's median valid depth (NaN without valid depth).
+
+    Raises:
+      reader.DamagedDataError (`zero_translation`) when ||t|| < MIN_BASELINE, as DeMoN skips.
+    """
+    _, translation = geometry.relative_pose(
+        view1.rotation, view1.translation, view2.rotation, view2.translation
+    )
+    baseline = float(np.linalg.norm(translation))
+    if not baseline >= MIN_BASELINE:
+        raise reader.DamagedDataError(
+            "zero_translation", example_id, f"baseline {baseline:.3g} < {MIN_BASELINE}"
+        )
+    valid_depth = view1.depth[view1.depth > 0]
+    # No valid depth left (a sparse map after resampling): kept, as DeMoN keeps it.
+    return baseline / float(np.median(valid_depth)) if valid_depth.size else float("nan")
 
 
 def make_example(
@@ -87,7 +169,6 @@ def make_example(
     example_id: str,
     *,
     flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR,
-    min_relative_baseline: float = 1e-4,
 ) -> dict[str, Any]:
     """Two resized views -> a raw example in the `gld.records` format.
 
@@ -95,27 +176,14 @@ def make_example(
       view1, view2: views at the output resolution (see `resize_view`).
       example_id: the id stored with the record.
       flow_estimator: a `gld.flow.ESTIMATORS` name.
-      min_relative_baseline: a pair whose baseline is below this fraction of
-        view 1's median depth has no usable parallax and is refused.
 
     Returns:
       dict with images [H, W, 3] uint8, metric depths [H, W], normalised intrinsics,
       the unnormalised relative pose (X2 = R X1 + t), estimated and ground-truth flow.
-
-    Raises:
-      reader.DamagedDataError (`zero_translation`).
     """
     rotation, translation = geometry.relative_pose(
         view1.rotation, view1.translation, view2.rotation, view2.translation
     )
-    baseline = float(np.linalg.norm(translation))
-    median_depth = float(np.median(view1.depth[view1.depth > 0]))
-    if not baseline > min_relative_baseline * median_depth:
-        raise reader.DamagedDataError(
-            "zero_translation",
-            example_id,
-            f"baseline {baseline:.3g} <= {min_relative_baseline} x median depth {median_depth:.3g}",
-        )
     gt_flow, gt_flow_valid = geometry.ground_truth_flow(
         view1.depth, view2.depth, view1.intrinsics, view2.intrinsics, rotation, translation
     )
@@ -137,11 +205,16 @@ def make_example(
 
 @dataclasses.dataclass
 class BuildReport:
-    """Pairs written and skipped (by reason) per file of one split."""
+    """Pairs written and skipped (by reason) per file of one split.
+
+    `small_baseline` counts, per file, the written pairs whose baseline is at most
+    SMALL_RELATIVE_BASELINE x view 1's median depth (kept, as DeMoN keeps them).
+    """
 
     split: str
     written: collections.Counter = dataclasses.field(default_factory=collections.Counter)
     skipped: dict[str, collections.Counter] = dataclasses.field(default_factory=dict)
+    small_baseline: collections.Counter = dataclasses.field(default_factory=collections.Counter)
     planned: int = 0
     first_errors: list[str] = dataclasses.field(default_factory=list)
 
@@ -152,6 +225,16 @@ class BuildReport:
     @property
     def num_skipped(self) -> int:
         return sum(sum(counts.values()) for counts in self.skipped.values())
+
+    @property
+    def num_damaged(self) -> int:
+        """Skipped pairs other than those filtered by a build option (`FILTER_REASONS`)."""
+        return sum(
+            count
+            for counts in self.skipped.values()
+            for reason, count in counts.items()
+            if reason not in reader.FILTER_REASONS
+        )
 
     def skip(self, file_name: str, error: reader.DamagedDataError) -> None:
         self.skipped.setdefault(file_name, collections.Counter())[error.reason] += 1
@@ -166,10 +249,14 @@ class BuildReport:
             "pairs_planned": self.planned,
             "pairs_written": self.num_written,
             "pairs_skipped": self.num_skipped,
+            "pairs_damaged": self.num_damaged,
+            "small_baseline_written": sum(self.small_baseline.values()),
+            "small_relative_baseline": SMALL_RELATIVE_BASELINE,
             "files": {
                 name: {
                     "written": self.written.get(name, 0),
                     "skipped": dict(sorted(self.skipped.get(name, {}).items())),
+                    "small_baseline_written": self.small_baseline.get(name, 0),
                 }
                 for name in files
             },
@@ -177,17 +264,20 @@ class BuildReport:
         }
 
     def format(self) -> str:
-        """A human-readable table: pairs per file, skipped per reason."""
+        """A human-readable table: pairs per file, skipped per reason, small baselines kept."""
         lines = [f"DeMoN build report, split {self.split!r}:"]
         for name, counts in self.as_dict()["files"].items():
             skipped = ", ".join(f"{reason}: {n}" for reason, n in counts["skipped"].items())
             lines.append(
-                f"  {name}: {counts['written']} pairs written, "
+                f"  {name}: {counts['written']} pairs written "
+                f"({counts['small_baseline_written']} with a small baseline), "
                 f"{sum(counts['skipped'].values())} skipped" + (f" ({skipped})" if skipped else "")
             )
         lines.append(
             f"  total: {self.num_written} written, {self.num_skipped} skipped "
-            f"of {self.planned} planned"
+            f"({self.num_damaged} damaged) of {self.planned} planned; "
+            f"{sum(self.small_baseline.values())} written pairs have a small baseline "
+            f"(<= {SMALL_RELATIVE_BASELINE:g} x median depth)"
         )
         lines.extend(f"  e.g. {error}" for error in self.first_errors[:5])
         return "\n".join(lines)
@@ -211,7 +301,9 @@ def generate(
     strict: bool = False,
     max_bad_fraction: float = 0.05,
     flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR,
-    min_relative_baseline: float = 1e-4,
+    min_relative_baseline: float | None = None,
+    depth_resampling: str = DEFAULT_DEPTH_RESAMPLING,
+    image_decoder: str | None = None,
     report: BuildReport | None = None,
     height: int = HEIGHT,
     width: int = WIDTH,
@@ -222,8 +314,13 @@ def generate(
       paths: DeMoN HDF5 files of one split.
       split: "train" (all listed pairs per group) or "test" (the first pair per group).
       strict: raise at the first damaged pair instead of skipping it.
-      max_bad_fraction: raise once more than this share of the planned pairs is damaged.
-      flow_estimator, min_relative_baseline: see `make_example`.
+      max_bad_fraction: raise once more than this share of the planned pairs is damaged
+        (pairs filtered by `min_relative_baseline` are not damaged).
+      flow_estimator: see `make_example`.
+      min_relative_baseline: skip a pair (`small_baseline`) whose baseline is at most
+        this x view 1's median depth; None: the split's `MIN_RELATIVE_BASELINE`.
+      depth_resampling: a `DEPTH_RESAMPLING` name (see `resize_view`).
+      image_decoder: see `reader.DemonFile`.
       report: filled with written / skipped counts (a new one if None).
       height, width: output resolution.
 
@@ -233,19 +330,22 @@ def generate(
     """
     if not 0.0 <= max_bad_fraction <= 1.0:
         raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
+    if min_relative_baseline is None:
+        min_relative_baseline = MIN_RELATIVE_BASELINE[split]
+    image_decoder = reader.resolve_image_decoder(image_decoder)
     report = report if report is not None else BuildReport(split)
-    files = [reader.DemonFile(path) for path in paths]
+    files = [reader.DemonFile(path, image_decoder) for path in paths]
     try:
         plans = [(demon_file, _planned_pairs(demon_file, split)) for demon_file in files]
         report.planned = sum(len(plan) for _, plan in plans)
 
         def skip(demon_file: reader.DemonFile, error: reader.DamagedDataError) -> None:
-            if strict:
+            if strict and error.reason not in reader.FILTER_REASONS:
                 raise error
             report.skip(demon_file.name, error)
-            if report.num_skipped > max_bad_fraction * report.planned:
+            if report.num_damaged > max_bad_fraction * report.planned:
                 raise ValueError(
-                    f"{report.num_skipped} of {report.planned} planned pairs are damaged, more "
+                    f"{report.num_damaged} of {report.planned} planned pairs are damaged, more "
                     f"than max_bad_fraction={max_bad_fraction}; latest: {error}\n" + report.format()
                 )
 
@@ -264,14 +364,19 @@ def generate(
                             if resized and next(iter(resized))[0] != group:
                                 resized.clear()  # keep only the current group's views
                             view = demon_file.view(group, index)
-                            resized[group, index] = resize_view(view, height, width)
+                            resized[group, index] = resize_view(
+                                view, height, width, depth_resampling
+                            )
                         views.append(resized[group, index])
-                    example = make_example(
-                        *views,
-                        example_id,
-                        flow_estimator=flow_estimator,
-                        min_relative_baseline=min_relative_baseline,
-                    )
+                    relative = relative_baseline(*views, example_id)
+                    if relative <= min_relative_baseline:
+                        raise reader.DamagedDataError(
+                            "small_baseline",
+                            example_id,
+                            f"baseline {relative:.3g} x median depth <= min_relative_baseline="
+                            f"{min_relative_baseline:g}",
+                        )
+                    example = make_example(*views, example_id, flow_estimator=flow_estimator)
                 except reader.DamagedDataError as error:
                     if error.where != example_id:
                         error = reader.DamagedDataError(
@@ -280,6 +385,7 @@ def generate(
                     skip(demon_file, error)
                     continue
                 report.written[demon_file.name] += 1
+                report.small_baseline[demon_file.name] += relative <= SMALL_RELATIVE_BASELINE
                 yield example_id, example
     finally:
         for demon_file in files:

@@ -1,4 +1,4 @@
-"""A pure-Python reader of DeMoN's multi-view HDF5 files (h5py, lz4 block, OpenCV WebP).
+"""A pure-Python reader of DeMoN's multi-view HDF5 files (h5py, lz4 block, WebP).
 
 Layout (see DeMoN's `multivih5datareaderop`): every top-level group not starting
 with `.` is a scene; `/<scene>/frames/t0/v<k>/{image,depth,camera}` are its views
@@ -14,6 +14,12 @@ Conventions of the stored camera, as DeMoN's own reader interprets it:
   normalised intrinsics are `[fx/W, fy/H, cx/W, cy/H]` of the stored values.
   Skew is dropped (gld's cameras have none; DeMoN's files store 0).
 * `ray_length` depth is converted to camera z: `z = r / ||K^-1 [x + 0.5, y + 0.5, 1]||`.
+
+Images are decoded by one of `IMAGE_DECODERS`: `opencv` (libwebp's default
+decoding, as DeMoN's Python `view_io` reader) or `demon` (libwebp with
+`bypass_filtering` and `no_fancy_upsampling`, as DeMoN's C++ reader op that its
+networks were trained and evaluated with; needs the optional `webp` package). The
+two differ on lossy WebP only, by about one grey level on average.
 
 Damage in a view raises `DamagedDataError` carrying a `reason` from `REASONS`, so a
 builder can skip the affected pair, count it and go on.
@@ -40,13 +46,21 @@ REASONS = (
     "invalid_depth",  # a depth map without a single finite, positive value
     "missing_camera",  # no camera dataset
     "bad_camera",  # camera values not finite, not 17, no proper rotation, focal <= 0
-    "zero_translation",  # no baseline: scale normalisation would divide by zero
+    "zero_translation",  # ||t|| < 1e-6: skipped by DeMoN; scale normalisation would divide by 0
+    "small_baseline",  # baseline <= min_relative_baseline x median depth (a build option)
     "too_few_views",  # a scene group with fewer than two viewpoints
     "bad_viewpoint_pairs",  # viewpoint_pairs malformed or naming a missing view
     "unreadable_group",  # HDF5 error while reading the group
 )
 
+# Reasons that filter usable pairs by a build option rather than report damage: they
+# neither count towards `max_bad_fraction` nor stop a strict build.
+FILTER_REASONS = ("small_baseline",)
+
 SPLITS = ("train", "test")
+
+# "opencv": libwebp's default decoding; "demon": as DeMoN's C++ reader op (module docstring).
+IMAGE_DECODERS = ("opencv", "demon")
 
 
 class DamagedDataError(ValueError):
@@ -70,6 +84,8 @@ class View:
       depth: [h, w] float32 camera-z depth, 0 where invalid (usually h, w = H, W).
       intrinsics: [4] float64 normalised `[fx/W, fy/H, cx/W, cy/H]`.
       rotation, translation: [3, 3], [3] float64 world-to-camera: X_cam = R X_world + t.
+      depth_metric: the file's depth metric, "camera_z" or "ray_length" (DeMoN's reader
+        resamples ray lengths before converting them, see `pairs.resize_view`).
     """
 
     image: np.ndarray
@@ -77,6 +93,7 @@ class View:
     intrinsics: np.ndarray
     rotation: np.ndarray
     translation: np.ndarray
+    depth_metric: str = "camera_z"
 
 
 def _text(value: Any) -> str:
@@ -88,12 +105,82 @@ def _text(value: Any) -> str:
     return str(value)
 
 
-def decode_image(data: bytes, where: str = "image") -> np.ndarray:
-    """WebP (or any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+def webp_decoder_available() -> bool:
+    """Whether the optional `webp` package (libwebp bindings) needed by the `demon`
+    image decoder is installed and has the decoder-options layout it relies on."""
+    try:
+        import webp
+    except ImportError:
+        return False
+    # `webp` declares only `use_threads` of libwebp's WebPDecoderOptions, but allocates
+    # the whole struct; its layout (decode.h) puts bypass_filtering and
+    # no_fancy_upsampling at ints 0 and 1 and use_threads at int 10.
+    return webp.ffi.offsetof("WebPDecoderOptions", "use_threads") == 10 * webp.ffi.sizeof("int")
+
+
+def resolve_image_decoder(decoder: str | None) -> str:
+    """An `IMAGE_DECODERS` name; None is `opencv`. The default does not depend on what
+    is installed, so the same build options give the same records everywhere; `demon`
+    is asked for explicitly."""
+    if decoder is None:
+        return "opencv"
+    if decoder not in IMAGE_DECODERS:
+        raise ValueError(f"unknown image decoder {decoder!r}; valid: {IMAGE_DECODERS}")
+    if decoder == "demon" and not webp_decoder_available():
+        raise ImportError(
+            "image_decoder='demon' needs the `webp` package (pip install webp, or "
+            "pip install -e .[demon]); image_decoder='opencv' decodes without it"
+        )
+    return decoder
+
+
+def decode_webp_libwebp(
+    data: bytes, *, bypass_filtering: bool = True, no_fancy_upsampling: bool = True
+) -> np.ndarray | None:
+    """WebP bytes -> [H, W, 3] uint8 RGB by libwebp's advanced API (the `webp` package).
+
+    With both options on (the default) this is DeMoN's C++ reader op's decoding; with
+    both off it is libwebp's default, which OpenCV uses. Returns None if undecodable.
+    """
+    import webp
+
+    ffi, lib = webp.ffi, webp.lib
+    buffer = ffi.from_buffer(data)
+    config = ffi.new("WebPDecoderConfig*")
+    if not lib.WebPInitDecoderConfig(config):
+        raise RuntimeError("libwebp: WebPInitDecoderConfig failed (version mismatch)")
+    if lib.WebPGetFeatures(buffer, len(data), ffi.addressof(config, "input")) != 0:
+        return None
+    options = ffi.cast("int *", ffi.addressof(config, "options"))
+    options[0], options[1] = int(bypass_filtering), int(no_fancy_upsampling)
+    height, width = config.input.height, config.input.width
+    image = np.empty((height, width, 3), np.uint8)
+    config.output.colorspace = webp.WebPColorMode.RGB.value
+    config.output.u.RGBA.rgba = ffi.cast("uint8_t *", ffi.from_buffer(image))
+    config.output.u.RGBA.stride = 3 * width
+    config.output.u.RGBA.size = image.size
+    config.output.is_external_memory = 1
+    status = lib.WebPDecode(buffer, len(data), config)
+    lib.WebPFreeDecBuffer(ffi.addressof(config, "output"))
+    return image if status == 0 else None
+
+
+def decode_image(data: bytes, where: str = "image", decoder: str = "opencv") -> np.ndarray:
+    """WebP (or, with `opencv`, any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB.
+
+    Args:
+      data: the encoded bytes.
+      where: names the dataset in errors.
+      decoder: one of `IMAGE_DECODERS` (see the module docstring).
+    """
+    if decoder == "demon":
+        image = decode_webp_libwebp(data)
+    else:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        image = None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     if image is None:
         raise DamagedDataError("corrupt_image", where, f"undecodable image ({len(data)} bytes)")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return image
 
 
 def decode_depth(data: bytes, extents: Any, where: str = "depth") -> np.ndarray:
@@ -164,6 +251,17 @@ def normalised_intrinsics(camera_matrix: np.ndarray, height: int, width: int) ->
     return np.asarray(geometry.normalised_intrinsics(pixel_index_matrix, height, width))
 
 
+def ray_norms(intrinsics: np.ndarray, height: int, width: int) -> np.ndarray:
+    """[H, W] lengths of the rays through the pixel centres at unit camera z.
+
+    Args:
+      intrinsics: [4] normalised intrinsics of the camera.
+      height, width: the image size the rays are taken at.
+    """
+    camera_matrix = geometry.intrinsics_matrix(np.asarray(intrinsics, np.float64), height, width)
+    return np.linalg.norm(geometry.backproject(np.ones((height, width)), camera_matrix), axis=-1)
+
+
 def ray_length_to_camera_z(ray_length: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """Distance along each pixel's ray [H, W] -> camera-z depth [H, W].
 
@@ -171,12 +269,7 @@ def ray_length_to_camera_z(ray_length: np.ndarray, intrinsics: np.ndarray) -> np
       ray_length: [H, W] distances from the camera centre.
       intrinsics: [4] normalised intrinsics of the camera.
     """
-    height, width = ray_length.shape
-    camera_matrix = geometry.intrinsics_matrix(np.asarray(intrinsics, np.float64), height, width)
-    ray_norm = np.linalg.norm(
-        geometry.backproject(np.ones((height, width)), camera_matrix), axis=-1
-    )
-    return (ray_length / ray_norm).astype(np.float32)
+    return (ray_length / ray_norms(intrinsics, *ray_length.shape)).astype(np.float32)
 
 
 def _dataset(group: h5py.Group, name: str, reason: str, where: str) -> h5py.Dataset:
@@ -186,8 +279,10 @@ def _dataset(group: h5py.Group, name: str, reason: str, where: str) -> h5py.Data
     return item
 
 
-def read_view(view_group: h5py.Group, where: str) -> View:
+def read_view(view_group: h5py.Group, where: str, image_decoder: str = "opencv") -> View:
     """Reads and validates `/<scene>/frames/t0/v<k>` -> View (depth converted to camera z).
+
+    `image_decoder` is one of `IMAGE_DECODERS`.
 
     Raises:
       DamagedDataError naming `where` and the reason.
@@ -196,7 +291,7 @@ def read_view(view_group: h5py.Group, where: str) -> View:
     image_format = _text(image_dataset.attrs.get("format", "webp"))
     if image_format != "webp":
         raise DamagedDataError("corrupt_image", f"{where}/image", f"format {image_format!r}")
-    image = decode_image(image_dataset[()].tobytes(), f"{where}/image")
+    image = decode_image(image_dataset[()].tobytes(), f"{where}/image", image_decoder)
 
     camera_dataset = _dataset(view_group, "camera", "missing_camera", where)
     camera_format = _text(camera_dataset.attrs.get("format", "pinhole"))
@@ -224,7 +319,7 @@ def read_view(view_group: h5py.Group, where: str) -> View:
         raise DamagedDataError(
             "invalid_depth", depth_where, "no finite, positive value (all NaN, inf or <= 0)"
         )
-    return View(image, depth.astype(np.float32), intrinsics, rotation, translation)
+    return View(image, depth.astype(np.float32), intrinsics, rotation, translation, metric)
 
 
 def scene_groups(h5_file: h5py.File) -> list[str]:
@@ -272,10 +367,12 @@ class DemonFile:
     """An open DeMoN HDF5 file: scene groups, their view pairs and decoded views.
 
     Use as a context manager. Views are decoded on demand and cached per scene,
-    so a training group with many pairs decodes each view once.
+    so a training group with many pairs decodes each view once. `image_decoder` is
+    one of `IMAGE_DECODERS`, or None (see `resolve_image_decoder`).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, image_decoder: str | None = None):
+        self.image_decoder = resolve_image_decoder(image_decoder)
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"DeMoN file {self.path} does not exist")
@@ -334,7 +431,7 @@ class DemonFile:
             view_group = self._t0(group).get(f"v{index}")
             if not isinstance(view_group, h5py.Group):
                 return DamagedDataError("bad_viewpoint_pairs", where, "no such viewpoint")
-            return read_view(view_group, where)
+            return read_view(view_group, where, self.image_decoder)
         except DamagedDataError as error:
             return error
         except (OSError, KeyError, RuntimeError) as error:

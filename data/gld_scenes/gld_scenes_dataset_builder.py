@@ -6,8 +6,9 @@ with both camera-z depth maps, both intrinsics, the relative pose, the exact flo
 and its validity, and the flow estimated from the two images by an off-the-shelf
 estimator (OpenCV DIS by default). Records follow `gld.records`.
 
-Build with `data.prepare("gld_scenes/small", data_dir)` or
-`tfds build data/gld_scenes --config=small`. Rendering can be spread over
+Build with `data.prepare("gld_scenes/small", data_dir)`, `python -m data.build
+--dataset=gld_scenes/small` or `tfds.builder("gld_scenes/small").download_and_prepare()`
+(array_record by default, no TensorFlow needed). Rendering can be spread over
 processes: `data.prepare("gld_scenes/full", data_dir, workers=8)`. Example i of a
 split is rendered from a generator seeded by (config seed, split, i), so the
 records are identical across builds and independent of the number of workers.
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 import tensorflow_datasets as tfds
 
+import data
 from gld import flow as flow_lib
 from gld import geometry, records
 from gld.baselines import classical
@@ -249,13 +251,14 @@ class Builder(tfds.core.GeneratorBasedBuilder):
     BUILDER_CONFIGS = _configs()
     DEFAULT_CONFIG_NAME = "small"
 
-    def __init__(self, *, workers: int = 1, **kwargs):
+    def __init__(self, *, workers: int = 1, file_format: str | None = None, **kwargs):
         """Args: workers: processes rendering in parallel (1 renders in this process);
-        the records do not depend on it. Other arguments go to TFDS."""
+        the records do not depend on it. file_format: None is `data.FILE_FORMAT`.
+        Other arguments go to TFDS."""
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self._workers = int(workers)
-        super().__init__(**kwargs)
+        super().__init__(file_format=file_format or data.FILE_FORMAT, **kwargs)
 
     def _info(self) -> tfds.core.DatasetInfo:
         config = self.builder_config

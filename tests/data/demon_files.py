@@ -1,8 +1,8 @@
 """Writes tiny DeMoN-format HDF5 files byte by byte for the tests, independently of data.demon.
 
-Images are lossless WebP (so a read-back image equals what was written), depth is
-an LZ4 block of row-major float16 with `extents`, the camera is the 17-value vector
-with a column-major rotation and K in corner-origin pixel coordinates.
+Images are lossless WebP unless a quality is given (so a read-back image equals what
+was written), depth is an LZ4 block of row-major float16 with `extents`, the camera is
+the 17-value vector with a column-major rotation and K in corner-origin pixel coordinates.
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ def camera_values(camera_matrix: np.ndarray, rotation: np.ndarray, translation: 
     )
 
 
-def webp_bytes(image_rgb: np.ndarray) -> bytes:
-    """Lossless WebP bytes of an [H, W, 3] uint8 RGB image."""
+def webp_bytes(image_rgb: np.ndarray, quality: int = 101) -> bytes:
+    """WebP bytes of an [H, W, 3] uint8 RGB image: lossless at quality 101, else lossy."""
     ok, data = cv2.imencode(
-        ".webp", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_WEBP_QUALITY, 101]
+        ".webp", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_WEBP_QUALITY, quality]
     )
     assert ok
     return data.tobytes()

@@ -1,7 +1,10 @@
+import importlib.util
+import json
 import os
 import subprocess
 import sys
 
+import pytest
 from conftest import REPO_ROOT
 
 
@@ -29,3 +32,44 @@ def test_build_command_lists_valid_configs_for_an_unknown_one(tmp_path):
     result = _build("--dataset=gld_scenes/huge", f"--data_dir={tmp_path}")
     assert result.returncode != 0
     assert "gld_scenes/tiny" in result.stderr and "gld_scenes/small" in result.stderr
+
+
+_PLAIN_TFDS_BUILD = """
+import importlib.util, json, sys
+import tensorflow_datasets as tfds
+import data.gld_scenes.gld_scenes_dataset_builder  # registers gld_scenes
+builder = tfds.builder("gld_scenes/tiny", data_dir=sys.argv[1])
+builder.download_and_prepare()
+source = tfds.data_source("gld_scenes/tiny", data_dir=sys.argv[1], split="test")
+print(json.dumps({
+    "splits": {name: info.num_examples for name, info in builder.info.splits.items()},
+    "file_format": builder.info.file_format.value,
+    "test_records": len(source),
+    "tensorflow_loaded": "tensorflow" in sys.modules,
+}))
+"""
+
+
+def test_plain_tfds_builder_call_works_without_tensorflow(tmp_path):
+    """`tfds.builder(...).download_and_prepare()` writes array_record, which needs no
+    TensorFlow (TFDS's own default, TFRecord, fails while finalising a split)."""
+    if importlib.util.find_spec("tensorflow") is not None:
+        pytest.skip("TensorFlow is installed: this checks the TensorFlow-free install")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    result = subprocess.run(
+        [sys.executable, "-c", _PLAIN_TFDS_BUILD, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    built = json.loads(result.stdout.strip().splitlines()[-1])
+    assert built == {
+        "splits": {"train": 32, "test": 16},
+        "file_format": "array_record",
+        "test_records": 16,
+        "tensorflow_loaded": False,
+    }
+    assert len(list((tmp_path / "gld_scenes" / "tiny").glob("*/*.array_record-*"))) == 2

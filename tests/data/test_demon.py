@@ -79,6 +79,54 @@ def test_ray_length_depth_becomes_camera_z(tmp_path, rng):
     float16_close(ray_view.depth, views[0]["depth"])
 
 
+needs_webp = pytest.mark.skipif(
+    not reader.webp_decoder_available(), reason="the optional `webp` package is not installed"
+)
+
+
+@needs_webp
+def test_webp_decoders_agree_on_lossless_images(rng):
+    image = demon_files.texture(rng, HEIGHT, WIDTH)
+    data = demon_files.webp_bytes(image)
+    for decoder in reader.IMAGE_DECODERS:
+        np.testing.assert_array_equal(reader.decode_image(data, decoder=decoder), image)
+
+
+@needs_webp
+def test_demon_webp_decoder_bypasses_filtering_and_fancy_upsampling(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    lossy = demon_files.webp_bytes(views[0]["image"], quality=50)
+    opencv = reader.decode_image(lossy, decoder="opencv").astype(int)
+    # libwebp with both options off is OpenCV's decoding, bit for bit ...
+    plain = reader.decode_webp_libwebp(lossy, bypass_filtering=False, no_fancy_upsampling=False)
+    np.testing.assert_array_equal(plain, opencv)
+    # ... and each option on its own changes the image (both fields are really set).
+    for bypass_filtering, no_fancy_upsampling in ((True, False), (False, True)):
+        alone = reader.decode_webp_libwebp(
+            lossy, bypass_filtering=bypass_filtering, no_fancy_upsampling=no_fancy_upsampling
+        )
+        assert np.abs(alone - opencv).mean() > 0.1
+    path = write_file(tmp_path / "lossy.h5", [("s", views, (0, 1), {0: {"image_data": lossy}})])
+    with reader.DemonFile(path, image_decoder="demon") as demon_file:
+        image = demon_file.view("s", 0).image
+    np.testing.assert_array_equal(image, reader.decode_webp_libwebp(lossy))
+    assert np.abs(image - opencv).mean() > 1.0
+
+
+def test_image_decoder_choice(monkeypatch):
+    with pytest.raises(ValueError, match="unknown image decoder"):
+        reader.resolve_image_decoder("pillow")
+    assert reader.resolve_image_decoder("opencv") == "opencv"
+    monkeypatch.setattr(reader, "webp_decoder_available", lambda: False)
+    assert reader.resolve_image_decoder(None) == "opencv"
+    with pytest.raises(ImportError, match="pip install webp"):
+        reader.resolve_image_decoder("demon")
+    # The default does not follow what is installed: the same options, the same records.
+    monkeypatch.setattr(reader, "webp_decoder_available", lambda: True)
+    assert reader.resolve_image_decoder(None) == "opencv"
+    assert reader.resolve_image_decoder("demon") == "demon"
+
+
 def test_viewpoint_pairs_train_all_test_first(tmp_path, rng):
     views = demon_files.moving_views(rng, 3, 12, 16)
     path = write_file(
@@ -161,27 +209,141 @@ def test_resize_to_256x192_rescales_intrinsics_and_depth(tmp_path, rng):
     # INTER_AREA at 2x is the mean of each 2x2 block.
     block_mean = views[0]["image"].reshape(HEIGHT, 2, WIDTH, 2, 3).astype(float).mean(axis=(1, 3))
     assert np.abs(example["image1"] - block_mean).max() <= 1.0
-    # Nearest sampling: every output depth is one input depth (2x: the block's lower-right pixel).
-    expected = np.nan_to_num(views[0]["depth"].astype(np.float16).astype(np.float32))[1::2, 1::2]
+    # DeMoN's nearest sampling (the default): at 2x, each 2x2 block's upper-left pixel.
+    expected = np.nan_to_num(views[0]["depth"].astype(np.float16).astype(np.float32))[::2, ::2]
     np.testing.assert_array_equal(example["depth1"], expected)
     assert np.all(example["depth1"][:20, :30] == 0)
 
 
-def test_resize_keeps_a_single_sparse_reading():
+def _demon_rows_cols():
+    """DeMoN's reader at 640x480 -> 256x192 takes pixel (floor(2.5 y), floor(2.5 x))."""
+    rows = (np.arange(HEIGHT) * 5) // 2
+    cols = (np.arange(WIDTH) * 5) // 2
+    assert list(rows[:5]) == [0, 2, 5, 7, 10] and cols[-1] == 637
+    return rows, cols
+
+
+def test_demon_resampling_of_a_640x480_map_by_hand():
+    row, col = np.mgrid[0:480, 0:640].astype(np.float32)
+    depth = 1.0 + row + col / 1000.0  # every pixel distinct and exact in float32
+    depth[2, 2] = np.nan  # sampled by output pixel (1, 1): invalid there
+    depth[3, 3] = 0.0  # sampled by the centred convention only
+    resized = pairs.resize_depth_demon(depth, HEIGHT, WIDTH)
+    rows, cols = _demon_rows_cols()
+    expected = np.nan_to_num(depth)[rows[:, None], cols[None, :]]
+    np.testing.assert_array_equal(resized, expected)
+    assert resized[0, 0] == 1.0 and resized[0, 1] == 1.002 and resized[1, 0] == 3.0
+    assert resized[1, 1] == 0.0  # no hole filling
+    # gld's centred convention samples (floor(2.5 y + 1.25), ...): another pixel everywhere,
+    # and at (1, 1) it fills the hole left by (3, 3) from a covered neighbour.
+    centred = pairs.resize_depth_centred(depth, HEIGHT, WIDTH)
+    assert centred[0, 0] == depth[1, 1] and centred[0, 1] == depth[1, 3]
+    assert centred[1, 1] in (depth[3, 4], depth[4, 3])
+    assert np.count_nonzero(centred != resized) == HEIGHT * WIDTH
+
+
+@pytest.mark.parametrize("depth_metric", ["camera_z", "ray_length"])
+def test_demon_resampling_of_a_640x480_file(tmp_path, rng, depth_metric):
+    views = demon_files.moving_views(rng, 2, 480, 640)
+    path = write_file(
+        tmp_path / "vga.h5", [("s", views, (0, 1), {0: {"depth_metric": depth_metric}})]
+    )
+    ((_, example),) = pairs.generate([path], "test")
+    rows, cols = _demon_rows_cols()
+    camera_matrix = views[0]["camera_matrix"]
+    stored = views[0]["depth"]
+    if depth_metric == "ray_length":
+        stored = stored * demon_files.ray_norms(camera_matrix, 480, 640)
+    stored = stored.astype(np.float16).astype(np.float64)[rows[:, None], cols[None, :]]
+    if depth_metric == "ray_length":
+        # DeMoN converts after resampling, with the rays of the 256x192 pixel centres.
+        scaled = np.diag([WIDTH / 640, HEIGHT / 480, 1.0]) @ camera_matrix
+        stored = stored / demon_files.ray_norms(scaled, HEIGHT, WIDTH)
+    np.testing.assert_allclose(example["depth1"], stored, rtol=2e-6)
+
+
+def test_centred_resampling_keeps_a_single_sparse_reading():
     depth = np.zeros((480, 640), np.float32)
     depth[101, 333] = 4.5  # the one pixel a range sensor sees
-    resized = pairs.resize_depth(depth, HEIGHT, WIDTH)
+    resized = pairs.resize_depth_centred(depth, HEIGHT, WIDTH)
     assert np.count_nonzero(resized) == 1
     row, col = np.argwhere(resized)[0]
     assert (row, col) == (int(101.5 * 0.4), int(333.5 * 0.4))
     assert resized[row, col] == 4.5
+    # DeMoN's convention samples rows 0, 2, 5, 7, ...: row 101 is not among them.
+    assert np.count_nonzero(pairs.resize_depth_demon(depth, HEIGHT, WIDTH)) == 0
 
 
-def test_resize_never_mixes_depths():
+@pytest.mark.parametrize("resampling", sorted(pairs.DEPTH_RESAMPLING))
+def test_resize_never_mixes_depths(resampling):
     depth = np.where(np.arange(640)[None, :] < 321, 1.0, 9.0) * np.ones((480, 1))
     depth[::7, ::5] = np.nan
-    resized = pairs.resize_depth(depth.astype(np.float32), HEIGHT, WIDTH)
+    resized = pairs.DEPTH_RESAMPLING[resampling](depth.astype(np.float32), HEIGHT, WIDTH)
     assert set(np.unique(resized)) <= {0.0, 1.0, 9.0}
+
+
+# --- baselines ------------------------------------------------------------------------------
+
+
+def _tiny_baseline_views(rng, baseline):
+    """Two views 2.0-3.6 m from a wall (median depth ~2.8 m), `baseline` apart along x."""
+    first, second = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    camera_centre = -first["rotation"].T @ first["translation"]
+    moved = camera_centre + first["rotation"].T @ [baseline, 0.0, 0.0]
+    second = dict(second, rotation=first["rotation"], translation=-first["rotation"] @ moved)
+    return [first, second]
+
+
+def test_tiny_baseline_test_pair_is_kept_and_counted(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    tiny = _tiny_baseline_views(rng, 2e-4)  # 2e-4 / 2.8 = 7e-5 x median depth
+    scenes = [(name, views) for name in "abcd"] + [("e_tiny", tiny)]
+    path = write_file(tmp_path / "test.h5", scenes)
+    report = pairs.BuildReport("test")
+    examples = dict(pairs.generate([path], "test", max_bad_fraction=0.0, report=report))
+    assert len(examples) == 5
+    np.testing.assert_allclose(
+        np.linalg.norm(examples["test.h5/e_tiny/0-1"]["translation"]), 2e-4, rtol=1e-3
+    )
+    assert report.as_dict()["small_baseline_written"] == 1
+    assert report.as_dict()["files"]["test.h5"]["small_baseline_written"] == 1
+    assert "1 written pairs have a small baseline" in report.format()
+    # The input pipeline can normalise it (it refuses only DeMoN's ||t|| < 1e-6).
+    from gld import input_pipeline
+
+    assert pairs.MIN_BASELINE == input_pipeline._MIN_TRANSLATION_NORM
+    example = examples["test.h5/e_tiny/0-1"]
+    normalised = input_pipeline.normalise_scale(
+        {"id": "e", "translation": example["translation"], "depth": example["depth1"]}
+    )
+    np.testing.assert_allclose(np.linalg.norm(normalised["translation"]), 1.0, rtol=1e-6)
+
+
+def test_relative_baseline_threshold_is_a_filter_not_damage(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    tiny = _tiny_baseline_views(rng, 2e-4)
+    path = write_file(tmp_path / "train.h5", [("a", views), ("b_tiny", tiny)])
+    # Training drops it by default; a filtered pair neither counts as damage nor stops
+    # a strict build.
+    report = pairs.BuildReport("train")
+    generated = pairs.generate([path], "train", strict=True, max_bad_fraction=0, report=report)
+    ids = [example_id for example_id, _ in generated]
+    assert ids == ["train.h5/a/0-1"]
+    assert report.skipped == {"train.h5": {"small_baseline": 1}} and report.num_damaged == 0
+    # The threshold is an option: on for the test split when asked, off for training.
+    test_ids = [i for i, _ in pairs.generate([path], "test", min_relative_baseline=1e-4)]
+    assert test_ids == ["train.h5/a/0-1"]
+    train_ids = [i for i, _ in pairs.generate([path], "train", min_relative_baseline=0.0)]
+    assert train_ids == ["train.h5/a/0-1", "train.h5/b_tiny/0-1"]
+
+
+def test_baseline_below_demon_floor_is_skipped(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    path = write_file(tmp_path / "t.h5", [("a", views), ("b", _tiny_baseline_views(rng, 5e-7))])
+    report = pairs.BuildReport("test")
+    ids = [i for i, _ in pairs.generate([path], "test", max_bad_fraction=0.5, report=report)]
+    assert ids == ["t.h5/a/0-1"]
+    assert report.skipped == {"t.h5": {"zero_translation": 1}}
 
 
 # --- damage ---------------------------------------------------------------------------------
@@ -244,6 +406,7 @@ def test_damaged_pair_skipped_and_counted(tmp_path, rng, kind):
     assert report.as_dict()["files"]["damaged.h5"] == {
         "written": 1,
         "skipped": {DAMAGE_REASONS[kind]: 1},
+        "small_baseline_written": 0,
     }
     assert "b_bad" in report.first_errors[0]
 
@@ -338,6 +501,7 @@ def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
     manual_dir.mkdir()
     views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
     scenes = [("a", views), ("b", *_damage("truncated_lz4", views, rng)), ("c", views[::-1])]
+    scenes.append(("d_tiny", _tiny_baseline_views(rng, 2e-4)))
     write_file(manual_dir / "scenes11_test.h5", scenes)
     builder = data.prepare(
         "demon/scenes11",
@@ -352,11 +516,32 @@ def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
     for index in range(len(source)):
         example = records.decode(source[index])
         examples[example["id"]] = example
-    assert sorted(examples) == ["scenes11_test.h5/a/0-1", "scenes11_test.h5/c/0-1"]
+    assert sorted(examples) == [f"scenes11_test.h5/{name}/0-1" for name in ("a", "c", "d_tiny")]
     np.testing.assert_array_equal(examples["scenes11_test.h5/c/0-1"]["image1"], views[1]["image"])
     float16_close(examples["scenes11_test.h5/a/0-1"]["depth1"], views[0]["depth"])
     report = builder.info.metadata["build_report"]["test"]
-    assert report["files"]["scenes11_test.h5"] == {"written": 2, "skipped": {"corrupt_depth": 1}}
+    assert report["files"]["scenes11_test.h5"] == {
+        "written": 3,
+        "skipped": {"corrupt_depth": 1},
+        "small_baseline_written": 1,
+    }
     assert (
-        "scenes11_test.h5: 2 pairs written, 1 skipped (corrupt_depth: 1)" in capsys.readouterr().out
+        "scenes11_test.h5: 3 pairs written (1 with a small baseline), 1 skipped (corrupt_depth: 1)"
+        in capsys.readouterr().out
     )
+    options = builder.info.metadata["build_options"]["test"]
+    assert options["min_relative_baseline"] == 0.0 and options["depth_resampling"] == "demon"
+    assert options["image_decoder"] == reader.resolve_image_decoder(None)
+
+
+def test_builder_defaults(tmp_path):
+    scenes11 = data.get_builder("demon/scenes11", tmp_path)
+    assert scenes11.info.file_format.value == data.FILE_FORMAT == "array_record"
+    assert scenes11.build_options("train")["min_relative_baseline"] == 1e-4
+    assert scenes11.build_options("test")["min_relative_baseline"] == 0.0
+    assert scenes11.build_options("test")["depth_resampling"] == "demon"
+    custom = data.get_builder("demon/custom", tmp_path, min_relative_baseline=1e-3)
+    assert custom.build_options("test")["depth_resampling"] == "centred"  # sparse readings
+    assert custom.build_options("test")["min_relative_baseline"] == 1e-3
+    with pytest.raises(ValueError, match="depth_resampling"):
+        data.get_builder("demon/sun3d", tmp_path, depth_resampling="bilinear")
