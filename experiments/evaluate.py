@@ -1,8 +1,16 @@
-r"""Evaluates a trained workdir or a classical baseline on a whole split.
+r"""Evaluates a trained workdir, a classical baseline or another system's stored depth maps
+on a whole split.
 
     python -m experiments.evaluate --workdir=runs/demo
     python -m experiments.evaluate --method=triangulation_gt_pose --dataset=gld_scenes/small \
         --workdir=runs/triangulation [--flow_source=gt]
+    python -m experiments.evaluate --predictions=out/other_system --dataset=demon/sun3d \
+        --manual_dir=~/demon --workdir=runs/other_system [--predictions_scale=raw]
+
+--predictions reads one file per example id, the id's "/" replaced by "__": a 2-D float
+`.npy` of depth or a 16-bit PNG (value x --png_depth_scale = depth); a map at another
+resolution is resized by nearest neighbour (details: `gld.stored_predictions`). A missing
+or bad file stops the run, naming it, before anything is written.
 
 Writes <workdir>/eval/: metrics.json, table.md (mean ± std per metric, Abs-Inv as a
 multiple of the dataset mean's, protocol stamp), per_example_<method>.csv and figures/
@@ -16,12 +24,33 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
+from gld import stored_predictions
 
 FLAGS = flags.FLAGS
 
 flags.DEFINE_string("workdir", "runs/demo", "Run directory; results go to <workdir>/eval.")
 flags.DEFINE_string(
     "method", None, "A classical method (no training) instead of the workdir's model."
+)
+flags.DEFINE_string(
+    "predictions",
+    None,
+    "A folder of depth maps another system wrote, one per example id (see the module "
+    "docstring), scored instead of the workdir's model.",
+)
+flags.DEFINE_enum(
+    "predictions_scale",
+    stored_predictions.DEFAULT_DEPTH_SCALE,
+    list(stored_predictions.DEPTH_SCALES),
+    "Scale of --predictions: normalised (the pair's translation has norm 1, as gld and "
+    "DeMoN predict) or raw (the dataset's depth units, e.g. metres; divided by each "
+    "pair's ||t|| as the ground truth is).",
+)
+flags.DEFINE_float(
+    "png_depth_scale",
+    stored_predictions.DEFAULT_PNG_DEPTH_SCALE,
+    "Depth per unit of a 16-bit PNG prediction (0.001: millimetres to metres); 0 means no "
+    "prediction (the pixel is excluded and counted).",
 )
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_integer("batch_size", 16, "Evaluation batch size (last batch padded).")
@@ -43,19 +72,33 @@ def main(argv):
     from gld import evaluation
     from gld import workdir as workdir_lib
 
-    if FLAGS.method:
+    if FLAGS.method and FLAGS.predictions:
+        raise app.UsageError("give --method or --predictions, not both")
+    predictions = None
+    if FLAGS.predictions:
+        predictions = stored_predictions.StoredPredictions(
+            FLAGS.predictions,
+            depth_scale=FLAGS.predictions_scale,
+            png_depth_scale=FLAGS.png_depth_scale,
+        )
+    if FLAGS.method or predictions:
         if not FLAGS.dataset:
-            raise app.UsageError("--dataset is needed with --method")
+            raise app.UsageError("--dataset is needed with --method or --predictions")
         dataset = FLAGS.dataset
     else:
         config = workdir_lib.load_run_config(FLAGS.workdir)
         dataset = FLAGS.dataset or config.dataset
     builder = common.prepare_dataset(dataset)
     height, width = common.dataset_resolution(builder)
+    train_source = None
+    if "train" in builder.info.splits:
+        train_source = common.data_source(builder, "train")
+    elif FLAGS.dataset_mean:
+        print(f"{builder.info.full_name} has no training split: no dataset-mean row")
     evaluation.evaluate_workdir(
         FLAGS.workdir,
         common.data_source(builder, FLAGS.split),
-        train_source=common.data_source(builder, "train"),
+        train_source=train_source,
         dataset=builder.info.full_name,
         height=height,
         width=width,
@@ -68,6 +111,7 @@ def main(argv):
         max_examples=FLAGS.max_examples,
         step=FLAGS.step,
         classical_method=FLAGS.method,
+        predictions=predictions,
         flow_source=FLAGS.flow_source,
     )
 

@@ -6,8 +6,9 @@ padded batches); `evaluate_predictor` runs any host-side `predict(batch) -> {"de
 one loop, and score with `score_batch`, the one rule for which rows count. Training's
 periodic evaluation, `experiments.evaluate`, `experiments.compare` and
 `experiments.inspect_filters` read splits through `split_batches`. `evaluate_workdir`
-evaluates a trained workdir (or a classical method) with its references on the same
-examples: the dataset mean and the per-pair oracle constant (`gld.reports` writes it).
+evaluates a trained workdir (or a classical method, or depth maps another system stored,
+`gld.stored_predictions`) with its references on the same examples: the dataset mean and
+the per-pair oracle constant (`gld.reports` writes it).
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from gld import input_pipeline, metrics, reports, sharding
+from gld import input_pipeline, metrics, reports, sharding, stored_predictions
 from gld import workdir as workdir_lib
 
 # The per-pair oracle constant reported next to every method (`classical.OraclePairMedian`).
 ORACLE = "oracle_pair_median"
+# The table's name for depth maps another system stored.
+STORED = "stored_predictions"
 
 # Keys of an evaluation batch that go to the devices (the rest, like "id", stay on the host).
 EVAL_KEYS = ("image1", "image2", "flow", "depth", "depth_valid", "example_mask")
@@ -33,9 +36,11 @@ EVAL_KEYS = ("image1", "image2", "flow", "depth", "depth_valid", "example_mask")
 
 def score_batch(depth: jax.Array, batch: dict) -> dict[str, jax.Array]:
     """Per-example metrics of predicted depth [B, H, W] against the batch's truth, with
-    "example_mask": the rows that count (not padding, at least one valid pixel)."""
+    "example_mask": the rows that count (not padding, at least one valid ground-truth
+    pixel), the same for every method whatever its predictions."""
     per_example = metrics.depth_metrics(depth, batch["depth"], batch["depth_valid"])
-    per_example["example_mask"] = batch["example_mask"] & (per_example["num_pixels"] > 0)
+    truth_pixels = per_example["num_pixels"] + per_example["excluded_pixels"]
+    per_example["example_mask"] = batch["example_mask"] & (truth_pixels > 0)
     return per_example
 
 
@@ -238,22 +243,42 @@ def evaluate_workdir(
     max_examples: int = 0,
     step: int | None = None,
     classical_method: str | None = None,
+    predictions: stored_predictions.StoredPredictions | None = None,
     flow_source: str | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Evaluates a workdir's trained model (or a classical method) on `source`.
+    """Evaluates a workdir's trained model (or a classical method, or stored predictions)
+    on `source`.
 
     Writes <workdir>/eval (`gld.reports`). The references are
     evaluated alongside on the same examples with the same flow, when asked: the dataset
     mean (fitted on `train_source`, so only when it is given) and the per-pair oracle
-    constant, with the workdir's flow unless `flow_source` is given. Rows: the method,
-    then dataset_mean, then oracle_pair_median.
+    constant, with the workdir's flow unless `flow_source` is given. Rows: the method
+    (`STORED` for `predictions`), then dataset_mean, then oracle_pair_median.
+
+    Raises:
+      FileNotFoundError, ValueError: `predictions` lack a file or hold a bad one
+        (`StoredPredictions.check`), before anything is evaluated or written.
     """
     results, info = {}, {"dataset": dataset, "split": split}
-    if classical_method:
+    protocol_note = ""
+    if classical_method or predictions is not None:
         flow_source = flow_source or "estimated"
-        method = fit_classical(classical_method, train_source, flow_source)
-        results[classical_method] = evaluate_predictor(
+        if predictions is not None:
+            method, name = predictions, STORED
+            predictions.check(
+                stored_predictions.record_ids_and_baselines(
+                    input_pipeline.first_records(source, max_examples)
+                ),
+                height=height,
+                width=width,
+            )
+            protocol_note = predictions.protocol_note()
+            info.update(predictions.summary())
+        else:
+            method = fit_classical(classical_method, train_source, flow_source)
+            name = classical_method
+        results[name] = evaluate_predictor(
             method.predict,
             source,
             batch_size=batch_size,
@@ -263,7 +288,7 @@ def evaluate_workdir(
         )
         predict_depth = lambda batch: method.predict(batch)["depth"]  # noqa: E731
         gt_pixels, seed = 1, 0
-        info.update(model=classical_method, flow_source=flow_source)
+        info.update(model=name, flow_source=flow_source)
     else:
         model, variables, config = workdir_lib.load_trained(workdir, step=step)
         flow_source = flow_source or config.flow_source
@@ -276,8 +301,10 @@ def evaluate_workdir(
             max_examples=max_examples,
             progress=True,
         )
-        apply = jax.jit(lambda v, b: model.apply(v, b["image1"], b["image2"], b["flow"]))
-        predict_depth = lambda batch: apply(variables, batch)["depth"]  # noqa: E731
+        apply = jax.jit(model.apply)
+        predict_depth = lambda batch: apply(  # noqa: E731
+            variables, batch["image1"], batch["image2"], batch["flow"]
+        )["depth"]
         gt_pixels, seed = config.gt_pixels, config.seed
         manager = workdir_lib.checkpoint_manager(workdir)
         info.update(
@@ -309,15 +336,19 @@ def evaluate_workdir(
     if jax.process_index() != 0:
         return {}
     out_dir = Path(workdir) / "eval"
-    report = reports.write_report(out_dir, results, height=height, width=width, info=info)
+    report = reports.write_report(
+        out_dir, results, height=height, width=width, info=info, protocol_note=protocol_note
+    )
     if num_figures:
-        examples = _figure_examples(source, num_figures, gt_pixels, seed, flow_source, split)
+        evaluated = input_pipeline.first_records(source, max_examples)
+        examples = _figure_examples(evaluated, num_figures, gt_pixels, seed, flow_source, split)
         batch = {
             key: np.stack([example[key] for example in examples])
             for key, value in examples[0].items()
             if isinstance(value, np.ndarray)
         }
-        predictions = np.asarray(predict_depth(batch))
-        reports.render_examples(out_dir / "figures", examples, list(predictions))
+        batch["id"] = np.array([example["id"] for example in examples])
+        depth_maps = np.asarray(predict_depth(batch))
+        reports.render_examples(out_dir / "figures", examples, list(depth_maps))
     print_fn((out_dir / "table.md").read_text())
     return report

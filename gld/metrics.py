@@ -1,14 +1,17 @@
-"""Depth metrics of the paper (Abs-Inv, Abs-Rel, S-RMSE) and pose errors.
+"""Depth metrics of the paper (Abs-Inv, Abs-Rel, S-RMSE), pose errors, the protocol stamp
+and tables.
 
-Metrics are computed per example over its valid ground-truth pixels and then
-averaged over examples. Every function is jittable; per-example values come with an
-example mask so that padded, sharded batches give exact means through (sum, count).
+Metrics are computed per example over the pixels DeMoN's metrics score (valid ground
+truth, finite and positive prediction; the others are excluded and counted) and then
+averaged over examples. The metric functions are jittable; per-example values come with
+an example mask so that padded, sharded batches give exact means through (sum, count).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -23,24 +26,31 @@ METRIC_NAMES = {"abs_inv": "Abs-Inv", "abs_rel": "Abs-Rel", "s_rmse": "S-RMSE"}
 def depth_metrics(
     depth_pred: jax.Array, depth_true: jax.Array, valid: jax.Array
 ) -> dict[str, jax.Array]:
-    """Per-example depth errors over valid pixels (no median scaling).
+    """Per-example depth errors over the scored pixels (no median scaling).
 
+    A pixel is scored where the ground truth is valid (`valid`, finite, > 0) and the
+    prediction is finite and positive, as DeMoN's `compute_valid_depth_mask` decides;
+    a valid ground-truth pixel with any other prediction is excluded and counted.
     Abs-Inv = mean |1/d - 1/d_hat|; Abs-Rel = mean |d - d_hat| / d;
     S-RMSE = sqrt(mean(E^2) - mean(E)^2) with E = log d - log d_hat (scale invariant).
 
     Args:
-      depth_pred: [B, H, W] predicted depth (positive).
+      depth_pred: [B, H, W] predicted depth.
       depth_true: [B, H, W] ground-truth depth.
       valid: [B, H, W] bool, pixels with valid ground truth.
 
     Returns:
-      {"abs_inv", "abs_rel", "s_rmse", "num_pixels"}, each [B]. An example without valid
-      pixels gets 0 everywhere and num_pixels 0 (exclude it with `example_mask`).
+      {"abs_inv", "abs_rel", "s_rmse", "num_pixels", "excluded_pixels"}, each [B]:
+      num_pixels the scored pixels, excluded_pixels the valid ground-truth pixels left
+      out for their prediction. An example without a scored pixel gets NaN errors
+      (`summarise` leaves them out of the means and says so in its counts).
     """
     valid = valid & (depth_true > 0) & jnp.isfinite(depth_true)
-    safe_true = jnp.where(valid, depth_true, 1.0)
-    safe_pred = jnp.where(valid, jnp.maximum(depth_pred, 1e-12), 1.0)
-    weight = valid.astype(jnp.float32)
+    scored = valid & jnp.isfinite(depth_pred) & (depth_pred > 0)
+    safe_true = jnp.where(scored, depth_true, 1.0)
+    # The floor keeps 1/d finite in float32 for positive predictions below it.
+    safe_pred = jnp.where(scored, jnp.maximum(depth_pred, 1e-12), 1.0)
+    weight = scored.astype(jnp.float32)
     count = jnp.sum(weight, axis=(1, 2))
     denominator = jnp.maximum(count, 1.0)
 
@@ -49,12 +59,31 @@ def depth_metrics(
 
     log_error = jnp.log(safe_true) - jnp.log(safe_pred)
     variance = mean(log_error**2) - mean(log_error) ** 2
-    return {
+    errors = {
         "abs_inv": mean(jnp.abs(1.0 / safe_true - 1.0 / safe_pred)),
         "abs_rel": mean(jnp.abs(safe_true - safe_pred) / safe_true),
         "s_rmse": jnp.sqrt(jnp.maximum(variance, 0.0)),
-        "num_pixels": count,
     }
+    per_example = {name: jnp.where(count > 0, value, jnp.nan) for name, value in errors.items()}
+    per_example["num_pixels"] = count
+    per_example["excluded_pixels"] = jnp.sum(valid & ~scored, axis=(1, 2)).astype(jnp.float32)
+    return per_example
+
+
+def resize_nearest(depth: jax.Array, height: int, width: int) -> jax.Array:
+    """[..., h, w] -> [..., height, width] by centre-aligned nearest neighbour: each output
+    pixel takes the input pixel under its centre (DeMoN's evaluation resizes a
+    prediction so, with scikit-image's order-0 resize; OpenCV's INTER_NEAREST_EXACT
+    is the same rule). Jittable; numpy in gives numpy out."""
+
+    def indices(source: int, target: int) -> np.ndarray:
+        # floor((i + 1/2) * source / target) in integers, so centres on a pixel border
+        # always go to the later pixel.
+        return ((2 * np.arange(target) + 1) * source) // (2 * target)
+
+    source_height, source_width = depth.shape[-2:]
+    rows, cols = indices(source_height, height), indices(source_width, width)
+    return depth[..., rows[:, None], cols[None, :]]
 
 
 def pose_errors(
@@ -78,13 +107,16 @@ def summarise(per_example: dict[str, np.ndarray], example_mask: np.ndarray) -> d
       example_mask: [N] bool, the real examples.
 
     Returns:
-      name -> {"mean", "std", "count"} computed from sums, so padding never counts.
+      name -> {"mean", "std", "count"} computed from sums, so padding never counts. A
+      non-finite value (the errors of an example without a scored pixel) is left out:
+      `count` says how many examples a mean is over.
     """
     mask = np.asarray(example_mask, bool)
-    count = int(mask.sum())
     summary = {}
     for name, values in per_example.items():
         values = np.asarray(values, np.float64)[mask]
+        values = values[np.isfinite(values)]
+        count = int(values.size)
         if count == 0:
             summary[name] = {"mean": math.nan, "std": math.nan, "count": 0}
             continue
@@ -95,13 +127,81 @@ def summarise(per_example: dict[str, np.ndarray], example_mask: np.ndarray) -> d
 
 
 def protocol_stamp(height: int, width: int, num_examples: int, extra: str = "") -> str:
-    """One line saying exactly how a table's numbers were computed."""
+    """One line saying exactly how a table's numbers were computed.
+
+    The evaluation resolution is the records': a dataset builder resizes the ground truth
+    of files of another size (DeMoN's SUN3D and RGB-D files are 640x480) when it writes
+    the records, where DeMoN evaluates against the file's ground truth.
+    """
     stamp = (
-        f"protocol: {width}x{height} px; depth scaled so that ||t|| = 1; all valid "
-        f"ground-truth pixels of each example; per-example means averaged over "
-        f"{num_examples} examples; no median scaling"
+        f"protocol: ground truth at the records' resolution, {width}x{height} px (source "
+        f"files of another size were resized when the records were built; DeMoN evaluates "
+        f"at the file's); depth scaled so that ||t|| = 1; every valid ground-truth pixel "
+        f"of each example whose prediction is finite and positive (others excluded and "
+        f"counted, as in DeMoN's metrics); per-example means averaged over {num_examples} "
+        f"examples; no median scaling"
     )
     return f"{stamp}; {extra}" if extra else stamp
+
+
+def excluded_pixels(summary: Mapping[str, dict]) -> dict[str, Any] | None:
+    """What a method's predictions left unscored, from its `summarise` summary.
+
+    Returns:
+      {"pixels": valid ground-truth pixels excluded, "valid_pixels": all valid
+      ground-truth pixels, "fraction", "per_example": mean over examples,
+      "unscored_examples": examples without a scored pixel (out of the error means)};
+      None when the summary has no pixel counts.
+    """
+    if "excluded_pixels" not in summary or "num_pixels" not in summary:
+        return None
+
+    def total(entry: dict) -> int:
+        return round(entry["mean"] * entry["count"]) if entry["count"] else 0
+
+    excluded = summary["excluded_pixels"]
+    pixels = total(excluded)
+    valid_pixels = pixels + total(summary["num_pixels"])
+    scored_examples = min(
+        (summary[name]["count"] for name in DEPTH_METRICS if name in summary),
+        default=excluded["count"],
+    )
+    return {
+        "pixels": pixels,
+        "valid_pixels": valid_pixels,
+        "fraction": pixels / valid_pixels if valid_pixels else 0.0,
+        "per_example": excluded["mean"] if excluded["count"] else 0.0,
+        "unscored_examples": excluded["count"] - scored_examples,
+    }
+
+
+def exclusion_note(rows: Iterable[tuple[str, dict[str, dict]]]) -> str:
+    """One line saying how many pixels each method had excluded ("" without pixel counts)."""
+    parts, any_counts = [], False
+    for method, summary in rows:
+        excluded = excluded_pixels(summary)
+        if excluded is None:
+            continue
+        any_counts = True
+        if excluded["pixels"] == 0:
+            continue
+        part = (
+            f"{method} {excluded['pixels']:,} of {excluded['valid_pixels']:,} "
+            f"({excluded['fraction']:.2%})"
+        )
+        if excluded["unscored_examples"]:
+            part += (
+                f", {excluded['unscored_examples']} example(s) without a scored pixel "
+                f"left out of its means"
+            )
+        parts.append(part)
+    if not any_counts:
+        return ""
+    return (
+        "Excluded pixels (valid ground truth, prediction not finite or not positive): "
+        + ("; ".join(parts) if parts else "none")
+        + "."
+    )
 
 
 def ratios_to_reference(
@@ -145,7 +245,8 @@ def markdown_table(
 
     Methods are named by `table_name`. When the `reference` method is among the rows, a
     last column gives each method's Abs-Inv as a multiple of the reference's (see
-    `ratios_to_reference`).
+    `ratios_to_reference`). When the summaries count pixels, a line under the table
+    gives the excluded ones (`exclusion_note`).
     """
     rows = list(rows)
     ratios = ratios_to_reference(rows, reference)
@@ -161,4 +262,7 @@ def markdown_table(
         if ratios:
             cells.append(f"{ratios[method]:.2f}×" if method in ratios else "—")
         lines.append(f"| {table_name(method, labels)} | " + " | ".join(cells) + " |")
+    note = exclusion_note(rows)
+    if note:
+        lines += ["", note]
     return "\n".join(lines) + f"\n\n{stamp}\n"

@@ -1,9 +1,9 @@
 """Evaluation reports: metrics.json, table.md, per-example CSVs and example figures.
 
 `write_report` writes the numbers of several methods evaluated on the same examples
-(`gld.evaluation`), with the references' labels and each method's Abs-Inv as a
-multiple of the dataset mean's; `render_examples` draws image, truth, prediction and
-error with one colour scale for all.
+(`gld.evaluation`), with the references' labels, each method's Abs-Inv as a multiple
+of the dataset mean's and the pixels its predictions had excluded; `render_examples`
+draws image, truth, prediction and error with one colour scale for all.
 """
 
 from __future__ import annotations
@@ -26,19 +26,22 @@ def write_report(
     height: int,
     width: int,
     info: dict[str, Any] | None = None,
+    protocol_note: str = "",
 ) -> dict[str, Any]:
     """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
 
     Methods appear in the order of `results`; references that see the ground truth are
     labelled (`gld.baselines.classical.LABELS`) in the table and in metrics.json, which
     also holds each method's Abs-Inv as a multiple of the dataset mean's when the
-    dataset mean is among the methods.
+    dataset mean is among the methods, and the pixels each method's predictions had
+    excluded (`metrics.excluded_pixels`; table.md says so under the table).
 
     Args:
       out_dir: the directory (created).
       results: method name -> (per-example metrics incl. "example_mask", ids).
       height, width: evaluation resolution, for the protocol stamp.
       info: extra fields for metrics.json (dataset, split, step, ...).
+      protocol_note: appended to the protocol stamp (e.g. how stored predictions were read).
 
     Returns:
       The metrics.json content.
@@ -61,14 +64,18 @@ def write_report(
             for row, example_id in enumerate(ids):
                 if mask[row]:
                     writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
-    stamp = metrics.protocol_stamp(height, width, num_examples)
+    stamp = metrics.protocol_stamp(height, width, num_examples, extra=protocol_note)
     labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
+    excluded = {method: metrics.excluded_pixels(summary) for method, summary in summaries.items()}
     report = {
         "protocol": stamp,
         **(info or {}),
         "methods": summaries,
         "labels": labels,
         "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(summaries.items()),
+        "excluded_pixels": {
+            method: value for method, value in excluded.items() if value is not None
+        },
     }
     (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
     table = metrics.markdown_table(summaries.items(), stamp, labels=labels)

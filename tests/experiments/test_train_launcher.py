@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT
 
+from gld import input_pipeline, stored_predictions
 from gld import workdir as workdir_lib
 
 # A few steps: the main job's 100 warm-up steps would not fit.
@@ -167,3 +168,36 @@ def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
     mean_baseline = report["methods"]["dataset_mean"]["abs_inv"]["mean"]
     # ground-truth flow and pose: triangulation is near exact, far better than the mean
     assert exact < 0.1 * mean_baseline
+
+
+def test_evaluate_scores_stored_predictions_and_refuses_a_folder_missing_one(
+    tiny_scenes, tiny_scenes_dir, tmp_path
+):
+    folder = tmp_path / "predictions"
+    folder.mkdir()
+    source = tiny_scenes.as_data_source("test")
+    for batch in input_pipeline.eval_batches(source, batch_size=16, flow_source="gt"):
+        for example_id, depth in zip(batch["id"], batch["depth"], strict=True):
+            np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", depth)
+    workdir = tmp_path / "scored"
+    result = _launch(
+        ["experiments.evaluate", f"--predictions={folder}", f"--workdir={workdir}"],
+        tiny_scenes_dir,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((workdir / "eval" / "metrics.json").read_text())
+    assert list(report["methods"]) == ["stored_predictions", "dataset_mean", "oracle_pair_median"]
+    assert report["methods"]["stored_predictions"]["abs_inv"]["mean"] == 0.0
+    assert report["methods"]["dataset_mean"]["abs_inv"]["mean"] > 0.01
+    assert "| stored_predictions | 0.0000 ± 0.0000 |" in result.stdout
+
+    missing = sorted(folder.iterdir())[3]
+    missing.unlink()
+    refused_dir = tmp_path / "refused"
+    refused = _launch(
+        ["experiments.evaluate", f"--predictions={folder}", f"--workdir={refused_dir}"],
+        tiny_scenes_dir,
+    )
+    assert refused.returncode != 0
+    assert f"without a <name>.npy or <name>.png: {missing.stem}" in refused.stderr
+    assert not refused_dir.exists()

@@ -3,11 +3,12 @@ carries its references."""
 
 import csv
 
+import cv2
 import numpy as np
 import pytest
 from conftest import tiny_train_config
 
-from gld import evaluation, input_pipeline
+from gld import evaluation, input_pipeline, records, stored_predictions
 from gld import model as model_lib
 from gld import state as state_lib
 from gld import workdir as workdir_lib
@@ -158,3 +159,158 @@ def test_a_pair_without_valid_pixels_does_not_count():
     scored = evaluation.score_batch(depth, batch)
     np.testing.assert_array_equal(scored["example_mask"], [True, False])
     assert float(scored["abs_inv"][0]) == pytest.approx(0.5)
+
+
+def test_an_example_whose_predictions_are_all_excluded_still_counts():
+    batch = {
+        "depth": np.full((2, 4, 4), 2.0, np.float32),
+        "depth_valid": np.ones((2, 4, 4), bool),
+        "example_mask": np.array([True, True]),
+    }
+    depth = np.stack([np.full((4, 4), 4.0), np.zeros((4, 4))]).astype(np.float32)
+    scored = evaluation.score_batch(depth, batch)
+    # Its truth is valid, so it stays among the examples; its errors are NaN, not 0.
+    np.testing.assert_array_equal(scored["example_mask"], [True, True])
+    np.testing.assert_array_equal(scored["excluded_pixels"], [0, 16])
+    assert float(scored["abs_inv"][0]) == pytest.approx(0.25) and np.isnan(scored["abs_inv"][1])
+
+
+def _test_pairs(source):
+    """id -> (normalised depth, valid, raw depth, ||t||) of every test pair."""
+    pairs = {}
+    for batch in input_pipeline.eval_batches(source, batch_size=16, flow_source="gt"):
+        for example_id, depth, valid, real in zip(
+            batch["id"], batch["depth"], batch["depth_valid"], batch["example_mask"], strict=True
+        ):
+            if real:
+                pairs[str(example_id)] = [depth, valid]
+    for index in range(len(source)):
+        raw = records.decode(source[index])
+        pairs[raw["id"]] += [raw["depth1"], float(np.linalg.norm(raw["translation"]))]
+    return pairs
+
+
+def _abs_inv_by_hand(prediction, depth, valid):
+    scored = valid & np.isfinite(prediction) & (prediction > 0)
+    return float(np.abs(1.0 / depth[scored] - 1.0 / prediction[scored].astype(np.float64)).mean())
+
+
+def test_stored_predictions_are_scored_with_the_references(tiny_scenes, tmp_path):
+    source = tiny_scenes.as_data_source("test")
+    folder = tmp_path / "exact"
+    folder.mkdir()
+    for example_id, (depth, *_) in _test_pairs(source).items():
+        np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", depth)
+    report = evaluation.evaluate_workdir(
+        tmp_path / "run",
+        source,
+        train_source=tiny_scenes.as_data_source("train"),
+        height=48,
+        width=64,
+        num_figures=2,
+        predictions=stored_predictions.StoredPredictions(folder),
+        print_fn=lambda _: None,
+    )
+    assert list(report["methods"]) == ["stored_predictions", "dataset_mean", "oracle_pair_median"]
+    stored = report["methods"]["stored_predictions"]
+    assert stored["abs_inv"] == {"mean": 0.0, "std": 0.0, "count": 16}
+    assert stored["abs_rel"]["mean"] == 0.0 and stored["excluded_pixels"]["mean"] == 0.0
+    assert report["excluded_pixels"]["stored_predictions"]["pixels"] == 0
+    assert report["abs_inv_vs_dataset_mean"]["stored_predictions"] == 0.0
+    assert report["predictions"] == str(folder) and report["model"] == "stored_predictions"
+    assert (
+        f"stored predictions from {folder} (normalised depth (||t|| = 1)): 16 at 64x48"
+        in (report["protocol"])
+    )
+    assert len(list((tmp_path / "run" / "eval" / "figures").glob("*.png"))) == 2
+    table = (tmp_path / "run" / "eval" / "table.md").read_text()
+    assert "| stored_predictions | 0.0000 ± 0.0000 |" in table
+    assert "prediction not finite or not positive): none." in table
+
+
+def test_a_constant_stored_prediction_scores_as_the_dataset_mean(tiny_scenes, tmp_path):
+    source = tiny_scenes.as_data_source("test")
+    mean = evaluation.fit_classical("dataset_mean", tiny_scenes.as_data_source("train"))
+    constant = float(mean.predict({"flow": np.zeros((1, 1, 1, 2))})["depth"][0, 0, 0])
+    pairs = _test_pairs(source)
+    for example_id in pairs:
+        # At 8x6: resized to 64x48 by nearest neighbour, still the constant.
+        np.save(
+            tmp_path / f"{stored_predictions.file_stem(example_id)}.npy",
+            np.full((6, 8), constant, np.float32),
+        )
+    predictions = stored_predictions.StoredPredictions(tmp_path)
+    predictions.check(stored_predictions.record_ids_and_baselines(source), height=48, width=64)
+    stored, ids = evaluation.evaluate_predictor(predictions.predict, source, batch_size=5)
+    reference, reference_ids = evaluation.evaluate_predictor(mean.predict, source, batch_size=5)
+    assert ids == reference_ids
+    for name in ("abs_inv", "abs_rel", "s_rmse", "num_pixels", "example_mask"):
+        np.testing.assert_array_equal(stored[name], reference[name], name)
+    by_hand = [
+        _abs_inv_by_hand(np.full((48, 64), constant), pairs[example_id][0], pairs[example_id][1])
+        for example_id in ids[:16]
+    ]
+    np.testing.assert_allclose(stored["abs_inv"][:16], by_hand, rtol=1e-5)
+
+
+def test_raw_png_millimetres_are_scaled_and_their_zeros_excluded(tiny_scenes, tmp_path):
+    source = tiny_scenes.as_data_source("test")
+    pairs = _test_pairs(source)
+    folder = tmp_path / "png"
+    folder.mkdir()
+    expected_abs_inv, expected_excluded = {}, 0
+    for index, (example_id, (depth, valid, raw_depth, baseline)) in enumerate(pairs.items()):
+        # The truth in millimetres, 5-20% too far.
+        millimetres = np.where(valid, raw_depth * (1.05 + 0.01 * index) * 1000, 0.0)
+        assert millimetres.max() < 2**16
+        millimetres = np.round(millimetres).astype(np.uint16)
+        millimetres[:3] = 0  # no prediction in the top rows: excluded and counted
+        cv2.imwrite(str(folder / f"{stored_predictions.file_stem(example_id)}.png"), millimetres)
+        metres = (millimetres.astype(np.float64) * 0.001).astype(np.float32)
+        prediction = (metres.astype(np.float64) / baseline).astype(np.float32)
+        expected_abs_inv[example_id] = _abs_inv_by_hand(prediction, depth, valid)
+        expected_excluded += int(valid[:3].sum())
+    assert expected_excluded > 0
+    report = evaluation.evaluate_workdir(
+        tmp_path / "run",
+        source,
+        height=48,
+        width=64,
+        num_figures=0,
+        with_oracle=False,
+        predictions=stored_predictions.StoredPredictions(folder, depth_scale="raw"),
+        print_fn=lambda _: None,
+    )
+    excluded = report["excluded_pixels"]["stored_predictions"]
+    assert excluded["pixels"] == expected_excluded
+    with (tmp_path / "run" / "eval" / "per_example_stored_predictions.csv").open() as stream:
+        rows = {row["id"]: row for row in csv.DictReader(stream)}
+    assert sorted(rows) == sorted(pairs)
+    for example_id, row in rows.items():
+        assert float(row["abs_inv"]) == pytest.approx(expected_abs_inv[example_id], rel=1e-5)
+        assert float(row["excluded_pixels"]) == pairs[example_id][1][:3].sum()
+    table = (tmp_path / "run" / "eval" / "table.md").read_text()
+    assert f"stored_predictions {expected_excluded:,} of {excluded['valid_pixels']:,}" in table
+    assert "raw depth divided by each pair's ||t||, 16-bit PNG values x 0.001" in table
+
+
+def test_a_bad_prediction_file_stops_the_evaluation_before_anything_is_written(
+    tiny_scenes, tmp_path
+):
+    source = tiny_scenes.as_data_source("test")
+    folder = tmp_path / "predictions"
+    folder.mkdir()
+    for index, example_id in enumerate(_test_pairs(source)):
+        depth = np.full((48, 64), 2.0, np.float32)
+        depth[index % 48, 5] = np.nan if index == 3 else 2.0
+        np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", depth)
+    with pytest.raises(ValueError, match=r"\.npy: 1 NaN or inf value\(s\)"):
+        evaluation.evaluate_workdir(
+            tmp_path / "run",
+            source,
+            height=48,
+            width=64,
+            predictions=stored_predictions.StoredPredictions(folder),
+            print_fn=lambda _: None,
+        )
+    assert not (tmp_path / "run").exists()

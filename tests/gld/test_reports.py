@@ -51,6 +51,67 @@ def test_report_labels_the_oracle_and_gives_each_method_as_a_multiple_of_the_mea
     assert [row["id"] for row in rows] == ["pair/0", "pair/1"]
 
 
+def test_report_counts_the_pixels_each_method_had_excluded(tmp_path):
+    nan = float("nan")
+    results = {
+        # Pair 1 had 30 of its 100 valid pixels excluded; pair 2 had no scored pixel.
+        "other": (
+            {
+                "abs_inv": np.array([0.02, 0.04, nan]),
+                "abs_rel": np.array([0.1, 0.2, nan]),
+                "s_rmse": np.array([0.1, 0.1, nan]),
+                "num_pixels": np.array([100.0, 70.0, 0.0]),
+                "excluded_pixels": np.array([0.0, 30.0, 100.0]),
+                "example_mask": np.array([True, True, True]),
+            },
+            ["pair/0", "pair/1", "pair/2"],
+        ),
+        "dataset_mean": (
+            {
+                "abs_inv": np.array([0.03, 0.05, 0.04]),
+                "abs_rel": np.array([0.1, 0.2, 0.3]),
+                "s_rmse": np.array([0.1, 0.1, 0.1]),
+                "num_pixels": np.array([100.0, 100.0, 100.0]),
+                "excluded_pixels": np.zeros(3),
+                "example_mask": np.array([True, True, True]),
+            },
+            ["pair/0", "pair/1", "pair/2"],
+        ),
+    }
+    report = reports.write_report(
+        tmp_path, results, height=48, width=64, protocol_note="stored predictions from x"
+    )
+    # The errors average over the two scored pairs; the pixel counts over all three.
+    assert report["methods"]["other"]["abs_inv"]["mean"] == pytest.approx(0.03)
+    assert report["methods"]["other"]["abs_inv"]["count"] == 2
+    assert report["excluded_pixels"] == {
+        "other": {
+            "pixels": 130,
+            "valid_pixels": 300,
+            "fraction": pytest.approx(130 / 300),
+            "per_example": pytest.approx(130 / 3),
+            "unscored_examples": 1,
+        },
+        "dataset_mean": {
+            "pixels": 0,
+            "valid_pixels": 300,
+            "fraction": 0.0,
+            "per_example": 0.0,
+            "unscored_examples": 0,
+        },
+    }
+    assert report["protocol"].endswith("no median scaling; stored predictions from x")
+    table = (tmp_path / "table.md").read_text()
+    assert (
+        "Excluded pixels (valid ground truth, prediction not finite or not positive): other 130 "
+        "of 300 (43.33%), 1 example(s) without a scored pixel left out of its means.\n" in table
+    )
+    with (tmp_path / "per_example_other.csv").open() as stream:
+        rows = list(csv.DictReader(stream))
+    assert [row["abs_inv"] for row in rows] == ["0.02", "0.04", "nan"]
+    assert [row["excluded_pixels"] for row in rows] == ["0", "30", "100"]
+
+
 def test_example_figures_are_written_one_per_example(tmp_path):
     rng = np.random.default_rng(0)
     examples = [

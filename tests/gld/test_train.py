@@ -141,6 +141,8 @@ TWO_PROCESS_SCRIPT = textwrap.dedent(
 )
 
 
+# Two processes over gloo: slow; the four-device test covers the sharded step itself.
+@pytest.mark.slow
 def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path):
     import portpicker
 
