@@ -16,9 +16,11 @@ if str(REPO_ROOT) not in sys.path:
 import pytest  # noqa: E402
 
 
-def run_on_cpu_devices(script: str, device_count: int) -> dict:
-    """Runs `script` in a fresh interpreter with `device_count` CPU devices and returns
-    the JSON object it prints on its last line (asserting that it exits cleanly)."""
+def run_python(
+    script: str, *args: str, device_count: int = 1, timeout: int = 300
+) -> subprocess.CompletedProcess:
+    """Runs `script` with `args` in a fresh interpreter on `device_count` CPU devices,
+    from the repository root, and asserts that it exits cleanly."""
     env = dict(
         os.environ,
         XLA_FLAGS=f"--xla_force_host_platform_device_count={device_count}",
@@ -26,9 +28,20 @@ def run_on_cpu_devices(script: str, device_count: int) -> dict:
         PYTHONPATH=str(REPO_ROOT),
     )
     result = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+        [sys.executable, "-c", script, *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=timeout,
     )
     assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def run_on_cpu_devices(script: str, device_count: int) -> dict:
+    """`run_python` on `device_count` devices; the JSON object the script prints last."""
+    result = run_python(script, device_count=device_count)
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 

@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, run_python
 
 
 def _build(*args):
@@ -55,16 +55,7 @@ def test_plain_tfds_builder_call_works_without_tensorflow(tmp_path):
     TensorFlow (TFDS's own default, TFRecord, fails while finalising a split)."""
     if importlib.util.find_spec("tensorflow") is not None:
         pytest.skip("TensorFlow is installed: this checks the TensorFlow-free install")
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    result = subprocess.run(
-        [sys.executable, "-c", _PLAIN_TFDS_BUILD, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=300,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    result = run_python(_PLAIN_TFDS_BUILD, str(tmp_path))
     built = json.loads(result.stdout.strip().splitlines()[-1])
     assert built == {
         "splits": {"train": 32, "test": 16},

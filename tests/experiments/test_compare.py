@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, run_python
 
 
 def _run_compare(data_dir, workdir, *flags):
@@ -122,13 +122,4 @@ def test_compare_flagfiles_parse_with_the_compare_flags():
     )
     paths = sorted(str(p) for p in (REPO_ROOT / "experiments" / "flags").glob("compare_*.flags"))
     assert len(paths) >= 3
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    result = subprocess.run(
-        [sys.executable, "-c", script, *paths],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=120,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
+    run_python(script, *paths, timeout=120)
