@@ -6,11 +6,19 @@ on a whole split.
         --workdir=runs/triangulation [--flow_source=gt]
     python -m experiments.evaluate --predictions=out/other_system --dataset=demon/sun3d \
         --manual_dir=~/demon --workdir=runs/other_system [--predictions_scale=raw]
+    python -m experiments.evaluate --workdir=runs/sun3d --manual_dir=~/demon \
+        --truth_resolution=file
 
 --predictions reads one file per example id, the id's "/" replaced by "__": a 2-D float
 `.npy` of depth or a 16-bit PNG (value x --png_depth_scale = depth); a map at another
 resolution is resized by nearest neighbour (details: `gld.stored_predictions`). A missing
 or bad file stops the run, naming it, before anything is written.
+
+--truth_resolution=file scores every method against the ground truth at the resolution
+of DeMoN's files (640x480 for SUN3D and RGB-D), read from the --manual_dir files by
+example id, each prediction resized to it by nearest neighbour, as DeMoN's evaluation
+does (`data.demon.file_truth`); the default, record, scores at the records' resolution.
+It needs a demon/* dataset and the files it was built from.
 
 Writes <workdir>/eval/: metrics.json, table.md (mean ± std per metric, Abs-Inv as a
 multiple of the dataset mean's, protocol stamp), per_example_<method>.csv and figures/
@@ -24,7 +32,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from gld import stored_predictions
+from gld import metrics, stored_predictions
 
 FLAGS = flags.FLAGS
 
@@ -51,6 +59,14 @@ flags.DEFINE_float(
     stored_predictions.DEFAULT_PNG_DEPTH_SCALE,
     "Depth per unit of a 16-bit PNG prediction (0.001: millimetres to metres); 0 means no "
     "prediction (the pixel is excluded and counted).",
+)
+flags.DEFINE_enum(
+    "truth_resolution",
+    "record",
+    list(metrics.TRUTH_RESOLUTIONS),
+    "Where the ground truth is scored: record (the records' resolution) or file (the "
+    "resolution of DeMoN's files in --manual_dir, read by example id, each prediction "
+    "upsampled by nearest neighbour, as DeMoN evaluates; demon/* datasets only).",
 )
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_integer("batch_size", 16, "Evaluation batch size (last batch padded).")
@@ -88,6 +104,25 @@ def main(argv):
     else:
         config = workdir_lib.load_run_config(FLAGS.workdir)
         dataset = FLAGS.dataset or config.dataset
+    truth = None
+    if FLAGS.truth_resolution == "file":
+        if not dataset.startswith("demon/"):
+            raise app.UsageError(
+                f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
+                f"by example id; {dataset} is not a demon/* dataset, its records are its "
+                f"only ground truth (use --truth_resolution=record)"
+            )
+        if not FLAGS.manual_dir:
+            raise app.UsageError(
+                "--truth_resolution=file needs --manual_dir: the folder of the DeMoN "
+                "files the dataset was built from"
+            )
+        from data.demon import file_truth
+
+        try:
+            truth = file_truth.FileTruth(FLAGS.manual_dir)
+        except FileNotFoundError as error:
+            raise app.UsageError(f"--manual_dir: {error}") from None
     builder = common.prepare_dataset(dataset)
     height, width = common.dataset_resolution(builder)
     train_source = None
@@ -113,7 +148,10 @@ def main(argv):
         classical_method=FLAGS.method,
         predictions=predictions,
         flow_source=FLAGS.flow_source,
+        truth=truth,
     )
+    if truth is not None:
+        truth.close()
 
 
 if __name__ == "__main__":

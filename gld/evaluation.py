@@ -9,13 +9,19 @@ periodic evaluation, `experiments.evaluate`, `experiments.compare` and
 evaluates a trained workdir (or a classical method, or depth maps another system stored,
 `gld.stored_predictions`) with its references on the same examples: the dataset mean and
 the per-pair oracle constant (`gld.reports` writes it).
+
+The ground truth is the records' (`score_batch`) unless a `Truth` is given: then each
+example is scored against the truth it looks up by id, at that truth's resolution, the
+prediction resized to it by centre-aligned nearest neighbour (`score_against_truth`;
+DeMoN's evaluation at its files' resolution, `data.demon.file_truth`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+import collections
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import flax.linen as nn
 import jax
@@ -34,14 +40,76 @@ STORED = "stored_predictions"
 EVAL_KEYS = ("image1", "image2", "flow", "depth", "depth_valid", "example_mask")
 
 
+class Truth(Protocol):
+    """Ground truth at another resolution than the records', looked up by example id
+    (`data.demon.file_truth.FileTruth` reads DeMoN's files)."""
+
+    def check(self, examples: Iterable[tuple[str, float]]) -> None:
+        """Finds the truth of every (id, ||t|| of its record) to be scored and remembers
+        ||t||; raises naming every example it cannot serve, before anything is scored."""
+
+    def shapes(self) -> dict[str, tuple[int, int]]:
+        """id -> (height, width) of its truth, for every checked example."""
+
+    def maps(self, ids: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(depth [h, w] float32 scaled so that ||t|| = 1, 0 where invalid; valid [h, w]
+        bool) of each id, as `input_pipeline.prepare_example` makes a record's."""
+
+    def summary(self) -> dict[str, Any]:
+        """Fields metrics.json records about where the truth came from."""
+
+
 def score_batch(depth: jax.Array, batch: dict) -> dict[str, jax.Array]:
     """Per-example metrics of predicted depth [B, H, W] against the batch's truth, with
     "example_mask": the rows that count (not padding, at least one valid ground-truth
     pixel), the same for every method whatever its predictions."""
     per_example = metrics.depth_metrics(depth, batch["depth"], batch["depth_valid"])
+    return _with_example_mask(per_example, batch["example_mask"])
+
+
+def _with_example_mask(per_example: dict, example_mask) -> dict:
+    """Adds "example_mask": real rows with at least one valid ground-truth pixel."""
     truth_pixels = per_example["num_pixels"] + per_example["excluded_pixels"]
-    per_example["example_mask"] = batch["example_mask"] & (truth_pixels > 0)
+    per_example["example_mask"] = example_mask & (truth_pixels > 0)
     return per_example
+
+
+# One compilation per truth resolution.
+_depth_metrics = jax.jit(metrics.depth_metrics)
+
+
+def score_against_truth(
+    depth: Sequence[np.ndarray], ids: Sequence[str], example_mask: np.ndarray, truth: Truth
+) -> dict[str, np.ndarray]:
+    """Per-example metrics of predictions against `truth`'s maps, with "example_mask"
+    by `score_batch`'s rule.
+
+    Each prediction is resized to its truth's resolution by `metrics.resize_nearest`
+    (the pixel under each truth pixel's centre, DeMoN's rule), then scored over the
+    truth's pixels. Padded rows (mask False) are not looked up.
+
+    Args:
+      depth: B predicted depth maps [h, w] (a [B, h, w] array, or maps of any sizes).
+      ids: [B] example ids.
+      example_mask: [B] bool, the real rows.
+      truth: where each id's ground truth comes from.
+    """
+    example_mask = np.asarray(example_mask, bool)
+    if not len(depth) == len(ids) == len(example_mask):
+        raise ValueError(f"{len(depth)} predictions for {len(ids)} ids")
+    real = [str(i) for i, is_real in zip(ids, example_mask, strict=True) if is_real]
+    truth_maps = iter(truth.maps(real))
+    # A padded row is scored against one invalid pixel: no error, no pixel counted.
+    no_truth = (np.zeros((1, 1), np.float32), np.zeros((1, 1), bool))
+    rows = []
+    for prediction, is_real in zip(depth, example_mask, strict=True):
+        truth_depth, valid = next(truth_maps) if is_real else no_truth
+        prediction = metrics.resize_nearest(np.asarray(prediction, np.float32), *valid.shape)
+        rows.append(_depth_metrics(prediction[None], truth_depth[None], valid[None]))
+    per_example = {
+        name: np.concatenate([np.asarray(row[name]) for row in rows]) for name in rows[0]
+    }
+    return _with_example_mask(per_example, example_mask)
 
 
 def make_eval_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
@@ -54,6 +122,19 @@ def make_eval_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
         return score_batch(outputs["depth"], batch)
 
     return eval_step
+
+
+def make_predict_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
+    """Builds the pure `predict_step(variables, batch) -> {"depth", "example_mask"}`, for
+    scoring on the host against a `Truth`."""
+
+    def predict_step(variables: dict, batch: dict) -> dict:
+        outputs = model.apply(
+            variables, batch["image1"], batch["image2"], batch["flow"], train=False
+        )
+        return {"depth": outputs["depth"], "example_mask": batch["example_mask"]}
+
+    return predict_step
 
 
 def jit_eval_step(eval_step: Callable, mesh: Mesh) -> Callable:
@@ -130,21 +211,37 @@ def evaluate_source(
     max_examples: int = 0,
     eval_step: Callable | None = None,
     progress: bool = False,
+    truth: Truth | None = None,
 ) -> tuple[dict[str, np.ndarray], list[str]]:
     """Per-example metrics of a learned model over a whole split (or its first
     `max_examples`), on all devices of all processes.
 
+    With `truth` (checked), the devices predict and every process scores the global
+    batch on the host (`score_against_truth`); no `eval_step` may then be given.
+
     Returns:
       (name -> [N] values incl. "example_mask", ids [N]); padded rows have mask False.
     """
+    if truth is not None and eval_step is not None:
+        raise ValueError("give eval_step or truth, not both (truth is scored on the host)")
     mesh = mesh or sharding.make_mesh()
     local_batch = sharding.per_process_batch_size(batch_size, mesh)
-    eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
     variables = jax.device_put(variables, sharding.replicated(mesh))
+    if truth is None:
+        eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
 
-    def score(batch):
-        device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
-        return sharding.gather(eval_step(variables, device_batch))
+        def score(batch):
+            device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
+            return sharding.gather(eval_step(variables, device_batch))
+
+    else:
+        predict_step = jit_eval_step(make_predict_step(model=model), mesh)
+
+        def score(batch):
+            device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
+            outputs = sharding.gather(predict_step(variables, device_batch))
+            ids = sharding.gather_strings(batch["id"])
+            return score_against_truth(outputs["depth"], ids, outputs["example_mask"], truth)
 
     batches = split_batches(
         source,
@@ -165,21 +262,32 @@ def evaluate_predictor(
     flow_source: str = "estimated",
     max_examples: int = 0,
     progress: bool = False,
+    truth: Truth | None = None,
 ) -> tuple[dict[str, np.ndarray], list[str]]:
     """Per-example metrics of a host-side predictor over a split (single process).
 
     `predict` gets an example-contract batch (numpy) and returns at least "depth"
-    [B, H, W]; any other [B]-shaped outputs (e.g. "failed") are kept per example.
+    [B, H, W] (with `truth`, which is checked: B maps of any sizes, see
+    `score_against_truth`); any other [B]-shaped outputs (e.g. "failed") are kept per
+    example.
     """
     jit_score = jax.jit(score_batch)
 
     def score(batch):
         outputs = predict(batch)
-        truth = {key: batch[key] for key in ("depth", "depth_valid", "example_mask")}
-        per_example = {k: np.asarray(v) for k, v in jit_score(outputs["depth"], truth).items()}
+        if truth is None:
+            record_truth = {k: batch[k] for k in ("depth", "depth_valid", "example_mask")}
+            per_example = jit_score(outputs["depth"], record_truth)
+        else:
+            per_example = score_against_truth(
+                outputs["depth"], batch["id"], batch["example_mask"], truth
+            )
+        per_example = {key: np.asarray(value) for key, value in per_example.items()}
         for key, value in outputs.items():
+            if key == "depth" or key in per_example:
+                continue
             value = np.asarray(value)
-            if key not in per_example and value.shape == (len(batch["id"]),):
+            if value.shape == (len(batch["id"]),):
                 per_example[key] = value.astype(np.float64)
         return per_example
 
@@ -209,6 +317,22 @@ def fit_classical(name: str, train_source, flow_source: str = "estimated"):
             )
         )
     return method
+
+
+def on_truth(predict: Callable[[dict], dict], truth: Truth) -> Callable[[dict], dict]:
+    """A predictor that reads the batch's ground truth (the per-pair oracle), given each
+    example's `truth` instead: its [h, w] maps at the truth's resolution."""
+
+    def predict_on_truth(batch: dict) -> dict[str, list[np.ndarray]]:
+        maps = truth.maps([str(example_id) for example_id in batch["id"]])
+        return {
+            "depth": [
+                np.asarray(predict({"depth": depth[None], "depth_valid": valid[None]})["depth"])[0]
+                for depth, valid in maps
+            ]
+        }
+
+    return predict_on_truth
 
 
 def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow_source: str, split: str):
@@ -245,6 +369,7 @@ def evaluate_workdir(
     classical_method: str | None = None,
     predictions: stored_predictions.StoredPredictions | None = None,
     flow_source: str | None = None,
+    truth: Truth | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Evaluates a workdir's trained model (or a classical method, or stored predictions)
@@ -256,37 +381,62 @@ def evaluate_workdir(
     constant, with the workdir's flow unless `flow_source` is given. Rows: the method
     (`STORED` for `predictions`), then dataset_mean, then oracle_pair_median.
 
+    Every method is scored against the records' ground truth at (height, width), or,
+    with `truth`, against the truth it looks up by id (`score_against_truth`; stored
+    predictions are then resized straight to each truth's resolution, and the oracle
+    takes its constant from that truth); the stamp says which.
+
     Raises:
-      FileNotFoundError, ValueError: `predictions` lack a file or hold a bad one
-        (`StoredPredictions.check`), before anything is evaluated or written.
+      FileNotFoundError, ValueError: `truth` cannot serve an example, or `predictions`
+        lack a file or hold a bad one (`StoredPredictions.check`), before anything is
+        evaluated or written.
     """
     results, info = {}, {"dataset": dataset, "split": split}
     protocol_note = ""
+    if truth is not None or predictions is not None:
+        examples = stored_predictions.record_ids_and_baselines(
+            input_pipeline.first_records(source, max_examples)
+        )
+    file_resolutions = None
+    if truth is not None:
+        truth.check(examples)
+        file_resolutions = dict(
+            collections.Counter(f"{w}x{h}" for h, w in truth.shapes().values()).most_common()
+        )
+        info.update(truth_resolution="file", truth_resolutions=file_resolutions)
+        info.update(truth.summary())
+    else:
+        info["truth_resolution"] = "record"
+
+    def host_predictor(method_name: str, predict: Callable) -> Callable:
+        return on_truth(predict, truth) if truth is not None and method_name == ORACLE else predict
+
     if classical_method or predictions is not None:
         flow_source = flow_source or "estimated"
         if predictions is not None:
             method, name = predictions, STORED
             predictions.check(
-                stored_predictions.record_ids_and_baselines(
-                    input_pipeline.first_records(source, max_examples)
-                ),
+                examples,
                 height=height,
                 width=width,
+                shapes=truth.shapes() if truth is not None else None,
             )
             protocol_note = predictions.protocol_note()
             info.update(predictions.summary())
         else:
             method = fit_classical(classical_method, train_source, flow_source)
             name = classical_method
+        predict = host_predictor(name, method.predict)
         results[name] = evaluate_predictor(
-            method.predict,
+            predict,
             source,
             batch_size=batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
             progress=True,
+            truth=truth,
         )
-        predict_depth = lambda batch: method.predict(batch)["depth"]  # noqa: E731
+        predict_depth = lambda batch: predict(batch)["depth"]  # noqa: E731
         gt_pixels, seed = 1, 0
         info.update(model=name, flow_source=flow_source)
     else:
@@ -300,6 +450,7 @@ def evaluate_workdir(
             flow_source=flow_source,
             max_examples=max_examples,
             progress=True,
+            truth=truth,
         )
         apply = jax.jit(model.apply)
         predict_depth = lambda batch: apply(  # noqa: E731
@@ -322,22 +473,31 @@ def evaluate_workdir(
             batch_size=batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
+            truth=truth,
         )
         info["dataset_mean_inv_depth"] = mean.inv_depth
     if with_oracle and classical_method != ORACLE and jax.process_index() == 0:
         oracle = fit_classical(ORACLE, train_source, flow_source)
         results[ORACLE] = evaluate_predictor(
-            oracle.predict,
+            host_predictor(ORACLE, oracle.predict),
             source,
             batch_size=batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
+            truth=truth,
         )
     if jax.process_index() != 0:
         return {}
     out_dir = Path(workdir) / "eval"
     report = reports.write_report(
-        out_dir, results, height=height, width=width, info=info, protocol_note=protocol_note
+        out_dir,
+        results,
+        height=height,
+        width=width,
+        info=info,
+        protocol_note=protocol_note,
+        truth_resolution=info["truth_resolution"],
+        file_resolutions=file_resolutions,
     )
     if num_figures:
         evaluated = input_pipeline.first_records(source, max_examples)
@@ -348,7 +508,11 @@ def evaluate_workdir(
             if isinstance(value, np.ndarray)
         }
         batch["id"] = np.array([example["id"] for example in examples])
-        depth_maps = np.asarray(predict_depth(batch))
-        reports.render_examples(out_dir / "figures", examples, list(depth_maps))
+        # Drawn at the records' resolution, next to the records' truth.
+        depth_maps = [
+            metrics.resize_nearest(np.asarray(depth), height, width)
+            for depth in predict_depth(batch)
+        ]
+        reports.render_examples(out_dir / "figures", examples, depth_maps)
     print_fn((out_dir / "table.md").read_text())
     return report

@@ -21,6 +21,9 @@ from gld import geometry
 
 DEPTH_METRICS = ("abs_inv", "abs_rel", "s_rmse")
 METRIC_NAMES = {"abs_inv": "Abs-Inv", "abs_rel": "Abs-Rel", "s_rmse": "S-RMSE"}
+# Where the ground truth is scored (`protocol_stamp`): the records' resolution, or the
+# source files' (DeMoN's, `gld.evaluation.Truth`).
+TRUTH_RESOLUTIONS = ("record", "file")
 
 
 def depth_metrics(
@@ -126,20 +129,50 @@ def summarise(per_example: dict[str, np.ndarray], example_mask: np.ndarray) -> d
     return summary
 
 
-def protocol_stamp(height: int, width: int, num_examples: int, extra: str = "") -> str:
+def protocol_stamp(
+    height: int,
+    width: int,
+    num_examples: int,
+    extra: str = "",
+    *,
+    truth_resolution: str = "record",
+    file_resolutions: Mapping[str, int] | None = None,
+) -> str:
     """One line saying exactly how a table's numbers were computed.
 
-    The evaluation resolution is the records': a dataset builder resizes the ground truth
-    of files of another size (DeMoN's SUN3D and RGB-D files are 640x480) when it writes
-    the records, where DeMoN evaluates against the file's ground truth.
+    Args:
+      height, width: the records' resolution.
+      num_examples: the examples the means are over.
+      extra: appended after a "; ".
+      truth_resolution: a `TRUTH_RESOLUTIONS` name: "record", the records' ground truth
+        (a dataset builder resized that of files of another size, e.g. DeMoN's 640x480
+        SUN3D and RGB-D files, when it wrote the records); "file", the ground truth of
+        the source files, each prediction resized to it by `resize_nearest`, as DeMoN's
+        evaluation does.
+      file_resolutions: with "file", "<W>x<H>" -> how many examples had truth of that size.
     """
+    if truth_resolution not in TRUTH_RESOLUTIONS:
+        raise ValueError(
+            f"unknown truth_resolution {truth_resolution!r}; valid: {TRUTH_RESOLUTIONS}"
+        )
+    if truth_resolution == "file":
+        sizes = ", ".join(f"{count} at {size}" for size, count in (file_resolutions or {}).items())
+        where = (
+            f"ground truth at the source files' resolution ({sizes or 'none'}), read from "
+            f"the files by example id, each prediction resized to it by centre-aligned "
+            f"nearest neighbour as DeMoN's evaluation does (records at {width}x{height} px)"
+        )
+    else:
+        where = (
+            f"ground truth at the records' resolution, {width}x{height} px (source files "
+            f"of another size were resized when the records were built; DeMoN evaluates "
+            f"at the file's, truth_resolution=file)"
+        )
     stamp = (
-        f"protocol: ground truth at the records' resolution, {width}x{height} px (source "
-        f"files of another size were resized when the records were built; DeMoN evaluates "
-        f"at the file's); depth scaled so that ||t|| = 1; every valid ground-truth pixel "
-        f"of each example whose prediction is finite and positive (others excluded and "
-        f"counted, as in DeMoN's metrics); per-example means averaged over {num_examples} "
-        f"examples; no median scaling"
+        f"protocol: {where}; depth scaled so that ||t|| = 1; every valid ground-truth "
+        f"pixel of each example whose prediction is finite and positive (others excluded "
+        f"and counted, as in DeMoN's metrics); per-example means averaged over "
+        f"{num_examples} examples; no median scaling"
     )
     return f"{stamp}; {extra}" if extra else stamp
 

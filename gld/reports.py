@@ -27,6 +27,8 @@ def write_report(
     width: int,
     info: dict[str, Any] | None = None,
     protocol_note: str = "",
+    truth_resolution: str = "record",
+    file_resolutions: dict[str, int] | None = None,
 ) -> dict[str, Any]:
     """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
 
@@ -39,9 +41,11 @@ def write_report(
     Args:
       out_dir: the directory (created).
       results: method name -> (per-example metrics incl. "example_mask", ids).
-      height, width: evaluation resolution, for the protocol stamp.
+      height, width: the records' resolution, for the protocol stamp.
       info: extra fields for metrics.json (dataset, split, step, ...).
       protocol_note: appended to the protocol stamp (e.g. how stored predictions were read).
+      truth_resolution, file_resolutions: where the ground truth was scored, for the
+        stamp (`metrics.protocol_stamp`).
 
     Returns:
       The metrics.json content.
@@ -64,7 +68,14 @@ def write_report(
             for row, example_id in enumerate(ids):
                 if mask[row]:
                     writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
-    stamp = metrics.protocol_stamp(height, width, num_examples, extra=protocol_note)
+    stamp = metrics.protocol_stamp(
+        height,
+        width,
+        num_examples,
+        extra=protocol_note,
+        truth_resolution=truth_resolution,
+        file_resolutions=file_resolutions,
+    )
     labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
     excluded = {method: metrics.excluded_pixels(summary) for method, summary in summaries.items()}
     report = {

@@ -13,7 +13,10 @@ Depth is in the protocol's scale ("normalised": the pair's translation has norm 
 gld's models and DeMoN's network predict) or in the dataset's stored units ("raw", e.g.
 metres), then divided by the pair's ||t|| as the ground truth is. A map at another
 resolution is resized to the evaluation resolution by centre-aligned nearest neighbour
-(`gld.metrics.resize_nearest`, DeMoN's rule); it must have the same aspect ratio.
+(`gld.metrics.resize_nearest`, DeMoN's rule); it must have the same aspect ratio. The
+evaluation resolution is the records', or, when the ground truth is read at the source
+files' resolution (`gld.evaluation.Truth`), each example's truth's (`check(shapes=...)`),
+so that a map is resized once, straight to the pixels it is scored on.
 
     predictions = StoredPredictions("out/other_system", depth_scale="raw")
     predictions.check(record_ids_and_baselines(source), height=192, width=256)
@@ -138,9 +141,12 @@ class StoredPredictions:
         self.depth_scale = depth_scale
         self.png_depth_scale = png_depth_scale
         self._baselines: dict[str, float] = {}
-        self._resolutions: collections.Counter[tuple[int, int]] = collections.Counter()
+        # (file shape, evaluation shape) -> examples.
+        self._resolutions: collections.Counter[tuple[tuple[int, int], tuple[int, int]]] = (
+            collections.Counter()
+        )
         self._suffixes: set[str] = set()
-        self._evaluation_shape: tuple[int, int] | None = None
+        self._shapes: dict[str, tuple[int, int]] = {}
 
     def path(self, example_id: str) -> Path | None:
         """The example's file, None when there is none.
@@ -154,12 +160,22 @@ class StoredPredictions:
             raise ValueError(f"both {found[0].name} and {found[1].name} exist")
         return found[0] if found else None
 
-    def check(self, examples: Iterable[tuple[str, float]], *, height: int, width: int) -> None:
+    def check(
+        self,
+        examples: Iterable[tuple[str, float]],
+        *,
+        height: int,
+        width: int,
+        shapes: Mapping[str, tuple[int, int]] | None = None,
+    ) -> None:
         """Reads the file of every example and remembers its pair's ||t||.
 
         Args:
           examples: (id, ||t||) of each example to be scored (`record_ids_and_baselines`).
-          height, width: the evaluation resolution.
+          height, width: the evaluation resolution (the records').
+          shapes: id -> (height, width) of its ground truth where that is scored at
+            another resolution (`gld.evaluation.Truth.shapes`); `predict` then gives each
+            map at its example's.
 
         Raises:
           FileNotFoundError naming the missing files, ValueError naming the others
@@ -168,6 +184,7 @@ class StoredPredictions:
         """
         missing, problems, stems = [], [], {}
         self._baselines, self._resolutions, self._suffixes = {}, collections.Counter(), set()
+        self._shapes = {}
         for example_id, baseline in examples:
             stem = file_stem(example_id)
             if stems.setdefault(stem, example_id) != example_id:
@@ -184,13 +201,15 @@ class StoredPredictions:
             except ValueError as error:
                 problems.append(str(error))
                 continue
-            if not _same_aspect(shape, height, width):
+            target = tuple((shapes or {}).get(example_id, (height, width)))
+            if not _same_aspect(shape, *target):
                 problems.append(
                     f"{path}: shape {shape}, expected the aspect ratio of the evaluation "
-                    f"resolution [{height}, {width}]"
+                    f"resolution {list(target)}"
                 )
                 continue
-            self._resolutions[shape] += 1
+            self._shapes[example_id] = target
+            self._resolutions[shape, target] += 1
             self._suffixes.add(path.suffix)
         if missing or problems:
             lines = [f"predictions in {self.folder} cannot be scored:"]
@@ -204,30 +223,30 @@ class StoredPredictions:
                 lines.append(f"... and {len(problems) - _NAMED_FILES} more bad file(s)")
             error_type = FileNotFoundError if missing else ValueError
             raise error_type("\n  ".join(lines))
-        self._evaluation_shape = (height, width)
 
-    def predict(self, batch: Mapping[str, Any]) -> dict[str, np.ndarray]:
-        """{'depth': [B, H, W] float32} for the batch's ids, at the resolution of its
-        'depth', in the protocol's scale (||t|| = 1). Call `check` first."""
+    def predict(self, batch: Mapping[str, Any]) -> dict[str, Any]:
+        """{'depth': [B, H, W] float32} for the batch's ids, at the evaluation resolution
+        `check` was given, in the protocol's scale (||t|| = 1); a list of [h, w] maps
+        when the examples' resolutions differ. Call `check` first."""
         ids = [str(example_id) for example_id in batch["id"]]
-        height, width = np.shape(batch["depth"])[1:3]
         unchecked = [example_id for example_id in ids if example_id not in self._baselines]
         if unchecked:
             raise ValueError(f"ids {unchecked[:_NAMED_FILES]} were not checked (call check)")
         maps = []
         for example_id in ids:
             depth = metrics.resize_nearest(
-                load_depth(self.path(example_id), self.png_depth_scale), height, width
+                load_depth(self.path(example_id), self.png_depth_scale), *self._shapes[example_id]
             )
             if self.depth_scale == "raw":
                 # As `input_pipeline.normalise_scale` scales the ground truth.
                 depth = np.asarray(depth, np.float64) / self._baselines[example_id]
             maps.append(np.asarray(depth, np.float32))
+        if len({depth.shape for depth in maps}) > 1:
+            return {"depth": maps}
         return {"depth": np.stack(maps)}
 
     def protocol_note(self) -> str:
         """What the protocol stamp adds for these predictions (after `check`)."""
-        height, width = self._evaluation_shape or (0, 0)
         scale = (
             "normalised depth (||t|| = 1)"
             if self.depth_scale == "normalised"
@@ -236,20 +255,21 @@ class StoredPredictions:
         if ".png" in self._suffixes:
             scale += f", 16-bit PNG values x {self.png_depth_scale:g}"
         resolutions = []
-        for (file_height, file_width), count in sorted(self._resolutions.items()):
-            text = f"{count} at {file_width}x{file_height}"
-            if (file_height, file_width) != (height, width):
+        for (shape, (height, width)), count in sorted(self._resolutions.items()):
+            text = f"{count} at {shape[1]}x{shape[0]}"
+            if shape != (height, width):
                 text += f" resized to {width}x{height} by centre-aligned nearest neighbour"
             resolutions.append(text)
         return f"stored predictions from {self.folder} ({scale}): " + ", ".join(resolutions)
 
     def summary(self) -> dict[str, Any]:
         """The fields metrics.json records about these predictions (after `check`)."""
+        by_file: collections.Counter[str] = collections.Counter()
+        for ((height, width), _), count in self._resolutions.items():
+            by_file[f"{width}x{height}"] += count
         return {
             "predictions": str(self.folder),
             "predictions_depth_scale": self.depth_scale,
             "png_depth_scale": self.png_depth_scale,
-            "prediction_resolutions": {
-                f"{width}x{height}": count for (height, width), count in self._resolutions.items()
-            },
+            "prediction_resolutions": dict(by_file),
         }

@@ -201,3 +201,22 @@ def test_evaluate_scores_stored_predictions_and_refuses_a_folder_missing_one(
     assert refused.returncode != 0
     assert f"without a <name>.npy or <name>.png: {missing.stem}" in refused.stderr
     assert not refused_dir.exists()
+
+
+def test_evaluate_refuses_the_files_resolution_without_demon_files(tiny_scenes_dir, tmp_path):
+    workdir = tmp_path / "refused"
+    result = _launch(
+        [
+            "experiments.evaluate",
+            "--method=dataset_mean",
+            "--truth_resolution=file",
+            f"--workdir={workdir}",
+        ],
+        tiny_scenes_dir,
+    )
+    assert result.returncode != 0
+    assert (
+        "--truth_resolution=file reads the ground truth from DeMoN's HDF5 files by example "
+        "id; gld_scenes/tiny is not a demon/* dataset" in result.stderr
+    )
+    assert not workdir.exists()

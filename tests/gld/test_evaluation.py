@@ -149,6 +149,60 @@ def test_a_learned_model_and_a_host_predictor_go_through_the_same_loop(
         np.testing.assert_allclose(on_host[name][:5], on_devices[name][:5], rtol=1e-5)
 
 
+class _DoubledTruth:
+    """The records' truth at twice their resolution, each pixel repeated 2x2: a
+    prediction resized to it by nearest neighbour scores as at the records'."""
+
+    def __init__(self, source):
+        self.pairs = {key: value[:2] for key, value in _test_pairs(source).items()}
+        self.looked_up = []
+
+    def check(self, examples):
+        assert {example_id for example_id, _ in examples} <= set(self.pairs)
+
+    def shapes(self):
+        return {example_id: (96, 128) for example_id in self.pairs}
+
+    def maps(self, ids):
+        self.looked_up.extend(ids)
+        doubled = lambda image: np.repeat(np.repeat(image, 2, 0), 2, 1)  # noqa: E731
+        return [tuple(doubled(image) for image in self.pairs[example_id]) for example_id in ids]
+
+    def summary(self):
+        return {"truth_files": "doubled records"}
+
+
+def test_a_truth_at_another_resolution_is_scored_in_the_same_loop(tiny_scenes, untrained_workdir):
+    model, variables, _ = workdir_lib.load_trained(untrained_workdir)
+    source = tiny_scenes.as_data_source("test")
+    truth = _DoubledTruth(source)
+    at_records, ids = evaluation.evaluate_source(
+        model, variables, source, batch_size=3, max_examples=5
+    )
+    on_devices, device_ids = evaluation.evaluate_source(
+        model, variables, source, batch_size=3, max_examples=5, truth=truth
+    )
+    # Padded rows are not looked up.
+    assert device_ids == ids and truth.looked_up == ids[:5]
+
+    def predict(batch):
+        outputs = model.apply(variables, batch["image1"], batch["image2"], batch["flow"])
+        return {"depth": outputs["depth"]}
+
+    on_host, _ = evaluation.evaluate_predictor(
+        predict, source, batch_size=3, max_examples=5, truth=truth
+    )
+    for scored in (on_devices, on_host):
+        np.testing.assert_array_equal(scored["example_mask"], [True] * 5 + [False])
+        np.testing.assert_array_equal(scored["num_pixels"][:5], 4 * at_records["num_pixels"][:5])
+        for name in ("abs_inv", "abs_rel", "s_rmse"):
+            np.testing.assert_allclose(scored[name][:5], at_records[name][:5], rtol=1e-5)
+    with pytest.raises(ValueError, match="eval_step or truth"):
+        evaluation.evaluate_source(
+            model, variables, source, batch_size=3, eval_step=len, truth=truth
+        )
+
+
 def test_a_pair_without_valid_pixels_does_not_count():
     depth = np.ones((2, 4, 4), np.float32)
     batch = {

@@ -155,6 +155,24 @@ def test_table_carries_the_protocol_stamp():
     assert "Excluded" not in table
 
 
+def test_the_stamp_says_where_the_truth_was_scored():
+    stamp = metrics.protocol_stamp(
+        192, 256, 80, truth_resolution="file", file_resolutions={"640x480": 79, "320x240": 1}
+    )
+    assert stamp.startswith(
+        "protocol: ground truth at the source files' resolution (79 at 640x480, 1 at "
+        "320x240), read from the files by example id, each prediction resized to it by "
+        "centre-aligned nearest neighbour as DeMoN's evaluation does (records at 256x192 px); "
+        "depth scaled so that ||t|| = 1;"
+    )
+    assert "records' resolution" not in stamp
+    assert "DeMoN evaluates at the file's, truth_resolution=file" in metrics.protocol_stamp(
+        192, 256, 80
+    )
+    with pytest.raises(ValueError, match="unknown truth_resolution 'native'"):
+        metrics.protocol_stamp(192, 256, 80, truth_resolution="native")
+
+
 def test_table_says_how_many_pixels_each_method_had_excluded():
     def summary(excluded_mean, scored_mean, scored_examples):
         values = {

@@ -121,3 +121,25 @@ def test_predictions_are_resized_by_nearest_neighbour_and_brought_to_unit_baseli
     np.testing.assert_allclose(predicted, [depth / 4.0, depth / 0.5, depth / 4.0], rtol=1e-7)
     assert "raw depth divided by each pair's ||t||" in raw.protocol_note()
     assert raw.summary()["prediction_resolutions"] == {"8x6": 1, "16x12": 1}
+
+
+def test_with_truth_shapes_each_map_goes_straight_to_its_examples_resolution(tmp_path):
+    depth = np.random.default_rng(1).uniform(1.0, 9.0, (6, 8)).astype(np.float32)
+    doubled = np.repeat(np.repeat(depth, 2, 0), 2, 1)
+    folder = tmp_path / "predictions"
+    _write_folder(folder, {"a__0.npy": doubled, "a__1.npy": depth})
+    predictions = StoredPredictions(folder)
+    # The records are 8x6; the truth of a/0 is 16x12 (its file's), of a/1 32x24.
+    predictions.check(
+        [("a/0", 1.0), ("a/1", 1.0)], height=6, width=8, shapes={"a/0": (12, 16), "a/1": (24, 32)}
+    )
+    maps = predictions.predict({"id": np.array(["a/0", "a/1"]), "depth": np.zeros((2, 6, 8))})
+    np.testing.assert_array_equal(maps["depth"][0], doubled)  # not through 8x6
+    np.testing.assert_array_equal(maps["depth"][1], np.repeat(np.repeat(depth, 4, 0), 4, 1))
+    assert predictions.protocol_note().endswith(
+        ": 1 at 8x6 resized to 32x24 by centre-aligned nearest neighbour, 1 at 16x12"
+    )
+    with pytest.raises(
+        ValueError, match=r"expected the aspect ratio of the evaluation resolution \[12, 12\]"
+    ):
+        predictions.check([("a/0", 1.0)], height=6, width=8, shapes={"a/0": (12, 12)})
