@@ -74,7 +74,7 @@ def test_positive_finite_predictions_score_exactly_as_before_masking():
         for name, values in before.items():
             np.testing.assert_array_equal(np.asarray(now[name]), np.asarray(values), name)
         np.testing.assert_array_equal(now["excluded_pixels"], 0)
-    # The old formula scored the 25 non-positive pixels of issue 11 as 1e-12 depth.
+    # The old formula scored 25 non-positive pixels as 1e-12 depth: Abs-Inv ~1e9.
     prediction[1, :5, :5] = 0.0
     before = _depth_metrics_before_masking(prediction, truth, valid)
     now = metrics.depth_metrics(prediction, truth, valid)
