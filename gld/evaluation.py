@@ -310,11 +310,17 @@ def fit_classical(name: str, train_source, flow_source: str = "estimated"):
         raise ValueError(f"unknown classical method {name!r}; valid: {sorted(classical.CLASSICAL)}")
     method = classical.CLASSICAL[name]()
     if method.needs_training_data:
+        # Only the truth is read: the other fields are neither flipped nor batched.
+        fit_keys = ("depth", "depth_valid")
+        batches = split_batches(
+            train_source,
+            batch_size=16,
+            flow_source=flow_source,
+            keys=fit_keys,
+            all_processes=False,
+        )
         method.fit(
-            {key: batch[key][batch["example_mask"]] for key in ("depth", "depth_valid")}
-            for batch in input_pipeline.eval_batches(
-                train_source, batch_size=16, flow_source=flow_source
-            )
+            {key: batch[key][batch["example_mask"]] for key in fit_keys} for batch in batches
         )
     return method
 
@@ -465,27 +471,23 @@ def evaluate_workdir(
             step=int(manager.latest_step() if step is None else step),
         )
         manager.close()
-    if with_dataset_mean and train_source is not None and jax.process_index() == 0:
-        mean = fit_classical("dataset_mean", train_source, flow_source)
-        results["dataset_mean"] = evaluate_predictor(
-            mean.predict,
+    references = []
+    if with_dataset_mean and train_source is not None:
+        references.append("dataset_mean")
+    if with_oracle and classical_method != ORACLE:
+        references.append(ORACLE)
+    for reference in references if jax.process_index() == 0 else []:
+        fitted = fit_classical(reference, train_source, flow_source)
+        results[reference] = evaluate_predictor(
+            host_predictor(reference, fitted.predict),
             source,
             batch_size=batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
             truth=truth,
         )
-        info["dataset_mean_inv_depth"] = mean.inv_depth
-    if with_oracle and classical_method != ORACLE and jax.process_index() == 0:
-        oracle = fit_classical(ORACLE, train_source, flow_source)
-        results[ORACLE] = evaluate_predictor(
-            host_predictor(ORACLE, oracle.predict),
-            source,
-            batch_size=batch_size,
-            flow_source=flow_source,
-            max_examples=max_examples,
-            truth=truth,
-        )
+        if reference == "dataset_mean":
+            info["dataset_mean_inv_depth"] = fitted.inv_depth
     if jax.process_index() != 0:
         return {}
     out_dir = Path(workdir) / "eval"
