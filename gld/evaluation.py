@@ -184,20 +184,21 @@ def split_batches(
 
 def evaluate_batches(
     batches,
-    score: Callable[[dict[str, np.ndarray]], dict[str, Any]],
+    score: Callable[[dict[str, np.ndarray], list[str]], dict[str, Any]],
     *,
     all_processes: bool = True,
 ) -> tuple[dict[str, np.ndarray], list[str]]:
-    """The evaluation loop: `score(batch)` ([B]-shaped values incl. "example_mask") over
-    all batches, concatenated, with the examples' ids (of every process's rows when
-    `all_processes`, as `score` then returns them)."""
+    """The evaluation loop: `score(batch, ids)` ([B]-shaped values incl. "example_mask")
+    over all batches, concatenated, with the examples' ids. When `all_processes`, `ids`
+    are every process's rows (gathered once per batch), as `score` then returns them."""
     collected: dict[str, list] = {}
-    ids: list[str] = []
+    all_ids: list[str] = []
     for batch in batches:
-        for name, values in score(batch).items():
+        ids = sharding.gather_strings(batch["id"]) if all_processes else list(map(str, batch["id"]))
+        for name, values in score(batch, ids).items():
             collected.setdefault(name, []).append(np.asarray(values))
-        ids.extend(sharding.gather_strings(batch["id"]) if all_processes else map(str, batch["id"]))
-    return {name: np.concatenate(values) for name, values in collected.items()}, ids
+        all_ids.extend(ids)
+    return {name: np.concatenate(values) for name, values in collected.items()}, all_ids
 
 
 def evaluate_source(
@@ -230,17 +231,16 @@ def evaluate_source(
     if truth is None:
         eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
 
-        def score(batch):
+        def score(batch, ids):
             device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
             return sharding.gather(eval_step(variables, device_batch))
 
     else:
         predict_step = jit_eval_step(make_predict_step(model=model), mesh)
 
-        def score(batch):
+        def score(batch, ids):
             device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
             outputs = sharding.gather(predict_step(variables, device_batch))
-            ids = sharding.gather_strings(batch["id"])
             return score_against_truth(outputs["depth"], ids, outputs["example_mask"], truth)
 
     batches = split_batches(
@@ -273,15 +273,13 @@ def evaluate_predictor(
     """
     jit_score = jax.jit(score_batch)
 
-    def score(batch):
+    def score(batch, ids):
         outputs = predict(batch)
         if truth is None:
             record_truth = {k: batch[k] for k in ("depth", "depth_valid", "example_mask")}
             per_example = jit_score(outputs["depth"], record_truth)
         else:
-            per_example = score_against_truth(
-                outputs["depth"], batch["id"], batch["example_mask"], truth
-            )
+            per_example = score_against_truth(outputs["depth"], ids, batch["example_mask"], truth)
         per_example = {key: np.asarray(value) for key, value in per_example.items()}
         for key, value in outputs.items():
             if key == "depth" or key in per_example:

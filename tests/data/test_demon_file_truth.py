@@ -183,13 +183,18 @@ def test_scores_at_the_files_resolution_follow_demons_rule(demon_sun3d, tmp_path
     assert len(list((tmp_path / "run" / "eval" / "figures").glob("*.png"))) == 1
 
 
-def test_an_exact_prediction_at_the_files_resolution_scores_zero(demon_sun3d, tmp_path):
-    manual_dir, builder, expected = demon_sun3d
-    folder = tmp_path / "exact"
+def _exact_predictions(expected, folder):
+    """The files' own depth, in metres, as another system's stored predictions."""
     folder.mkdir()
     for example_id, (file_depth, _) in expected.items():
         raw = np.where(np.isfinite(file_depth), file_depth, 0.0).astype(np.float32)
         np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", raw)
+    return folder
+
+
+def test_an_exact_prediction_at_the_files_resolution_scores_zero(demon_sun3d, tmp_path):
+    manual_dir, builder, expected = demon_sun3d
+    folder = _exact_predictions(expected, tmp_path / "exact")
     with file_truth.FileTruth(manual_dir) as truth:
         report = evaluation.evaluate_workdir(
             tmp_path / "run",
@@ -215,11 +220,7 @@ def test_an_exact_prediction_at_the_files_resolution_scores_zero(demon_sun3d, tm
 
 def test_evaluate_scores_at_the_files_resolution_end_to_end(demon_sun3d, tmp_path):
     manual_dir, builder, expected = demon_sun3d
-    folder = tmp_path / "exact"
-    folder.mkdir()
-    for example_id, (file_depth, _) in expected.items():
-        raw = np.where(np.isfinite(file_depth), file_depth, 0.0).astype(np.float32)
-        np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", raw)
+    folder = _exact_predictions(expected, tmp_path / "exact")
     workdir = tmp_path / "run"
     command = [
         sys.executable,
