@@ -10,15 +10,30 @@ plain TFDS API works without TensorFlow too once the builder module is imported:
 
 (`tfds build` does not: TFDS's command line imports TensorFlow at start-up, so
 `python -m data.build` is the command line.)
+
+A built dataset is reused, never silently rebuilt, and never reused for other input:
+a builder that reads a manual directory records the fingerprints of the files it
+read (`data.sources`), and every builder with options records them per split
+(`builder.info.metadata["build_options"]`). `prepare()` compares them with what it
+is given and refuses a mismatch; `rebuild=True` builds again (see `prepare`).
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import os
+import shutil
+import tempfile
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import tensorflow_datasets as tfds
+
+from data import sources
+
+_LOGGER = logging.getLogger(__name__)
 
 # Dataset name -> module holding its `Builder` class.
 DATASETS = {
@@ -62,16 +77,119 @@ def get_builder(
     return builder_class(name)(config=config, data_dir=str(data_dir), **builder_kwargs)
 
 
+def reuse_problems(
+    builder: tfds.core.GeneratorBasedBuilder,
+    manual_dir: str | os.PathLike | None,
+    builder_kwargs: Mapping[str, Any],
+) -> list[str]:
+    """Why a built dataset does not match the input now given, one line per difference.
+
+    Compared: every option given in `builder_kwargs` (None values leave an option to
+    the build) that the builder records in `metadata["build_options"]`, against the
+    value it was built with; and, when `manual_dir` is given and the builder reads one
+    (it defines `source_files(manual_dir) -> {split: [paths]}`), the files it would
+    read now against the recorded `metadata["sources"]` (`sources.changes`).
+
+    Args:
+      builder: a builder whose dataset is built (`builder.is_prepared()`).
+      manual_dir: the manual directory now given, or None (not compared).
+      builder_kwargs: the builder options now given.
+    """
+    metadata = builder.info.metadata or {}
+    problems = []
+    given = {key: value for key, value in builder_kwargs.items() if value is not None}
+    if given and hasattr(builder, "build_options"):
+        for split, recorded in sorted(metadata.get("build_options", {}).items()):
+            current = builder.build_options(split)
+            for key in sorted(given):
+                if key in recorded and key in current and current[key] != recorded[key]:
+                    problems.append(
+                        f"{split} split: {key}={current[key]!r} given, built with "
+                        f"{key}={recorded[key]!r}"
+                    )
+    if manual_dir is not None and hasattr(builder, "source_files"):
+        recorded_sources = metadata.get("sources")
+        if recorded_sources is None:
+            _LOGGER.warning(
+                "%s records no source files (built by an earlier gld); it cannot be checked "
+                "against %s. Rebuild it (python -m data.build ... --rebuild) to record them.",
+                builder.data_path,
+                manual_dir,
+            )
+        else:
+            current = sources.fingerprints(builder.source_files(Path(manual_dir).expanduser()))
+            problems.extend(sources.changes(recorded_sources, current))
+    return problems
+
+
+def _rebuild(
+    dataset: str,
+    data_dir: str | os.PathLike | None,
+    download_config: tfds.download.DownloadConfig,
+    builder_kwargs: Mapping[str, Any],
+) -> tfds.core.GeneratorBasedBuilder:
+    """Builds `dataset` in a staging folder under `data_dir`, then puts it in place of
+    the built one; a build that fails leaves the built dataset as it was."""
+    root = Path(data_dir or DEFAULT_DATA_DIR)
+    target = Path(get_builder(dataset, root, **builder_kwargs).data_path)
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".rebuild-", dir=root))
+    try:
+        staged = get_builder(dataset, staging, **builder_kwargs)
+        staged.download_and_prepare(download_config=download_config)
+        if target.exists():
+            target.rename(staging / "replaced")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        Path(staged.data_path).rename(target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return get_builder(dataset, root, **builder_kwargs)
+
+
 def prepare(
     dataset: str,
     data_dir: str | os.PathLike | None = None,
     manual_dir: str | os.PathLike | None = None,
+    *,
+    rebuild: bool = False,
     **builder_kwargs,
 ) -> tfds.core.GeneratorBasedBuilder:
-    """Builds `dataset` if it is not built yet and returns its builder."""
+    """Builds `dataset` if it is not built yet and returns its builder.
+
+    A built dataset is reused when it matches what is given (`reuse_problems`): the
+    files of `manual_dir`, if given, and the options in `builder_kwargs`. Without
+    `manual_dir` it is reused as it is.
+
+    Args:
+      dataset: 'name/config', e.g. 'demon/custom'.
+      data_dir: where built datasets live (default `DEFAULT_DATA_DIR`).
+      manual_dir: the manual-download directory the builder reads, if it reads one.
+      rebuild: build again even if built; the new build replaces the old one only
+        once it has succeeded.
+      **builder_kwargs: the builder's options.
+
+    Raises:
+      ValueError: the built dataset was made from other files or options than those
+        given (each difference named), unless `rebuild`.
+    """
     builder = get_builder(dataset, data_dir, **builder_kwargs)
     download_config = tfds.download.DownloadConfig(
-        manual_dir=str(manual_dir) if manual_dir else None
+        manual_dir=str(Path(manual_dir).expanduser()) if manual_dir else None
     )
+    # (is_prepared() alone warns about a folder that does not exist yet.)
+    if builder.data_path.exists() and builder.is_prepared():
+        if rebuild:
+            return _rebuild(dataset, data_dir, download_config, builder_kwargs)
+        problems = reuse_problems(builder, manual_dir, builder_kwargs)
+        if problems:
+            raise ValueError(
+                f"{dataset} in {builder.data_path} was built from other input than given:\n  "
+                + "\n  ".join(problems)
+                + f"\nTo replace it, build it again: python -m data.build --dataset={dataset} "
+                f"--data_dir={data_dir or DEFAULT_DATA_DIR} --manual_dir={manual_dir or '...'} "
+                "--rebuild (or data.prepare(..., rebuild=True)). To keep it, build into "
+                "another --data_dir, or leave out --manual_dir and the build options to use "
+                "it as it is."
+            )
     builder.download_and_prepare(download_config=download_config)
     return builder

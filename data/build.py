@@ -8,7 +8,13 @@ r"""Builds a gld dataset without TensorFlow (`tfds build` imports TensorFlow at 
         --data_dir=datasets_demon_cpp_reader   # WebP as DeMoN's C++ reader (needs `webp`)
 
 Launchers build on first use too; this command exposes the builders' options. A
-built dataset is reused as it is: build with other options into another --data_dir.
+built dataset is reused only for the files and options it was built from: given
+another --manual_dir content or other options, the command stops and names the
+differences. Then build into another --data_dir, or replace the dataset:
+
+    python -m data.build --dataset=demon/custom --manual_dir=~/robot2 --rebuild
+
+(the old dataset stays in place until the new build has succeeded).
 """
 
 from __future__ import annotations
@@ -23,6 +29,12 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("dataset", "gld_scenes/small", "Dataset with config, e.g. gld_scenes/full.")
 flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
 flags.DEFINE_string("manual_dir", None, "Manual-download dir (DeMoN .h5 files).")
+flags.DEFINE_bool(
+    "rebuild",
+    False,
+    "Build again even if built (e.g. from changed --manual_dir files or with other "
+    "options); the built dataset is replaced once the new build has succeeded.",
+)
 flags.DEFINE_integer("workers", None, "gld_scenes: rendering processes.")
 flags.DEFINE_bool("strict", None, "demon: fail at the first damaged pair.")
 flags.DEFINE_float("max_bad_fraction", None, "demon: fail when more pairs than this are bad.")
@@ -55,7 +67,9 @@ def main(argv):
     names = ("workers", "strict", "max_bad_fraction", "verify_checksums", "flow_estimator")
     names += ("min_relative_baseline", "depth_resampling", "image_decoder")
     options = {name: FLAGS[name].value for name in names if FLAGS[name].value is not None}
-    builder = data.prepare(FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, **options)
+    builder = data.prepare(
+        FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, rebuild=FLAGS.rebuild, **options
+    )
     for split, info in builder.info.splits.items():
         print(f"{FLAGS.dataset} {split}: {info.num_examples} pairs")
     print(f"built in {builder.data_dir}")

@@ -41,6 +41,15 @@ Output: `<output_dir>/custom_<split>.h5` (`custom_<split>_<recording>.h5` with
 (pairs across the boundary are dropped, so no test frame is seen in training).
 Images are WebP (lossless by default), depth float16 LZ4 blocks.
 
+All or nothing: the files are written under temporary names in `--output_dir` and
+renamed into place only when every split asked for has at least one pair; a run that
+fails or finds no pair writes nothing (and exits non-zero). An existing output file
+is replaced only with `--overwrite`. Every number read is checked (finite poses that
+are rotations, intrinsics with fx, fy > 0 and the principal point inside the image,
+range readings finite and > 0 inside the image, depth images without negative values;
+0, NaN and inf in a depth image mean "no reading"), and an error names the file and
+line. `--recording` is a plain name (letters, digits, '_', '-', '.').
+
 This module is the command line only: `recordings` reads the inputs and
 `writer.write_recording` pairs, splits and writes them.
 """
@@ -78,6 +87,7 @@ flags.DEFINE_enum("split", "train", ("train", "test"), "Split when test_fraction
 flags.DEFINE_string("recording", None, "Name suffix: custom_<split>_<recording>.h5.")
 flags.DEFINE_integer("webp_quality", 101, "WebP quality; > 100 is lossless.")
 flags.DEFINE_float("max_time_difference", 0.02, "Seconds between image and pose stamps.")
+flags.DEFINE_bool("overwrite", False, "Replace output files that exist already.")
 
 
 def main(argv: Sequence[str]) -> None:
@@ -102,6 +112,7 @@ def main(argv: Sequence[str]) -> None:
         recording=values.recording,
         webp_quality=values.webp_quality,
         max_time_difference=values.max_time_difference,
+        overwrite=values.overwrite,
     )
     for split_name, path in result["files"].items():
         print(f"{path}: {result['pairs'][split_name]} pairs ({split_name})")

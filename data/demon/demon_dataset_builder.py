@@ -6,7 +6,10 @@ unnormalised relative pose, DIS flow and ground-truth flow), read as DeMoN's own
 reader reads it (data/demon/README.md lists what matches and what is optional).
 Damaged pairs are skipped and counted by reason; the report is printed and stored
 in the dataset's metadata (`builder.info.metadata["build_report"]`), next to the
-options the records were built with (`["build_options"]`).
+options the records were built with (`["build_options"]`) and the fingerprints of the
+files they were built from (`["sources"]`, see `data.sources`; `data.prepare` refuses
+to reuse the dataset for other files or options). Every input file is checked
+(`reader.check_files`) before any split is built.
 
     data.prepare("demon/sun3d", data_dir, manual_dir="~/demon", strict=True)
 
@@ -32,6 +35,7 @@ from typing import Any
 import tensorflow_datasets as tfds
 
 import data
+from data import sources
 from data.demon import checksums, pairs, reader
 from gld import flow as flow_lib
 from gld import records
@@ -197,6 +201,20 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             metadata=tfds.core.MetadataDict(),
         )
 
+    def source_files(self, manual_dir: Path) -> dict[str, list[Path]]:
+        """Split -> the files of the split present in `manual_dir`, sorted; splits
+        without any left out. (`data.prepare` compares them with a build's sources.)"""
+        config: DemonConfig = self.builder_config
+        found: dict[str, list[Path]] = {}
+        for split, names in (("train", config.train_files), ("test", config.test_files)):
+            if config.globs:
+                paths = sorted({path for name in names for path in manual_dir.glob(name)})
+            else:
+                paths = [manual_dir / name for name in names if (manual_dir / name).is_file()]
+            if paths:
+                found[split] = paths
+        return found
+
     def _split_files(self, manual_dir: Path) -> dict[str, list[Path]]:
         """Split -> files present in the manual directory (splits without files left out)."""
         config: DemonConfig = self.builder_config
@@ -208,29 +226,24 @@ class Builder(tfds.core.GeneratorBasedBuilder):
                 if not (manual_dir / fixed).exists():
                     raise ValueError(checksums.leaky_file_message(leaky))
                 _LOGGER.warning("ignoring %s: %s", leaky, checksums.leaky_file_message(leaky))
-        found: dict[str, list[Path]] = {}
-        for split, names in (("train", config.train_files), ("test", config.test_files)):
-            if config.globs:
-                paths = sorted({path for name in names for path in manual_dir.glob(name)})
-                if paths:
-                    found[split] = paths
-                continue
-            missing = [name for name in names if not (manual_dir / name).is_file()]
-            if len(missing) == len(names):
-                _LOGGER.warning(
-                    "demon/%s: no %s files in %s; the %s split is left out",
-                    config.name,
-                    split,
-                    manual_dir,
-                    split,
-                )
-                continue
-            if missing:
-                raise FileNotFoundError(
-                    f"demon/{config.name} {split} split: missing {missing} in {manual_dir}.\n"
-                    + MANUAL_DOWNLOAD_INSTRUCTIONS
-                )
-            found[split] = [manual_dir / name for name in names]
+        found = self.source_files(manual_dir)
+        if not config.globs:
+            for split, names in (("train", config.train_files), ("test", config.test_files)):
+                if split not in found:
+                    _LOGGER.warning(
+                        "demon/%s: no %s files in %s; the %s split is left out",
+                        config.name,
+                        split,
+                        manual_dir,
+                        split,
+                    )
+                    continue
+                missing = [name for name in names if not (manual_dir / name).is_file()]
+                if missing:
+                    raise FileNotFoundError(
+                        f"demon/{config.name} {split} split: missing {missing} in {manual_dir}.\n"
+                        + MANUAL_DOWNLOAD_INSTRUCTIONS
+                    )
         if not found:
             expected = list(config.train_files) + list(config.test_files)
             raise FileNotFoundError(
@@ -241,14 +254,21 @@ class Builder(tfds.core.GeneratorBasedBuilder):
 
     def _split_generators(self, dl_manager: tfds.download.DownloadManager):
         split_files = self._split_files(Path(dl_manager.manual_dir))
-        for paths in split_files.values():
+        paths = [path for split_paths in split_files.values() for path in split_paths]
+        for path in paths:
+            if checksums.is_leaky_rgbd_file(path.name):
+                raise ValueError(checksums.leaky_file_message(path))
+        # Every file of every split, before any split is built: a broken test file must
+        # not surface only after hours spent on the train split. Structure only (cheap);
+        # the MD5 sums, which read every byte, come after.
+        reader.check_files(paths)
+        if self._verify_checksums:
             for path in paths:
-                if checksums.is_leaky_rgbd_file(path.name):
-                    raise ValueError(checksums.leaky_file_message(path))
-                if self._verify_checksums:
-                    checksums.verify(path)
+                checksums.verify(path)
+        self.info.metadata["sources"] = sources.fingerprints(split_files)
         return {
-            split: self._generate_examples(paths, split) for split, paths in split_files.items()
+            split: self._generate_examples(split_paths, split)
+            for split, split_paths in split_files.items()
         }
 
     def _generate_examples(self, paths: list[Path], split: str):

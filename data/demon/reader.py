@@ -28,6 +28,7 @@ builder can skip the affected pair, count it and go on.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -361,6 +362,53 @@ def viewpoint_pairs(t0_group: h5py.Group, split: str, where: str = "t0") -> list
     else:
         pairs = [(i, j) for i in range(num_views) for j in range(num_views) if i != j]
     return pairs[:1] if split == "test" else pairs
+
+
+def file_problem(path: str | Path) -> str | None:
+    """Why `path` cannot be a DeMoN file, judged from its HDF5 structure alone; None if
+    it can. Nothing is decoded: the file opens (a truncated HDF5 file does not), has
+    scene groups, and one of them has `frames/t0/v0` with image, depth and camera.
+    Damage inside single groups is left to the build, which skips and counts it."""
+    path = Path(path)
+    if not path.is_file():
+        return "does not exist"
+    try:
+        with h5py.File(path, "r") as h5_file:
+            groups = scene_groups(h5_file)
+            if not groups:
+                return "holds no scene groups"
+            for group in groups:
+                try:
+                    view = h5_file.get(f"{group}/frames/t0/v0")
+                    if isinstance(view, h5py.Group) and all(
+                        isinstance(view.get(name), h5py.Dataset)
+                        for name in ("image", "depth", "camera")
+                    ):
+                        return None
+                except (OSError, KeyError, RuntimeError):
+                    continue  # a damaged group; the build skips and counts it
+            return (
+                f"none of its {len(groups)} scene groups has frames/t0/v0 with image, "
+                "depth and camera"
+            )
+    except (OSError, KeyError, RuntimeError) as error:
+        return f"is not a readable HDF5 file ({error})"
+
+
+def check_files(paths: Sequence[str | Path]) -> None:
+    """Checks every file with `file_problem`.
+
+    Raises:
+      ValueError: naming every file that cannot be a DeMoN file, and why.
+    """
+    problems = [(path, file_problem(path)) for path in paths]
+    problems = [f"{path} {problem}" for path, problem in problems if problem]
+    if problems:
+        raise ValueError(
+            f"{len(problems)} of {len(paths)} DeMoN file(s) unusable:\n  "
+            + "\n  ".join(problems)
+            + "\nDownload or convert them again."
+        )
 
 
 class DemonFile:

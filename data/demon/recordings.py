@@ -39,9 +39,17 @@ def quaternion_to_rotation(quaternion: np.ndarray) -> np.ndarray:
     )
 
 
-def _numeric_rows(path: Path, widths: Sequence[int]) -> np.ndarray:
-    """Whitespace/comma separated numbers, one record per line, `#` comments skipped."""
-    rows = []
+def _numeric_rows(path: Path, widths: Sequence[int]) -> tuple[np.ndarray, list[int]]:
+    """Whitespace/comma separated numbers, one record per line, `#` comments skipped.
+
+    Returns:
+      The records [N, width] and the line number (from 1) of each.
+
+    Raises:
+      ValueError: naming the file and line of a record that is not all finite numbers,
+        has a width not in `widths`, or differs in width from the first.
+    """
+    rows, line_numbers = [], []
     for line_number, line in enumerate(path.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].replace(",", " ").strip()
         if not line:
@@ -55,41 +63,90 @@ def _numeric_rows(path: Path, widths: Sequence[int]) -> np.ndarray:
                 f"{path}:{line_number}: expected {' or '.join(map(str, widths))} numbers, "
                 f"got {len(values)}"
             )
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{path}:{line_number}: NaN or infinite value in {line!r}")
+        if rows and len(values) != len(rows[0]):
+            raise ValueError(
+                f"{path}:{line_number}: {len(values)} numbers, but {len(rows[0])} on line "
+                f"{line_numbers[0]}"
+            )
         rows.append(values)
-    if not rows or len({len(row) for row in rows}) != 1:
-        raise ValueError(f"{path}: no records, or records of different lengths")
-    return np.asarray(rows, np.float64)
+        line_numbers.append(line_number)
+    if not rows:
+        raise ValueError(f"{path}: no records")
+    return np.asarray(rows, np.float64), line_numbers
 
 
 def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """TUM `timestamp tx ty tz qx qy qz qw` lines -> timestamps [N], camera-to-world [N, 4, 4]."""
+    """TUM `timestamp tx ty tz qx qy qz qw` lines -> timestamps [N], camera-to-world [N, 4, 4].
+
+    Raises:
+      ValueError: naming the file and line of a value that is not a finite number or
+        of a zero quaternion.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"trajectory {path} does not exist")
-    rows = _numeric_rows(path, (8,))
+    rows, line_numbers = _numeric_rows(path, (8,))
+    norms = np.linalg.norm(rows[:, 4:8], axis=-1)
+    if np.any(norms < 1e-9):
+        line_number = line_numbers[int(np.argmax(norms < 1e-9))]
+        raise ValueError(f"{path}:{line_number}: zero quaternion (qx qy qz qw all 0)")
     camera_to_world = np.tile(np.eye(4), (len(rows), 1, 1))
-    try:
-        camera_to_world[:, :3, :3] = quaternion_to_rotation(rows[:, 4:8])
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
+    camera_to_world[:, :3, :3] = quaternion_to_rotation(rows[:, 4:8])
     camera_to_world[:, :3, 3] = rows[:, 1:4]
     return rows[:, 0], camera_to_world
 
 
+# A pose's rotation block may deviate this much from orthonormal (the builder's
+# tolerance for a camera, `reader.parse_camera`).
+ROTATION_TOLERANCE = 1e-3
+
+
+def check_poses(matrices: np.ndarray, where: Sequence[str]) -> None:
+    """Checks 4x4 rigid poses [N, 4, 4]: finite, a rotation block and last row [0 0 0 1].
+
+    Args:
+      matrices: [N, 4, 4] poses.
+      where: [N] names of the poses' origins in errors ("file:line" or "file[index]").
+
+    Raises:
+      ValueError: naming the first pose that is not a rigid transform.
+    """
+    for index, matrix in enumerate(matrices):
+        if not np.all(np.isfinite(matrix)):
+            raise ValueError(f"{where[index]}: pose contains NaN or inf")
+        if np.abs(matrix[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+            raise ValueError(f"{where[index]}: last row {matrix[3].tolist()} is not [0 0 0 1]")
+        rotation = matrix[:3, :3]
+        error = np.abs(rotation @ rotation.T - np.eye(3)).max()
+        if error > ROTATION_TOLERANCE or np.linalg.det(rotation) < 0:
+            raise ValueError(
+                f"{where[index]}: the upper-left 3x3 block is not a rotation "
+                f"(|R R^T - I| = {error:.2g}, det = {np.linalg.det(rotation):.3g})"
+            )
+
+
 def read_pose_matrices(path: str | Path) -> np.ndarray:
-    """`.npy` [N, 4, 4] or text lines of 16 (or timestamp + 16) numbers -> [N, 4, 4]."""
+    """`.npy` [N, 4, 4] or text lines of 16 (or timestamp + 16) numbers -> [N, 4, 4].
+
+    Raises:
+      ValueError: naming the file and line (or index) of a pose that is not a finite
+        rigid transform (`check_poses`).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"pose file {path} does not exist")
     if path.suffix == ".npy":
         matrices = np.load(path).astype(np.float64)
+        where = [f"{path}[{index}]" for index in range(len(matrices))]
     else:
-        rows = _numeric_rows(path, (16, 17))
+        rows, line_numbers = _numeric_rows(path, (16, 17))
         matrices = rows[:, -16:].reshape(-1, 4, 4)
+        where = [f"{path}:{line_number}" for line_number in line_numbers]
     if matrices.ndim != 3 or matrices.shape[1:] != (4, 4):
         raise ValueError(f"{path}: expected [N, 4, 4] poses, got shape {matrices.shape}")
-    if not np.all(np.isfinite(matrices)):
-        raise ValueError(f"{path}: poses contain NaN or inf")
+    check_poses(matrices, where)
     return matrices
 
 
@@ -104,11 +161,26 @@ def world_to_camera(pose: np.ndarray, direction: str) -> tuple[np.ndarray, np.nd
     return rotation_w2c, -np.einsum("nij,nj->ni", rotation_w2c, translation)
 
 
-def read_intrinsics(spec: str) -> np.ndarray:
-    """`fx,fy,cx,cy` (pixels) or a file with 4 numbers or a 3x3 K -> pixel-index K [3, 3]."""
+def read_intrinsics(spec: str, image_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """`fx,fy,cx,cy` (pixels) or a file with 4 numbers or a 3x3 K -> pixel-index K [3, 3].
+
+    Args:
+      spec: the numbers, or a file holding them.
+      image_shape: (height, width) of the images, if known: the principal point must
+        then lie inside the image.
+
+    Raises:
+      ValueError: naming `spec` when it is not 4 or 9 finite numbers, a focal length
+        is not > 0 or the principal point lies outside the image.
+    """
     path = Path(spec).expanduser()
     if path.is_file():
-        values = np.asarray(path.read_text().replace(",", " ").split(), np.float64)
+        try:
+            values = np.asarray(
+                [float(value) for value in path.read_text().replace(",", " ").split()], np.float64
+            )
+        except ValueError:
+            raise ValueError(f"intrinsics file {path}: not numbers") from None
     else:
         try:
             values = np.asarray([float(value) for value in spec.split(",")], np.float64)
@@ -121,8 +193,16 @@ def read_intrinsics(spec: str) -> np.ndarray:
         fx, fy, cx, cy = matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2]
     else:
         raise ValueError(f"intrinsics {spec!r}: expected 4 numbers or a 3x3 K, got {values.size}")
-    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+    if not (np.isfinite(values).all() and fx > 0 and fy > 0):
         raise ValueError(f"intrinsics {spec!r}: need finite values and fx, fy > 0")
+    if image_shape is not None:
+        height, width = image_shape
+        if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+            raise ValueError(
+                f"intrinsics {spec!r}: principal point ({cx}, {cy}) lies outside the "
+                f"{width}x{height} images (OpenCV pixels: -0.5 to {width - 0.5}, "
+                f"-0.5 to {height - 0.5}); are they for another resolution?"
+            )
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
@@ -217,7 +297,15 @@ def read_image(path: Path) -> np.ndarray:
 
 
 def read_dense_depth(path: Path, scale: float) -> np.ndarray:
-    """A depth image (16-bit PNG, TIFF) or `.npy` -> [H, W] float32 metres, 0 = invalid."""
+    """A depth image (16-bit PNG, TIFF) or `.npy` -> [H, W] float32 metres, 0 = invalid.
+
+    0, NaN and +-inf mean "no reading" (TUM's PNGs store 0; ROS's REP 118 float images
+    NaN and +-inf); a negative value is an error.
+
+    Raises:
+      ValueError: naming the file when it cannot be read, is not [H, W] or holds a
+        negative depth.
+    """
     if path.suffix == ".npy":
         depth = np.load(path)
     else:
@@ -226,14 +314,27 @@ def read_dense_depth(path: Path, scale: float) -> np.ndarray:
             raise ValueError(f"cannot read depth image {path}")
     if depth.ndim != 2:
         raise ValueError(f"depth {path} must be [H, W], got shape {depth.shape}")
-    depth = depth.astype(np.float32) * scale
+    depth = depth.astype(np.float32) * np.float32(scale)
+    negative = np.isfinite(depth) & (depth < 0)
+    if negative.any():
+        row, column = np.argwhere(negative)[0]
+        raise ValueError(
+            f"depth {path}: {int(negative.sum())} negative value(s), e.g. "
+            f"{depth[row, column]} at (u={column}, v={row})"
+        )
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
 
 
 def read_sparse_depth(
     csv_path: Path, image_paths: Sequence[Path], shape: tuple[int, int], scale: float
 ) -> list[np.ndarray]:
-    """CSV `frame,u,v,depth` -> one [H, W] map per image, 0 where there is no reading."""
+    """CSV `frame,u,v,depth` -> one [H, W] map per image, 0 where there is no reading.
+
+    Raises:
+      ValueError: naming the file and line of a row whose frame is not an image, whose
+        u, v or depth is not a finite number, whose pixel lies outside the image or
+        whose depth is not > 0 (a frame without a reading has no row).
+    """
     if not csv_path.is_file():
         raise FileNotFoundError(f"range readings {csv_path} do not exist")
     height, width = shape
@@ -252,6 +353,13 @@ def read_sparse_depth(
                 if line_number == 1:
                     continue  # header
                 raise ValueError(f"{csv_path}:{line_number}: not numbers: {row}") from None
+            if not np.all(np.isfinite([u, v, depth])):
+                raise ValueError(f"{csv_path}:{line_number}: NaN or infinite value in {row}")
+            if depth <= 0:
+                raise ValueError(
+                    f"{csv_path}:{line_number}: depth {depth} is not > 0 (leave out the row "
+                    "of a frame without a reading)"
+                )
             index = index_of.get(frame)
             if index is None and frame.isdigit() and int(frame) < len(image_paths):
                 index = int(frame)
@@ -262,8 +370,7 @@ def read_sparse_depth(
                 raise ValueError(
                     f"{csv_path}:{line_number}: pixel ({u}, {v}) outside the {width}x{height} image"
                 )
-            if np.isfinite(depth) and depth > 0:
-                maps[index][line, column] = depth * scale
+            maps[index][line, column] = depth * scale
     return maps
 
 

@@ -3,12 +3,17 @@
 `write_view` stores a view as DeMoN does (WebP image, LZ4-block float16 depth,
 17-value camera from `demon_camera`); `write_recording` reads a recording
 (`recordings`), pairs its frames, splits them into train and test, and writes
-`custom_<split>.h5` (`output_path`), the files the `demon/custom` config reads.
+`custom_<split>.h5` (`output_path`), the files the `demon/custom` config reads: all
+of them or none, never over an existing file unless asked to.
 """
 
 from __future__ import annotations
 
 import collections
+import os
+import re
+import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,10 +66,75 @@ def write_view(
     dataset.attrs["format"] = np.bytes_("pinhole")
 
 
+# A recording name: letters, digits, '_', '-', '.', not starting with '.', so that the
+# file stays in the output folder and is not hidden.
+_RECORDING_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+
+
 def output_path(output_dir: str | Path, split: str, recording: str | None = None) -> Path:
-    """`custom_<split>.h5` or `custom_<split>_<recording>.h5`, the names `demon/custom` reads."""
+    """`custom_<split>.h5` or `custom_<split>_<recording>.h5`, the names `demon/custom` reads.
+
+    Raises:
+      ValueError: naming `recording` when it is not a plain name (a path separator,
+        '..' or a leading '.' would put the file elsewhere or hide it).
+    """
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    if recording and (not _RECORDING_NAME.fullmatch(recording) or ".." in recording):
+        raise ValueError(
+            f"--recording={recording!r}: a recording name may hold letters, digits, '_', '-' "
+            "and '.' (not first, no '..'); it names custom_<split>_<recording>.h5 inside "
+            "--output_dir"
+        )
     suffix = f"_{recording}" if recording else ""
     return Path(output_dir).expanduser() / f"custom_{split}{suffix}.h5"
+
+
+def _write_pairs(
+    path: Path,
+    pair_list: list[tuple[int, int]],
+    image_paths: list[Path],
+    first_image: np.ndarray,
+    frame_depth: Callable[[int], np.ndarray],
+    cameras: Sequence[np.ndarray],
+    depth_metric: str,
+    webp_quality: int,
+    dropped: collections.Counter,
+) -> int:
+    """Writes one scene group per pair into a new HDF5 file; returns how many.
+
+    Pairs whose frames lack a depth reading are left out and counted in `dropped`.
+    `first_image` [H, W, 3] is frame 0's, the size every image must have.
+    """
+    written = 0
+    with h5py.File(path, "w") as h5_file:
+        h5_file.create_group(".config").attrs["source"] = np.bytes_(str(image_paths[0].parent))
+        for i, j in pair_list:
+            depths = {index: frame_depth(index) for index in (i, j)}
+            if not all(np.any(depth_map > 0) for depth_map in depths.values()):
+                dropped["no_depth_reading"] += 1
+                continue
+            group_name = f"{image_paths[i].stem}__{image_paths[j].stem}"
+            t0 = h5_file.create_group(f"{group_name}/frames/t0")
+            t0.attrs["viewpoint_pairs"] = np.array([0, 1], np.int32)
+            t0.attrs["frames"] = np.array([image_paths[i].name, image_paths[j].name], "S")
+            for view_index, frame in enumerate((i, j)):
+                image = first_image if frame == 0 else recordings.read_image(image_paths[frame])
+                if image.shape != first_image.shape:
+                    raise ValueError(
+                        f"{image_paths[frame]} is {image.shape}, the first image "
+                        f"{first_image.shape}; all images need one size and one camera"
+                    )
+                write_view(
+                    t0.create_group(f"v{view_index}"),
+                    image,
+                    depths[frame],
+                    cameras[frame],
+                    depth_metric,
+                    webp_quality,
+                )
+            written += 1
+    return written
 
 
 def write_recording(
@@ -87,14 +157,23 @@ def write_recording(
     recording: str | None = None,
     webp_quality: int = 101,
     max_time_difference: float = 0.02,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Writes a recording as DeMoN-format file(s), pairing its frames and splitting them.
 
     The arguments are `python -m data.demon.convert`'s flags; its docstring describes
-    the inputs, the pairing and the output.
+    the inputs, the pairing and the output. All or nothing: every file is written to a
+    temporary file in `output_dir` and moved into place only when every split asked
+    for (train and test with `test_fraction` > 0, else `split`) has at least one pair.
 
     Returns:
       {"files": {split: path}, "pairs": {split: count}, "dropped": {reason: count}}.
+
+    Raises:
+      FileExistsError: an output file exists and `overwrite` is False (before anything
+        is read).
+      ValueError: an input is malformed (naming the file and line or the argument), or
+        a split would get no pair; nothing is written then.
     """
     if pose_format not in recordings.POSE_FORMATS:
         raise ValueError(
@@ -108,6 +187,20 @@ def write_recording(
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     if not 0.0 <= test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise ValueError(f"depth_scale must be a finite number > 0, got {depth_scale}")
+    if not max_time_difference >= 0:
+        raise ValueError(f"max_time_difference must be >= 0, got {max_time_difference}")
+    output_dir = Path(output_dir).expanduser()
+    splits = ("train", "test") if test_fraction > 0 else (split,)
+    outputs = {name: output_path(output_dir, name, recording) for name in splits}
+    existing = [str(path) for path in outputs.values() if path.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(
+            f"{', '.join(existing)} already exist(s); pass --overwrite (overwrite=True) to "
+            "replace, or choose another --output_dir or --recording"
+        )
+
     image_paths = recordings.list_images(images)
     if pose_format == "tum":
         timestamps, camera_to_world = recordings.read_tum_trajectory(poses)
@@ -121,10 +214,14 @@ def write_recording(
         image_paths, timestamps, len(rotations), max_time_difference
     )
     rotations, translations = rotations[pose_index], translations[pose_index]
-    camera_matrix = recordings.read_intrinsics(str(intrinsics))
-    centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
-
     first_image = recordings.read_image(image_paths[0])
+    camera_matrix = recordings.read_intrinsics(str(intrinsics), first_image.shape[:2])
+    centres = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
+    cameras = [
+        demon_camera(camera_matrix, rotation, translation)
+        for rotation, translation in zip(rotations, translations, strict=True)
+    ]
+
     depth_path = Path(depth).expanduser()
     if depth_path.is_dir():
         depth_maps = None
@@ -146,48 +243,61 @@ def write_recording(
     )
     dropped: collections.Counter = collections.Counter()
     first_test_frame = int(np.ceil(len(image_paths) * (1.0 - test_fraction)))
-    split_pairs: dict[str, list[tuple[int, int]]] = {}
+    split_pairs: dict[str, list[tuple[int, int]]] = {name: [] for name in splits}
     for pair in candidate_pairs:
         if test_fraction == 0.0:
-            split_pairs.setdefault(split, []).append(pair)
+            split_pairs[split].append(pair)
         elif pair[1] < first_test_frame:
-            split_pairs.setdefault("train", []).append(pair)
+            split_pairs["train"].append(pair)
         elif pair[0] >= first_test_frame:
-            split_pairs.setdefault("test", []).append(pair)
+            split_pairs["test"].append(pair)
         else:
             dropped["crosses_split_boundary"] += 1
+    empty = [name for name, pair_list in split_pairs.items() if not pair_list]
+    if empty:
+        raise ValueError(
+            f"{images}: {len(image_paths)} frames give no {' or '.join(empty)} pairs "
+            f"({len(candidate_pairs)} candidate pairs, frame_gap={frame_gap}, "
+            f"min_baseline={min_baseline}, max_baseline={max_baseline}, "
+            f"test_fraction={test_fraction}, dropped: {dict(dropped)}); nothing written"
+        )
 
-    files, counts = {}, {}
-    for split_name, pair_list in split_pairs.items():
-        path = output_path(output_dir, split_name, recording)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        written = 0
-        with h5py.File(path, "w") as h5_file:
-            h5_file.create_group(".config").attrs["source"] = np.bytes_(str(Path(images)))
-            for i, j in pair_list:
-                depths = {index: frame_depth(index) for index in (i, j)}
-                if not all(np.any(depth_map > 0) for depth_map in depths.values()):
-                    dropped["no_depth_reading"] += 1
-                    continue
-                group_name = f"{image_paths[i].stem}__{image_paths[j].stem}"
-                t0 = h5_file.create_group(f"{group_name}/frames/t0")
-                t0.attrs["viewpoint_pairs"] = np.array([0, 1], np.int32)
-                t0.attrs["frames"] = np.array([image_paths[i].name, image_paths[j].name], "S")
-                for view_index, frame in enumerate((i, j)):
-                    image = first_image if frame == 0 else recordings.read_image(image_paths[frame])
-                    if image.shape != first_image.shape:
-                        raise ValueError(
-                            f"{image_paths[frame]} is {image.shape}, the first image "
-                            f"{first_image.shape}; all images need one size and one camera"
-                        )
-                    write_view(
-                        t0.create_group(f"v{view_index}"),
-                        image,
-                        depths[frame],
-                        demon_camera(camera_matrix, rotations[frame], translations[frame]),
-                        depth_metric,
-                        webp_quality,
-                    )
-                written += 1
-        files[split_name], counts[split_name] = path, written
-    return {"files": files, "pairs": counts, "dropped": dict(dropped)}
+    created_output_dir = not output_dir.exists()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    temporary: dict[str, Path] = {}
+    counts: dict[str, int] = {}
+    try:
+        for split_name, pair_list in split_pairs.items():
+            # A hidden name the builder's globs do not match, in the same folder so that
+            # the final os.replace is a rename.
+            descriptor, name = tempfile.mkstemp(
+                prefix=f".{outputs[split_name].name}.", suffix=".tmp", dir=output_dir
+            )
+            os.close(descriptor)
+            temporary[split_name] = Path(name)
+            counts[split_name] = _write_pairs(
+                temporary[split_name],
+                pair_list,
+                image_paths,
+                first_image,
+                frame_depth,
+                cameras,
+                depth_metric,
+                webp_quality,
+                dropped,
+            )
+        empty = [name for name, count in counts.items() if count == 0]
+        if empty:
+            raise ValueError(
+                f"{images}: no {' or '.join(empty)} pair has a depth reading in both frames "
+                f"(dropped: {dict(dropped)}); nothing written"
+            )
+        for split_name, path in temporary.items():
+            os.replace(path, outputs[split_name])
+    except BaseException:
+        for path in temporary.values():
+            path.unlink(missing_ok=True)
+        if created_output_dir and not any(output_dir.iterdir()):
+            output_dir.rmdir()
+        raise
+    return {"files": dict(outputs), "pairs": counts, "dropped": dict(dropped)}

@@ -4,8 +4,14 @@ import os
 import subprocess
 import sys
 
+import demon_files
+import h5py
+import numpy as np
 import pytest
 from conftest import REPO_ROOT, run_python
+
+import data
+from gld import records
 
 
 def _build(*args):
@@ -64,3 +70,26 @@ def test_plain_tfds_builder_call_works_without_tensorflow(tmp_path):
         "tensorflow_loaded": False,
     }
     assert len(list((tmp_path / "gld_scenes" / "tiny").glob("*/*.array_record-*"))) == 2
+
+
+def test_build_command_rebuilds_from_changed_files_on_request(tmp_path):
+    """--rebuild replaces a demon/custom build made from another recording (which
+    `data.prepare`, and so the command without --rebuild, refuses: test_prepare.py)."""
+    manual_dir = tmp_path / "robot"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(np.random.default_rng(0), 2, 24, 32)
+    recording = manual_dir / "custom_train.h5"
+    with h5py.File(recording, "w") as h5_file:
+        demon_files.write_scene(h5_file, "kitchen", views)
+    data.prepare("demon/custom", tmp_path / "datasets", manual_dir)
+    with h5py.File(recording, "w") as h5_file:  # the same name, another recording
+        demon_files.write_scene(h5_file, "garden", views)
+        demon_files.write_scene(h5_file, "hall", views[::-1])
+    command = ["--dataset=demon/custom", f"--data_dir={tmp_path / 'datasets'}"]
+    command.append(f"--manual_dir={manual_dir}")
+    result = _build(*command, "--rebuild")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "demon/custom train: 2 pairs" in result.stdout
+    builder = data.prepare("demon/custom", tmp_path / "datasets", manual_dir)
+    ids = sorted(records.decode(record)["id"] for record in builder.as_data_source("train"))
+    assert ids == ["custom_train.h5/garden/0-1", "custom_train.h5/hall/0-1"]

@@ -496,6 +496,52 @@ def test_builder_requires_every_file_of_a_split(tmp_path, rng):
         data.prepare("demon/sun3d", tmp_path / "datasets", manual_dir, verify_checksums=False)
 
 
+def test_file_check_reads_structure_only(tmp_path, rng, monkeypatch):
+    path = write_file(tmp_path / "scenes.h5", [("s", demon_files.moving_views(rng, 2, 12, 16))])
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("the file check must not decode images or depth")
+
+    monkeypatch.setattr(reader, "decode_image", no_decoding)
+    monkeypatch.setattr(reader, "decode_depth", no_decoding)
+    reader.check_files([path])
+    no_views = write_file(tmp_path / "no_views.h5", [])
+    with h5py.File(no_views, "a") as h5_file:
+        h5_file.create_group("s/frames/t0")
+    assert "none of its 1 scene groups has frames/t0/v0" in reader.file_problem(no_views)
+
+
+def test_builder_checks_every_file_before_building_any_split(tmp_path, rng, monkeypatch):
+    """A truncated test file fails the build at once, not after the train split."""
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(rng, 2, 12, 16)
+    write_file(manual_dir / "scenes11_train.h5", [("a", views), ("b", views[::-1])])
+    test_file = write_file(manual_dir / "scenes11_test.h5", [("a", views)])
+    test_file.write_bytes(test_file.read_bytes()[: test_file.stat().st_size // 2])
+    generated = []
+    generate = pairs.generate
+
+    def recording_generate(paths, split, **kwargs):
+        generated.append(split)
+        return generate(paths, split, **kwargs)
+
+    monkeypatch.setattr(pairs, "generate", recording_generate)
+    with pytest.raises(ValueError) as error:
+        data.prepare("demon/scenes11", tmp_path / "datasets", manual_dir, verify_checksums=False)
+    assert generated == []  # no split was built
+    assert f"1 of 2 DeMoN file(s) unusable:\n  {test_file} is not a readable HDF5 file" in str(
+        error.value
+    )
+    assert "truncated file" in str(error.value)
+    assert not list((tmp_path / "datasets").rglob("*.array_record*"))
+
+    write_file(manual_dir / "scenes11_train.h5", [])  # an HDF5 file without scenes
+    with pytest.raises(ValueError, match="2 of 2 DeMoN file") as error:
+        data.prepare("demon/scenes11", tmp_path / "datasets", manual_dir, verify_checksums=False)
+    assert f"{manual_dir / 'scenes11_train.h5'} holds no scene groups" in str(error.value)
+
+
 def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
     manual_dir = tmp_path / "manual"
     manual_dir.mkdir()

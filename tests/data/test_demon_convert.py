@@ -12,8 +12,7 @@ import data
 from data.demon import reader
 
 
-def test_command_line_writes_the_file(tmp_path):
-    make_recording(tmp_path / "rec", 3, np.random.default_rng(2))
+def _convert(tmp_path, *flags):
     command = [
         sys.executable,
         "-m",
@@ -24,12 +23,28 @@ def test_command_line_writes_the_file(tmp_path):
         f"--depth={tmp_path / 'rec' / 'depth'}",
         "--depth_scale=0.001",
         f"--output_dir={tmp_path / 'out'}",
-        "--recording=lab",
+        *flags,
     ]
-    completed = subprocess.run(
-        command, capture_output=True, text=True, cwd=data.__path__[0] + "/.."
-    )
+    return subprocess.run(command, capture_output=True, text=True, cwd=data.__path__[0] + "/..")
+
+
+def test_command_line_writes_the_file_and_keeps_it_from_bad_runs(tmp_path):
+    make_recording(tmp_path / "rec", 3, np.random.default_rng(2))
+    completed = _convert(tmp_path, "--recording=lab")
     assert completed.returncode == 0, completed.stderr
     assert "custom_train_lab.h5: 2 pairs (train)" in completed.stdout
-    with reader.DemonFile(tmp_path / "out" / "custom_train_lab.h5") as demon_file:
+    path = tmp_path / "out" / "custom_train_lab.h5"
+    with reader.DemonFile(path) as demon_file:
         assert len(demon_file.groups()) == 2
+    written = path.read_bytes()
+
+    refused = _convert(tmp_path, "--recording=lab", "--frame_gap=2")
+    assert refused.returncode != 0 and "--overwrite" in refused.stderr
+    no_pairs = _convert(tmp_path, "--recording=lab", "--frame_gap=3", "--overwrite")
+    assert no_pairs.returncode != 0 and "3 frames give no train pairs" in no_pairs.stderr
+    assert path.read_bytes() == written
+    assert [file.name for file in (tmp_path / "out").iterdir()] == [path.name]
+
+    replaced = _convert(tmp_path, "--recording=lab", "--frame_gap=2", "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr
+    assert "custom_train_lab.h5: 1 pairs (train)" in replaced.stdout

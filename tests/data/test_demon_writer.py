@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -107,3 +109,84 @@ def test_pose_count_mismatch_names_the_input(tmp_path):
             tmp_path,
             depth=tmp_path / "rec" / "depth",
         )
+
+
+def _convert(tmp_path, output_dir, **options):
+    """`write_recording` of the recording in tmp_path/rec (TUM poses, dense depth)."""
+    return writer.write_recording(
+        tmp_path / "rec" / "rgb",
+        tmp_path / "rec" / "trajectory.txt",
+        f"{FX},{FY},{CX},{CY}",
+        output_dir,
+        depth=tmp_path / "rec" / "depth",
+        depth_scale=0.001,
+        **options,
+    )
+
+
+def _files(folder):
+    """Every file under `folder`, hidden ones included."""
+    return sorted(path.relative_to(folder) for path in folder.rglob("*") if path.is_file())
+
+
+def test_existing_output_is_replaced_only_with_overwrite(tmp_path):
+    names, _, _ = make_recording(tmp_path / "rec", 4, np.random.default_rng(4))
+    out = tmp_path / "out"
+    assert _convert(tmp_path, out)["pairs"] == {"train": 3}
+    written = (out / "custom_train.h5").read_bytes()
+    with pytest.raises(FileExistsError, match=r"custom_train.h5 already exist.*--overwrite"):
+        _convert(tmp_path, out, frame_gap=2)
+    assert (out / "custom_train.h5").read_bytes() == written
+    assert _convert(tmp_path, out, frame_gap=2, overwrite=True)["pairs"] == {"train": 2}
+    with reader.DemonFile(out / "custom_train.h5") as demon_file:
+        assert demon_file.groups() == [f"{names[0]}__{names[2]}", f"{names[1]}__{names[3]}"]
+    assert _files(out) == [Path("custom_train.h5")]  # no temporary file left
+
+
+def test_failed_or_empty_run_writes_nothing(tmp_path):
+    names, _, _ = make_recording(tmp_path / "rec", 4, np.random.default_rng(6))
+    out = tmp_path / "out"
+    _convert(tmp_path, out, test_fraction=0.5)
+    before = {path: (out / path).read_bytes() for path in _files(out)}
+    assert sorted(before) == [Path("custom_test.h5"), Path("custom_train.h5")]
+
+    # Frame 3 has another size: found while writing the test split, after the train one.
+    smaller = np.zeros((HEIGHT // 2, WIDTH // 2, 3), np.uint8)
+    cv2.imwrite(str(tmp_path / "rec" / "rgb" / f"{names[3]}.png"), smaller)
+    with pytest.raises(ValueError, match="all images need one size"):
+        _convert(tmp_path, out, test_fraction=0.5, overwrite=True)
+    assert {path: (out / path).read_bytes() for path in _files(out)} == before
+    with pytest.raises(ValueError, match="all images need one size"):
+        _convert(tmp_path, tmp_path / "fresh", test_fraction=0.5)
+    assert not (tmp_path / "fresh").exists()
+
+    # No pair at all (gap too large), or none with a depth reading in both frames.
+    with pytest.raises(ValueError, match="4 frames give no train pairs"):
+        _convert(tmp_path, out, frame_gap=4, overwrite=True)
+    for name in names:
+        cv2.imwrite(str(tmp_path / "rec" / "depth" / f"{name}.png"), np.zeros((4, 4), np.uint16))
+    with pytest.raises(ValueError, match="no train pair has a depth reading"):
+        _convert(tmp_path, out, frame_gap=2, overwrite=True)
+    assert {path: (out / path).read_bytes() for path in _files(out)} == before
+
+
+def test_recording_name_stays_inside_the_output_folder(tmp_path):
+    make_recording(tmp_path / "rec", 3, np.random.default_rng(8))
+    for name in ("x/../../../name", "..", ".hidden", "a\\b"):
+        with pytest.raises(ValueError, match=f"--recording={name!r}".replace("\\", "\\\\")):
+            _convert(tmp_path, tmp_path / "out" / "deep", recording=name)
+    assert not list(tmp_path.rglob("*.h5"))
+    assert _convert(tmp_path, tmp_path / "out", recording="lab-2.v1")["files"] == {
+        "train": tmp_path / "out" / "custom_train_lab-2.v1.h5"
+    }
+
+
+def test_nan_in_a_pose_line_is_refused_naming_the_line(tmp_path):
+    make_recording(tmp_path / "rec", 3, np.random.default_rng(9))
+    trajectory = tmp_path / "rec" / "trajectory.txt"
+    lines = trajectory.read_text().splitlines()
+    lines[2] = " ".join(["nan" if i == 2 else value for i, value in enumerate(lines[2].split())])
+    trajectory.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"trajectory.txt:3: NaN or infinite value"):
+        _convert(tmp_path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
