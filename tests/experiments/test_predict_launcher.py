@@ -1,0 +1,143 @@
+"""`python -m experiments.predict` end to end in a subprocess: a folder of frames with
+range readings and intrinsics -> metric depth PNGs, previews, point clouds; bad flags
+are refused by name before anything is written; --measure_scale on the tiny benchmark."""
+
+import csv
+import json
+import os
+import re
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from conftest import REPO_ROOT
+
+from gld import depth_io, stored_predictions
+
+HEIGHT, WIDTH = 72, 96  # the tiny model's 4:3 at 1.5x its 64x48
+FX, FY, CX, CY = 80.0, 82.0, 47.0, 35.5
+
+
+def _launch(*args):
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    return subprocess.run(
+        [sys.executable, "-m", "experiments.predict", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=REPO_ROOT,
+        timeout=600,
+    )
+
+
+def _recording(folder):
+    """Four frames of a texture moving right, and range readings on frames 0 and 2."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (HEIGHT, WIDTH + 12, 3), np.uint8), (5, 5), 0)
+    frames = folder / "frames"
+    frames.mkdir()
+    for index in range(4):
+        frame = texture[:, 3 * index : 3 * index + WIDTH]
+        cv2.imwrite(str(frames / f"frame_{index}.png"), frame)
+    ranges = folder / "range.csv"
+    ranges.write_text("frame,u,v,depth\nframe_0,40,30,2.0\n2,10.5,60,3.5\nframe_3,5,5,1.0\n")
+    return frames, ranges
+
+
+def test_predict_writes_metric_depth_previews_and_point_clouds(trained_workdir, tmp_path):
+    frames, ranges = _recording(tmp_path)
+    out = tmp_path / "out"
+    result = _launch(
+        f"--workdir={trained_workdir}",
+        f"--images={frames}",
+        f"--ranges={ranges}",
+        f"--intrinsics={FX},{FY},{CX},{CY}",
+        f"--output_dir={out}",
+        "--batch_size=2",
+        "--previews",
+        "--ply",
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    # Pairs (0, 1), (1, 2), (2, 3); frame 1 has no reading, so its pair is skipped.
+    names = ["frame_0__frame_1", "frame_2__frame_3"]
+    assert "2 pair(s) written" in result.stdout and "1 no range reading" in result.stdout
+    assert sorted(p.stem for p in (out / "depth").iterdir()) == names
+    assert sorted(p.stem for p in (out / "preview").iterdir()) == names
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["units"] == "metres" and summary["depth_format"] == "png"
+    assert summary["pairs_skipped"] == {"no range reading on the first frame": 1}
+    rows = list(csv.DictReader((out / "pairs.csv").open()))
+    assert [row["pair"] for row in rows] == names and rows[0]["scale_source"] == "ranges"
+
+    preview = cv2.imread(str(out / "preview" / f"{names[0]}.png"))
+    assert preview.shape == (HEIGHT, 2 * WIDTH, 3)
+    for name, (u, v, distance) in zip(names, [(40, 30, 2.0), (10.5, 60, 3.5)], strict=True):
+        depth = stored_predictions.load_depth(out / "depth" / f"{name}.png")  # millimetres
+        assert depth.shape == (HEIGHT, WIDTH) and np.all(depth > 0)
+        # The metric map passes through the reading (bilinear, to the PNG's millimetre).
+        column = int(u)
+        weight = u - column
+        at_reading = (1 - weight) * depth[int(v), column] + weight * depth[int(v), column + 1]
+        assert abs(at_reading - distance) < 2e-3
+        cloud = depth_io.read_ply(out / "ply" / f"{name}.ply")
+        points = cloud["points"]
+        assert points.shape == (HEIGHT * WIDTH, 3) and cloud["colours"].shape == points.shape
+        # One point per pixel in row-major order, at the metric depth of the PNG.
+        np.testing.assert_allclose(points[:, 2], depth.reshape(-1), atol=6e-4)
+        row, col = 50, 20
+        np.testing.assert_allclose(
+            points[row * WIDTH + col],
+            np.array([(col - CX) / FX, (row - CY) / FY, 1.0]) * depth[row, col],
+            atol=2e-3,
+        )
+
+
+def test_bad_flags_are_named_before_anything_is_written(trained_workdir, tmp_path):
+    frames, _ = _recording(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    bad_csv = tmp_path / "bad.csv"
+    bad_csv.write_text("frame_0,1,2\n")
+    out = tmp_path / "out"
+    cases = [
+        ([f"--images={tmp_path / 'missing'}"], "--images: image folder .*missing does not exist"),
+        ([f"--images={empty}"], "--images: no images .* in .*empty"),
+        ([f"--images={frames}", "--intrinsics=1,2,3", "--ply"], "--intrinsics: .*expected 4"),
+        ([f"--images={frames}", f"--ranges={bad_csv}"], "--ranges: .*bad.csv:1: expected frame"),
+    ]
+    for args, message in cases:
+        result = _launch(f"--workdir={trained_workdir}", f"--output_dir={out}", *args)
+        assert result.returncode != 0, args
+        assert re.search(message, result.stderr), (message, result.stderr[-2000:])
+        assert not out.exists(), args
+
+
+@pytest.mark.slow  # loads a workdir and a dataset in a subprocess: ~20 s of CPU
+def test_measure_scale_on_the_tiny_benchmark(trained_workdir, tiny_scenes_dir, tmp_path):
+    result = _launch(
+        f"--workdir={trained_workdir}",
+        "--measure_scale",
+        f"--data_dir={tiny_scenes_dir}",
+        "--max_examples=4",
+        "--batch_size=4",
+        f"--output_dir={tmp_path}",
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    stored = json.loads((tmp_path / "scale_recovery.json").read_text())
+    assert stored["num_examples"] == 4 and stored["dataset"].startswith("gld_scenes/tiny")
+    methods = stored["methods"]
+    assert set(methods) == {
+        "true_baseline",
+        "one_reading",
+        "train_mean_baseline",
+        "oracle_best_scale",
+    }
+    for name, entry in methods.items():
+        assert np.isfinite(entry["abs_rel"]) and len(stored["per_example"][name]) == 4
+    # The per-pair best scale is the lower bound of every single-scale method, pair by pair.
+    best = np.asarray(stored["per_example"]["oracle_best_scale"])
+    for name in ("true_baseline", "one_reading", "train_mean_baseline"):
+        assert np.all(best <= np.asarray(stored["per_example"][name]) + 1e-6)
+    assert "training-set mean baseline" in result.stdout
