@@ -33,20 +33,34 @@ def define_flow_source_flag() -> None:
     )
 
 
-def _define(name: str, default: Any, help_text: str, choices: Sequence[str] | None) -> None:
-    """One flag, typed by its choices or its default."""
+def _define(
+    name: str,
+    default: Any,
+    help_text: str,
+    choices: Sequence[str] | None,
+    at_least: float | None = None,
+    above: float | None = None,
+) -> None:
+    """One flag, typed by its choices or its default; a bound is checked when the
+    command line is parsed, so a bad value stops the launcher before it does anything."""
     if choices:
         flags.DEFINE_enum(name, default, list(choices), help_text)
     elif isinstance(default, bool):
         flags.DEFINE_bool(name, default, help_text)
     elif isinstance(default, int):
-        flags.DEFINE_integer(name, default, help_text)
+        flags.DEFINE_integer(name, default, help_text, lower_bound=at_least)
     elif isinstance(default, float):
-        flags.DEFINE_float(name, default, help_text)
+        flags.DEFINE_float(name, default, help_text, lower_bound=at_least)
     elif isinstance(default, list | tuple):
         flags.DEFINE_list(name, [str(value) for value in default], help_text)
     else:
         flags.DEFINE_string(name, default, help_text)
+    if above is not None:
+        flags.register_validator(
+            name,
+            lambda value: value is None or value > above,
+            message=f"--{name} must be above {above}",
+        )
 
 
 def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> None:
@@ -61,7 +75,15 @@ def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> No
         raise ValueError(f"no TrainConfig option(s) {unknown} to give a default")
     for field in fields:
         default = defaults.get(field.name, field.default)
-        _define(field.name, default, field.metadata["help"], field.metadata["choices"])
+        metadata = field.metadata
+        _define(
+            field.name,
+            default,
+            metadata["help"],
+            metadata["choices"],
+            at_least=metadata["at_least"],
+            above=metadata["above"],
+        )
 
 
 def training_options() -> dict[str, Any]:
@@ -79,19 +101,25 @@ def define_architecture_flags() -> None:
     from gld import model
 
     for name, (default, help_text, choices) in model.architecture_options().items():
-        _define(name, default, help_text, choices)
+        minimum = model.ARCHITECTURE_MINIMA.get(name)
+        _define(name, default, help_text, choices, at_least=None if choices else minimum)
 
 
 def architecture_options() -> dict[str, Any]:
     """The global-local model's constructor arguments from the architecture flags (lists
     as ints; an option left at None, like the speed-only formulation, is omitted)."""
+    from absl import app
+
     from gld import model
 
     values = {}
     for name, (default, _, _) in model.architecture_options().items():
         value = FLAGS[name].value
         if isinstance(default, list | tuple):
-            value = [int(item) for item in value]
+            try:
+                value = [int(item) for item in value]
+            except ValueError:
+                raise app.UsageError(f"--{name} must be integers, got {value}") from None
         if value is not None:
             values[name] = value
     return values
@@ -99,26 +127,68 @@ def architecture_options() -> dict[str, Any]:
 
 def define_distributed_flags() -> None:
     flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process).")
-    flags.DEFINE_integer("num_processes", 1, "Number of JAX processes.")
-    flags.DEFINE_integer("process_id", 0, "This process's index.")
+    flags.DEFINE_integer("num_processes", 1, "Number of JAX processes.", lower_bound=1)
+    flags.DEFINE_integer("process_id", 0, "This process's index.", lower_bound=0)
+    flags.DEFINE_integer(
+        "distributed_timeout",
+        300,
+        "Seconds a process waits for all the others to join before it gives up.",
+        lower_bound=1,
+    )
+    flags.register_multi_flags_validator(
+        ["num_processes", "process_id", "coordinator_address"],
+        lambda values: (
+            values["num_processes"] == 1
+            or (values["process_id"] < values["num_processes"] and values["coordinator_address"])
+        ),
+        message="a multi-process run needs --coordinator_address and a --process_id below "
+        "--num_processes",
+    )
 
 
 def initialise() -> None:
     """Quiet library logs (unless --verbosity is given) and start multi-process JAX when
-    --num_processes > 1 (before any device is touched)."""
+    --num_processes > 1 (before any device is touched).
+
+    JAX aborts the process with a C++ stack trace when the others do not join in time;
+    a watchdog stops it a moment earlier with a message saying what to check.
+    """
     from absl import logging
 
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)
     if "num_processes" in FLAGS and FLAGS.num_processes > 1:
+        import sys
+        import threading
+
         import jax
 
+        count, index, timeout = FLAGS.num_processes, FLAGS.process_id, FLAGS.distributed_timeout
+        where = FLAGS.coordinator_address
+        print(f"process {index} of {count}: waiting up to {timeout} s for all at {where}")
+
+        def give_up() -> None:
+            print(
+                f"process {index} of {count}: the {count} processes did not all join at "
+                f"{where} within {timeout} s (--distributed_timeout). Start every process "
+                f"with the same --coordinator_address and --num_processes={count} and its "
+                f"own --process_id in 0..{count - 1}; process 0 must be reachable at {where}.",
+                file=sys.stderr,
+                flush=True,
+            )
+            os._exit(3)
+
+        watchdog = threading.Timer(timeout, give_up)
+        watchdog.daemon = True
+        watchdog.start()
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(
-            coordinator_address=FLAGS.coordinator_address,
-            num_processes=FLAGS.num_processes,
-            process_id=FLAGS.process_id,
+            coordinator_address=where,
+            num_processes=count,
+            process_id=index,
+            initialization_timeout=timeout + 30,
         )
+        watchdog.cancel()
 
 
 def prepare_dataset(dataset: str | None = None):
@@ -134,15 +204,45 @@ def dataset_resolution(builder) -> tuple[int, int]:
     return int(height), int(width)
 
 
-def write_flags(workdir: str | os.PathLike) -> None:
-    """Writes every flag of this run to workdir/flags.txt (a valid --flagfile)."""
+def flags_file_text() -> str:
+    """This run's gld flags (the launcher's, the shared ones and the dataset builders'),
+    one per line: a valid --flagfile for the same launcher. Flags that libraries define
+    (absl logging, grain, jax) are left out; they are not options of the run."""
+    import sys
+
+    own = ("experiments.", "data.", "gld.")
+    lines = []
+    for module, module_flags in FLAGS.flags_by_module_dict().items():
+        if module == sys.argv[0] or module.startswith(own):
+            lines.extend(flag.serialize() for flag in module_flags if flag.name != "flagfile")
+    return "\n".join(sorted(line for line in lines if line)) + "\n"
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    """Writes `text` to `path` through a temporary file in the same folder, so a reader
+    (or a crash) never sees half a file. Process 0 only."""
     import jax
 
     if jax.process_index() != 0:
         return
-    path = Path(workdir)
-    path.mkdir(parents=True, exist_ok=True)
-    (path / "flags.txt").write_text(FLAGS.flags_into_string())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(text)
+    os.replace(temporary, path)
+
+
+def train_config(**values: Any):
+    """The TrainConfig of this launcher's training flags and `values`, checked as a whole
+    (`TrainConfig.validate`) before anything is built or written: a bad value stops the
+    launcher with a usage error naming the option."""
+    from absl import app
+
+    from gld import config
+
+    try:
+        return config.TrainConfig(**{**training_options(), **values}).validate()
+    except ValueError as error:
+        raise app.UsageError(f"--{error}") from None
 
 
 def data_source(builder, split: str):

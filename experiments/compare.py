@@ -215,9 +215,20 @@ def run_comparison(
 def main(argv):
     del argv
     common.initialise()
+    from gld import model as model_lib
+    from gld.baselines import CLASSICAL
+
+    for flag, names, valid in (
+        ("models", FLAGS.models, model_lib.MODELS),
+        ("classical", FLAGS.classical, CLASSICAL),
+    ):
+        unknown = sorted(set(names) - set(valid))
+        if unknown:
+            raise app.UsageError(f"--{flag}: unknown {unknown}; valid: {sorted(valid)}")
+    for name in FLAGS.models:  # every run's options, before anything is built or trained
+        common.train_config(model=name)
     builder = common.prepare_dataset()
     train_config = common.training_options()
-    common.write_flags(FLAGS.workdir)
     run_comparison(
         workdir=FLAGS.workdir,
         builder=builder,
@@ -227,6 +238,10 @@ def main(argv):
         split=FLAGS.split,
         eval_batch_size=FLAGS.eval_batch_size,
         max_examples=FLAGS.max_examples,
+    )
+    # Next to the table it produced: the flags that made it (a valid --flagfile).
+    common.write_text_atomically(
+        Path(FLAGS.workdir) / "compare" / "flags.txt", common.flags_file_text()
     )
 
 

@@ -20,11 +20,15 @@ example id, each prediction resized to it by nearest neighbour, as DeMoN's evalu
 does (`data.demon.file_truth`); the default, record, scores at the records' resolution.
 It needs a demon/* dataset and the files it was built from.
 
-Writes <workdir>/eval/: metrics.json, table.md (mean ± std per metric, Abs-Inv as a
-multiple of the dataset mean's, protocol stamp), per_example_<method>.csv and figures/
-(image 1, ground truth, prediction, error, the supervised pixel circled; one colour
-scale for all). The references (the dataset mean and the per-pair oracle constant, which
-sees the truth) are evaluated alongside on the same examples.
+Writes <workdir>/eval/ for the workdir's own evaluation (latest checkpoint, whole test
+split, its flow and dataset), else <workdir>/eval_<what differs>/ (e.g. eval_train_first2,
+eval_step500, eval_flow-gt, eval_truth-file), so one evaluation never replaces another;
+a folder holding an evaluation of something else is refused. Each holds metrics.json,
+table.md (mean ± std per metric, Abs-Inv as a multiple of the dataset mean's, protocol
+stamp), per_example_<method>.csv and figures/ (image 1, ground truth, prediction,
+error, the supervised pixel circled; one colour scale for all). The references (the
+dataset mean and the per-pair oracle constant, which sees the truth) are evaluated
+alongside on the same examples.
 """
 
 from __future__ import annotations
@@ -33,12 +37,16 @@ from absl import app, flags
 
 from experiments import common
 from gld import metrics, stored_predictions
+from gld.baselines import CLASSICAL
 
 FLAGS = flags.FLAGS
 
-flags.DEFINE_string("workdir", "runs/demo", "Run directory; results go to <workdir>/eval.")
-flags.DEFINE_string(
-    "method", None, "A classical method (no training) instead of the workdir's model."
+flags.DEFINE_string("workdir", "runs/demo", "Run directory; results go to <workdir>/eval*.")
+flags.DEFINE_enum(
+    "method",
+    None,
+    sorted(CLASSICAL),
+    "A classical method (no training) instead of the workdir's model.",
 )
 flags.DEFINE_string(
     "predictions",
@@ -125,9 +133,19 @@ def main(argv):
             raise app.UsageError(f"--manual_dir: {error}") from None
     builder = common.prepare_dataset(dataset)
     height, width = common.dataset_resolution(builder)
+    splits = builder.info.splits
+    if FLAGS.split not in splits:
+        raise app.UsageError(
+            f"--split={FLAGS.split}: {builder.info.full_name} has only {sorted(splits)}"
+        )
     train_source = None
-    if "train" in builder.info.splits:
+    if "train" in splits:
         train_source = common.data_source(builder, "train")
+    elif FLAGS.method == "dataset_mean":
+        raise app.UsageError(
+            f"--method=dataset_mean is fitted on the train split, which "
+            f"{builder.info.full_name} lacks"
+        )
     elif FLAGS.dataset_mean:
         print(f"{builder.info.full_name} has no training split: no dataset-mean row")
     evaluation.evaluate_workdir(

@@ -30,39 +30,52 @@ common.define_distributed_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld import config, train
+    import dataclasses
 
-    builder = common.prepare_dataset()
-    height, width = common.dataset_resolution(builder)
-    run_config = config.TrainConfig(
+    from gld import train
+
+    # Every option is checked before the dataset is built or the workdir touched.
+    run_config = common.train_config(
         model_config=common.architecture_options() if FLAGS.model == "global_local" else {},
         dataset=FLAGS.dataset,
-        height=height,
-        width=width,
-        **common.training_options(),
     )
-    common.write_flags(FLAGS.workdir)
-    print(
-        f"dataset {FLAGS.dataset}: {builder.info.splits['train'].num_examples} train / "
-        f"{builder.info.splits['test'].num_examples} test pairs at {width}x{height}"
+    builder = common.prepare_dataset()
+    splits = builder.info.splits
+    if "train" not in splits:
+        raise app.UsageError(f"{FLAGS.dataset} has no train split: nothing to train on")
+    evaluates = FLAGS.final_eval or run_config.eval_every > 0
+    if evaluates and "test" not in splits:
+        raise app.UsageError(
+            f"{FLAGS.dataset} has no test split to evaluate on; train without evaluation "
+            "with --eval_every=0 --nofinal_eval"
+        )
+    height, width = common.dataset_resolution(builder)
+    run_config = dataclasses.replace(run_config, height=height, width=width)
+    counts = ", ".join(
+        f"{splits[split].num_examples} {split}" for split in ("train", "test") if split in splits
     )
+    print(f"dataset {FLAGS.dataset}: {counts} pairs at {width}x{height}")
+    train_source = common.data_source(builder, "train")
+    test_source = common.data_source(builder, "test") if evaluates else None
     train.train_and_evaluate(
         run_config,
         FLAGS.workdir,
-        common.data_source(builder, "train"),
-        common.data_source(builder, "test"),
+        train_source,
+        test_source,
+        records={"flags.txt": common.flags_file_text()},
     )
     if FLAGS.final_eval:
         from gld import evaluation
 
         evaluation.evaluate_workdir(
             FLAGS.workdir,
-            common.data_source(builder, "test"),
-            train_source=common.data_source(builder, "train"),
+            test_source,
+            train_source=train_source,
             dataset=builder.info.full_name,
             height=height,
             width=width,
             num_figures=FLAGS.num_figures,
+            batch_size=run_config.eval_batch_size,
         )
 
 

@@ -11,6 +11,7 @@ own (the main job's recipe in `experiments.train`).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,9 +22,22 @@ FLOW_SOURCES = ("estimated", "gt")
 LR_SCHEDULES = ("constant", "cosine")
 
 
-def option(default: Any, help: str, choices: Sequence[str] | None = None) -> Any:  # noqa: A002
-    """A TrainConfig field that launchers expose as `--<name>`."""
-    metadata = {"help": help, "choices": tuple(choices) if choices else None}
+def option(
+    default: Any,
+    help: str,  # noqa: A002
+    choices: Sequence[str] | None = None,
+    *,
+    at_least: float | None = None,
+    above: float | None = None,
+) -> Any:
+    """A TrainConfig field that launchers expose as `--<name>`; `at_least` / `above`
+    bound a number (`TrainConfig.validate`, and the flag's own check)."""
+    metadata = {
+        "help": help,
+        "choices": tuple(choices) if choices else None,
+        "at_least": at_least,
+        "above": above,
+    }
     return dataclasses.field(default=default, metadata=metadata)
 
 
@@ -31,32 +45,53 @@ def option(default: Any, help: str, choices: Sequence[str] | None = None) -> Any
 class TrainConfig:
     """A training run, as plain values."""
 
-    model: str = option("global_local", "Learned model (gld.model.MODELS).")
+    model: str = option("global_local", "Learned model.", tuple(model_lib.MODELS))
     model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
-    batch_size: int = option(16, "Global batch size, over all processes and devices.")
-    steps: int = option(94_000, "Training steps (the paper: 94000 at 256x192).")
-    learning_rate: float = option(1e-4, "Adam (peak) learning rate.")
+    batch_size: int = option(16, "Global batch size, over all processes and devices.", at_least=1)
+    steps: int = option(94_000, "Training steps (the paper: 94000 at 256x192).", at_least=1)
+    learning_rate: float = option(1e-4, "Adam (peak) learning rate.", above=0)
     lr_schedule: str = option(
         "constant", "constant (the paper) or cosine (warm-up, then decay).", LR_SCHEDULES
     )
-    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.")
-    depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.")
-    smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.")
-    gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.")
+    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
+    depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.", at_least=0)
+    smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.", at_least=0)
+    gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.", at_least=0)
     fixed_sparse_pixels: bool = option(False, "Keep the same supervised pixels every epoch.")
     flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
     augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
-    seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.")
-    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.")
-    eval_every: int = option(1000, "Steps between evaluations on the test split (0: off).")
-    checkpoint_every: int = option(250, "Steps between checkpoints.")
-    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.")
-    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.")
-    eval_examples: int = option(0, "Periodic evaluation on the first N test pairs; 0 = all.")
-    worker_count: int = option(0, "grain worker processes for the input pipeline.")
+    seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.", at_least=0)
+    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.", at_least=1)
+    eval_every: int = option(
+        1000, "Steps between evaluations on the test split (0: off).", at_least=0
+    )
+    checkpoint_every: int = option(250, "Steps between checkpoints.", at_least=1)
+    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.", at_least=1)
+    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.", at_least=1)
+    eval_examples: int = option(
+        0, "Periodic evaluation on the first N test pairs; 0 = all.", at_least=0
+    )
+    worker_count: int = option(0, "grain worker processes for the input pipeline.", at_least=0)
     dataset: str = ""
     height: int = 0
     width: int = 0
+
+    def validate(self) -> TrainConfig:
+        """Raises ValueError naming the first option whose value cannot give a sound run
+        (a bound, a choice, the architecture, the schedule); returns the config."""
+        for field in flag_fields():
+            value = getattr(self, field.name)
+            check_option(field, value)
+        if self.lr_schedule == "cosine" and not self.warmup_steps < self.steps:
+            raise ValueError(
+                f"warmup_steps ({self.warmup_steps}) must be below steps ({self.steps}) for "
+                "the cosine schedule"
+            )
+        for name in ("height", "width"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        model_lib.check_config(self.model, self.model_config)
+        return self
 
     def architecture(self) -> dict[str, Any]:
         """What a checkpoint's parameters depend on (a workdir refuses other values)."""
@@ -72,6 +107,21 @@ class TrainConfig:
 def flag_fields() -> list[dataclasses.Field]:
     """The TrainConfig fields that are command-line options."""
     return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]
+
+
+def check_option(field: dataclasses.Field, value: Any) -> None:
+    """Raises ValueError when `value` breaks the option's choices or bounds."""
+    name, metadata = field.name, field.metadata
+    if metadata["choices"] and value not in metadata["choices"]:
+        raise ValueError(f"{name} must be one of {list(metadata['choices'])}, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    if metadata["at_least"] is not None and value < metadata["at_least"]:
+        raise ValueError(f"{name} must be at least {metadata['at_least']}, got {value}")
+    if metadata["above"] is not None and value <= metadata["above"]:
+        raise ValueError(f"{name} must be above {metadata['above']}, got {value}")
 
 
 # Stored config keys renamed since the first workdirs were written: old name -> new.

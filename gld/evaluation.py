@@ -19,6 +19,7 @@ DeMoN's evaluation at its files' resolution, `data.demon.file_truth`).
 from __future__ import annotations
 
 import collections
+import json
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -226,6 +227,7 @@ def evaluate_source(
     if truth is not None and eval_step is not None:
         raise ValueError("give eval_step or truth, not both (truth is scored on the host)")
     mesh = mesh or sharding.make_mesh()
+    batch_size = sharding.evaluation_batch_size(batch_size, mesh)
     local_batch = sharding.per_process_batch_size(batch_size, mesh)
     variables = jax.device_put(variables, sharding.replicated(mesh))
     if truth is None:
@@ -355,6 +357,66 @@ def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow_source:
     ]
 
 
+# What makes two evaluations the same one: a folder holds one of them, whatever step.
+EVALUATION_IDENTITY = ("dataset", "split", "model", "flow_source", "truth_resolution", "examples")
+
+
+def evaluation_dir(
+    workdir: str | Path,
+    *,
+    split: str = "test",
+    max_examples: int = 0,
+    step: int | None = None,
+    flow_source: str | None = None,
+    truth_resolution: str = "record",
+    dataset: str | None = None,
+) -> Path:
+    """Where an evaluation is written: <workdir>/eval for the workdir's own evaluation
+    (latest checkpoint, whole test split, its own flow and dataset, the records' truth),
+    else <workdir>/eval_<what differs>, e.g. eval_train_first2, eval_step500_flow-gt,
+    so that an evaluation never replaces a different one."""
+    parts = []
+    if dataset:
+        parts.append("-".join(dataset.split("/")[:2]))
+    if split != "test":
+        parts.append(split)
+    if max_examples:
+        parts.append(f"first{max_examples}")
+    if step is not None:
+        parts.append(f"step{step}")
+    if flow_source:
+        parts.append(f"flow-{flow_source}")
+    if truth_resolution != "record":
+        parts.append(f"truth-{truth_resolution}")
+    return Path(workdir) / "_".join(["eval", *parts])
+
+
+def _same_dataset(evaluated: str, trained: str) -> bool:
+    """Whether 'name/config[/version]' names the dataset a run was trained on."""
+    return not evaluated or not trained or evaluated.split("/")[:2] == trained.split("/")[:2]
+
+
+def _check_identity(out_dir: Path, info: dict[str, Any]) -> None:
+    """Refuses to write over an evaluation of something else (another dataset, say)."""
+    path = out_dir / "metrics.json"
+    if not path.exists():
+        return
+    stored = json.loads(path.read_text())
+    differing = {
+        key: (stored.get(key), info.get(key))
+        for key in EVALUATION_IDENTITY
+        if key in stored and stored.get(key) != info.get(key)
+    }
+    if differing:
+        details = ", ".join(
+            f"{k}: {old!r} there vs {new!r} now" for k, (old, new) in differing.items()
+        )
+        raise ValueError(
+            f"{out_dir} holds a different evaluation ({details}); it is kept: evaluate into "
+            "another --workdir"
+        )
+
+
 def evaluate_workdir(
     workdir: str | Path,
     source,
@@ -395,7 +457,9 @@ def evaluate_workdir(
         lack a file or hold a bad one (`StoredPredictions.check`), before anything is
         evaluated or written.
     """
-    results, info = {}, {"dataset": dataset, "split": split}
+    results = {}
+    examples_count = min(max_examples, len(source)) if max_examples else len(source)
+    info = {"dataset": dataset, "split": split, "examples": examples_count}
     protocol_note = ""
     if truth is not None or predictions is not None:
         examples = stored_predictions.record_ids_and_baselines(
@@ -430,6 +494,15 @@ def evaluate_workdir(
         else:
             method = fit_classical(classical_method, train_source, flow_source)
             name = classical_method
+        out_dir = evaluation_dir(
+            workdir,
+            split=split,
+            max_examples=max_examples,
+            step=step,
+            flow_source=None if flow_source == "estimated" else flow_source,
+            truth_resolution=info["truth_resolution"],
+        )
+        _check_identity(out_dir, {**info, "model": name, "flow_source": flow_source})
         predict = host_predictor(name, method.predict)
         results[name] = evaluate_predictor(
             predict,
@@ -444,8 +517,21 @@ def evaluate_workdir(
         gt_pixels, seed = 1, 0
         info.update(model=name, flow_source=flow_source)
     else:
-        model, variables, config = workdir_lib.load_trained(workdir, step=step)
-        flow_source = flow_source or config.flow_source
+        model, variables, config, restored_step = workdir_lib.restore_trained(workdir, step=step)
+        own_flow, flow_source = (
+            flow_source in (None, config.flow_source),
+            flow_source or config.flow_source,
+        )
+        out_dir = evaluation_dir(
+            workdir,
+            split=split,
+            max_examples=max_examples,
+            step=step,
+            flow_source=None if own_flow else flow_source,
+            truth_resolution=info["truth_resolution"],
+            dataset=None if _same_dataset(dataset, config.dataset) else dataset,
+        )
+        _check_identity(out_dir, {**info, "model": config.model, "flow_source": flow_source})
         results[config.model] = evaluate_source(
             model,
             variables,
@@ -461,14 +547,13 @@ def evaluate_workdir(
             variables, batch["image1"], batch["image2"], batch["flow"]
         )["depth"]
         gt_pixels, seed = config.gt_pixels, config.seed
-        manager = workdir_lib.checkpoint_manager(workdir)
+        # The step restored: the newest intact checkpoint unless one was asked for.
         info.update(
             model=config.model,
             gt_pixels=config.gt_pixels,
             flow_source=flow_source,
-            step=int(manager.latest_step() if step is None else step),
+            step=int(restored_step),
         )
-        manager.close()
     references = []
     if with_dataset_mean and train_source is not None:
         references.append("dataset_mean")
@@ -488,7 +573,6 @@ def evaluate_workdir(
             info["dataset_mean_inv_depth"] = fitted.inv_depth
     if jax.process_index() != 0:
         return {}
-    out_dir = Path(workdir) / "eval"
     report = reports.write_report(
         out_dir,
         results,

@@ -10,6 +10,7 @@ ablation of the paper's Table (image pair, CoordConv, global module, flow) is a 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -263,6 +264,40 @@ def full_config(name: str, config: dict) -> dict:
         raise ValueError(f"model {name!r} has no option(s) {unknown}; valid: {sorted(defaults)}")
     values = {**defaults, **config}
     return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+
+
+# Lowest sound value of GlobalLocal's numeric options (each item, for the lists).
+ARCHITECTURE_MINIMA: dict[str, float] = {
+    "encoder_channels": 1,
+    "encoder_strides": 1,
+    "global_dim": 1,
+    "bank_channels": 1,
+    "kernel_size": 1,
+    "modulation_scale": 0,
+}
+
+
+def check_config(name: str, config: dict) -> None:
+    """Raises ValueError naming the first option of `config` a registered model cannot be
+    built with: unknown, a choice or bound broken, lists of mismatched length."""
+    values = full_config(name, config)
+    if name != "global_local":
+        return
+    for option, choices in ARCHITECTURE_CHOICES.items():
+        if values[option] is not None and values[option] not in choices:
+            raise ValueError(f"{option} must be one of {list(choices)}, got {values[option]!r}")
+    for option, minimum in ARCHITECTURE_MINIMA.items():
+        items = values[option] if isinstance(values[option], list) else [values[option]]
+        if not items or any(not item >= minimum for item in items):
+            each = " (every item)" if isinstance(values[option], list) else ""
+            raise ValueError(f"{option} must be at least {minimum}{each}, got {values[option]!r}")
+    if not (values["flow_scale"] > 0 and math.isfinite(values["flow_scale"])):
+        raise ValueError(f"flow_scale must be positive and finite, got {values['flow_scale']}")
+    if len(values["encoder_channels"]) != len(values["encoder_strides"]):
+        raise ValueError(
+            f"encoder_channels {values['encoder_channels']} and encoder_strides "
+            f"{values['encoder_strides']} must have the same length"
+        )
 
 
 def make_model(name: str = "global_local", **config) -> nn.Module:

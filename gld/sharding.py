@@ -54,6 +54,13 @@ def per_process_batch_size(global_batch_size: int, mesh: Mesh) -> int:
     return global_batch_size // jax.process_count()
 
 
+def evaluation_batch_size(batch_size: int, mesh: Mesh) -> int:
+    """`batch_size` rounded up to a multiple of the devices: evaluation batches are padded
+    (padded rows are masked), so any requested size works on any number of devices."""
+    devices = mesh.devices.size
+    return -(-batch_size // devices) * devices
+
+
 def under_mesh(jitted: Callable, mesh: Mesh) -> Callable:
     """Calls (and so traces) `jitted` with `mesh` set, so that `on_batch_shards` finds
     the mesh's batch axis."""

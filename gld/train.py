@@ -2,23 +2,25 @@
 
 `make_train_step` builds a pure `train_step(state, batch, rng) -> (state, metrics)`;
 `train_and_evaluate` runs it over a mesh of all devices (`gld.sharding`: batch sharded,
-state replicated), resumes from and saves to the run's workdir (`gld.workdir`: orbax
-checkpoints of the state and the grain iterator, `config.json`, metrics), and evaluates
-periodically (`gld.evaluation`). The same code runs on one CPU, on fake CPU devices, on
-a GPU and on several processes after `jax.distributed.initialize`.
+state replicated), resumes from and saves to the run's workdir (`gld.workdir`: locked
+while training; verified orbax checkpoints of the state and the grain iterator,
+`config.json`, metrics), and evaluates periodically (`gld.evaluation`). The same code
+runs on one CPU, on fake CPU devices, on a GPU and on several processes after
+`jax.distributed.initialize`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from gld import evaluation, input_pipeline, losses, metrics, sharding
@@ -102,29 +104,46 @@ def train_and_evaluate(
     *,
     progress: bool = True,
     print_fn: Callable[[str], None] = print,
+    records: Mapping[str, str] | None = None,
 ) -> TrainState:
-    """Trains (resuming from the workdir's last checkpoint) and evaluates periodically.
+    """Trains (resuming from the workdir's newest intact checkpoint) and evaluates
+    periodically.
+
+    Everything is checked before anything is written into the workdir: the options,
+    the model, optimiser and state, the workdir's stored config, the lock, the
+    checkpoints. Then `config.json` and `records` are written atomically: on a new
+    workdir before the first step, on an existing one with the first checkpoint this
+    launch saves, if anything differs (the rule, and config.json's "history" of changed
+    options, are in `gld.workdir`). The changed options are printed at every launch.
 
     Args:
       config: the run.
       workdir: where checkpoints, logs and evaluations go.
       train_source, test_source: random-access record sources (TFDS data sources).
       progress: show a progress bar with step rate and ETA.
-      print_fn: where start-up information goes.
+      print_fn: where start-up information and checkpoint warnings go.
+      records: extra text files for the workdir, name -> content (e.g. the launcher's
+        {"flags.txt": ...}), written with config.json.
 
     Returns:
       The final TrainState.
 
     Raises:
+      ValueError: a bad option or record name, or a workdir holding another architecture
+        or dataset (nothing is written).
+      WorkdirLockedError: another process is training in the workdir (it is named).
+      CorruptCheckpointError: the workdir has checkpoints but none is intact.
       NonFiniteLossError: the loss became NaN/inf (the step is named; nothing is saved).
     """
     workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    workdir_lib.write_run_config(workdir, config)
+    if hasattr(config, "validate"):
+        config.validate()
+    records = workdir_lib.check_records(records)
     mesh = sharding.make_mesh()
     local_batch = sharding.per_process_batch_size(config.batch_size, mesh)
     model = model_lib.make_model(config.model, **config.model_config)
     optimizer = config_optimizer(config)
+    workdir_lib.check_run_config(workdir, config)
     state = create_train_state(model, optimizer, config.height, config.width, config.seed)
     if jax.process_index() == 0:
         for name, count in model_lib.parameter_counts(state.params).items():
@@ -144,10 +163,95 @@ def train_and_evaluate(
         process_count=jax.process_count(),
     )
     iterator = iter(dataset)
-    manager = workdir_lib.checkpoint_manager(workdir, keep=config.keep_checkpoints)
-    if manager.latest_step() is not None:
-        state = workdir_lib.restore_checkpoint(manager, state, iterator)
-        print_fn(f"resumed from step {int(state.step)} in {workdir / 'checkpoints'}")
+    with workdir_lib.training_lock(workdir):
+        # Read again under the lock: the previous holder may have changed it.
+        changes = workdir_lib.check_run_config(workdir, config)
+        manager = workdir_lib.checkpoint_manager(workdir, keep=config.keep_checkpoints)
+        try:
+            return _train(
+                config,
+                workdir,
+                state,
+                iterator,
+                manager,
+                changes=changes,
+                records=records,
+                model=model,
+                optimizer=optimizer,
+                mesh=mesh,
+                test_source=test_source,
+                progress=progress,
+                print_fn=print_fn,
+            )
+        finally:
+            manager.wait_until_finished()
+            manager.close()
+
+
+def _resume(
+    workdir: Path, manager, state: TrainState, iterator, print_fn: Callable[[str], None]
+) -> TrainState:
+    """The newest intact checkpoint restored into `state` and `iterator` (or `state` on a
+    new run); damaged newer checkpoints are moved aside so their steps can be saved again."""
+    if manager.latest_step() is None:
+        return state
+    restored = workdir_lib.restore_intact_checkpoint(manager, state, iterator, print_fn=print_fn)
+    print_fn(f"resumed from step {restored.step} in {workdir / 'checkpoints'}")
+    if restored.skipped:
+        if jax.process_count() > 1:
+            # Every process restores before process 0 moves anything.
+            multihost_utils.sync_global_devices("gld: checkpoints restored")
+        if jax.process_index() == 0:
+            for moved in workdir_lib.move_aside(workdir, manager, restored.skipped):
+                print_fn(f"damaged checkpoint moved to {moved}")
+        if jax.process_count() > 1:
+            multihost_utils.sync_global_devices("gld: damaged checkpoints moved")
+            manager.reload()
+    return restored.state
+
+
+def _train(
+    config: TrainConfig,
+    workdir: Path,
+    state: TrainState,
+    iterator,
+    manager,
+    *,
+    changes: dict | None,
+    records: dict[str, str],
+    model: nn.Module,
+    optimizer: optax.GradientTransformation,
+    mesh: Mesh,
+    test_source,
+    progress: bool,
+    print_fn: Callable[[str], None],
+) -> TrainState:
+    """The training loop of `train_and_evaluate`, in a workdir it holds."""
+    state = _resume(workdir, manager, state, iterator, print_fn)
+    start_step = int(jax.device_get(state.step))
+    will_train = start_step < config.steps
+    # On a new workdir the records are written now; on an existing one with the first
+    # checkpoint of this launch, so that they never describe steps not trained.
+    records_pending = False
+    if changes is None:
+        workdir_lib.write_run_config(workdir, config, step=start_step, records=records)
+    else:
+        if changes and jax.process_index() == 0:
+            when = (
+                "stored in config.json with this launch's first checkpoint"
+                if will_train
+                else f"not stored: no step to train beyond {start_step}"
+            )
+            print_fn(
+                f"options changed since the stored config: "
+                f"{workdir_lib.describe_changes(changes)} ({when})"
+            )
+        records_pending = bool(changes) or workdir_lib.records_differ(workdir, records)
+    if jax.process_index() == 0:
+        dropped = workdir_lib.drop_metrics_after(workdir, start_step)
+        if dropped:
+            print_fn(f"metrics.jsonl: dropped {dropped} lines after step {start_step}")
+
     state = jax.device_put(state, sharding.replicated(mesh))
     train_step = jit_train_step(
         make_train_step(model=model, optimizer=optimizer, loss_weights=config.loss_weights()),
@@ -157,7 +261,6 @@ def train_and_evaluate(
     logger = workdir_lib.MetricsLogger(workdir)
     base_rng = jax.random.wrap_key_data(jnp.asarray(jax.device_get(state.rng)))
 
-    start_step = int(jax.device_get(state.step))
     bar = None
     if progress and jax.process_index() == 0:
         from tqdm import tqdm
@@ -192,6 +295,9 @@ def train_and_evaluate(
             if done % config.checkpoint_every == 0 or done == config.steps:
                 _raise_if_not_finite(*pending)
                 workdir_lib.save_checkpoint(manager, state, iterator)
+                if records_pending:
+                    workdir_lib.write_run_config(workdir, config, step=start_step, records=records)
+                    records_pending = False
             if (
                 test_source is not None
                 and config.eval_every
@@ -226,8 +332,6 @@ def train_and_evaluate(
     finally:
         if bar is not None:
             bar.close()
-        manager.wait_until_finished()
-        manager.close()
         logger.close()
     return state
 

@@ -77,7 +77,7 @@ def _abs_inv(prediction, truth):
 
 
 def _per_example(workdir, method):
-    with (workdir / "eval" / f"per_example_{method}.csv").open() as stream:
+    with (workdir / "eval_truth-file" / f"per_example_{method}.csv").open() as stream:
         return {row["id"]: row for row in csv.DictReader(stream)}
 
 
@@ -180,7 +180,7 @@ def test_scores_at_the_files_resolution_follow_demons_rule(demon_sun3d, tmp_path
         "neighbour as DeMoN's evaluation does (records at 256x192 px)"
     )
     assert "3 at 256x192 resized to 640x480" in report["protocol"]
-    assert len(list((tmp_path / "run" / "eval" / "figures").glob("*.png"))) == 1
+    assert len(list((tmp_path / "run" / "eval_truth-file" / "figures").glob("*.png"))) == 1
 
 
 def _exact_predictions(expected, folder):
@@ -248,7 +248,7 @@ def test_evaluate_scores_at_the_files_resolution_end_to_end(demon_sun3d, tmp_pat
 
     result = run(*command)
     assert result.returncode == 0, result.stderr[-3000:]
-    report = json.loads((workdir / "eval" / "metrics.json").read_text())
+    report = json.loads((workdir / "eval_truth-file" / "metrics.json").read_text())
     assert report["methods"]["stored_predictions"]["abs_inv"]["mean"] == 0.0
     assert report["truth_resolution"] == "file" and report["truth_resolutions"] == {"640x480": 3}
     assert "ground truth at the source files' resolution (3 at 640x480)" in result.stdout

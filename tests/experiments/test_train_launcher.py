@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 
+import h5py
 import jax
 import numpy as np
 import pytest
@@ -19,9 +20,9 @@ from gld import workdir as workdir_lib
 TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2", "--warmup_steps=2"]
 
 
-def _launch(args, data_dir, **kwargs):
+def _launch(args, data_dir, dataset="gld_scenes/tiny", **kwargs):
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    command = [sys.executable, "-m", *args, "--dataset=gld_scenes/tiny", f"--data_dir={data_dir}"]
+    command = [sys.executable, "-m", *args, f"--dataset={dataset}", f"--data_dir={data_dir}"]
     return subprocess.run(
         command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600, **kwargs
     )
@@ -94,11 +95,68 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     assert len(similarity["global_params"]) == 4 and len(similarity["filter_similarity"]) == 4
     assert len(list((workdir / "filters").glob("*.png"))) == 2
 
-    # evaluate re-runs on the workdir alone
+    # evaluate re-runs on the workdir alone; a subset of another split goes to its own folder
     evaluated = _launch(
-        ["experiments.evaluate", f"--workdir={workdir}", "--num_figures=0"], tiny_scenes_dir
+        [
+            "experiments.evaluate",
+            f"--workdir={workdir}",
+            "--num_figures=0",
+            "--split=train",
+            "--max_examples=2",
+        ],
+        tiny_scenes_dir,
     )
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+    subset = json.loads((workdir / "eval_train_first2" / "metrics.json").read_text())
+    assert subset["methods"]["global_local"]["abs_inv"]["count"] == 2
+    assert json.loads((workdir / "eval" / "metrics.json").read_text()) == report
+
+    # flags.txt holds only gld's flags and relaunches the run (nothing left to train)
+    flags_text = (workdir / "flags.txt").read_text()
+    assert (
+        "--steps=6" in flags_text and "grain" not in flags_text and "--verbosity" not in flags_text
+    )
+    relaunched = _launch(
+        ["experiments.train", f"--flagfile={workdir / 'flags.txt'}", "--nofinal_eval"],
+        tiny_scenes_dir,
+    )
+    assert relaunched.returncode == 0, relaunched.stderr[-3000:]
+    assert "resumed from step 6" in relaunched.stdout
+
+
+@pytest.mark.parametrize(
+    ("flag", "message"),
+    [
+        ("--learning_rate=-0.01", "--learning_rate must be above 0"),
+        ("--log_every=0", "flag --log_every=0"),
+        ("--bank_channels=20,0,20", "--bank_channels must be at least 1 (every item)"),
+    ],
+)
+def test_a_bad_value_stops_the_trainer_before_anything_is_written(
+    tiny_scenes_dir, tmp_path, flag, message
+):
+    workdir = tmp_path / "run"
+    result = _launch(["experiments.train", f"--workdir={workdir}", flag], tiny_scenes_dir)
+    assert result.returncode != 0
+    assert message in result.stderr
+    assert not workdir.exists()
+
+
+def test_a_multi_process_run_whose_peers_never_join_says_what_to_check(tmp_path):
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        port = probe.getsockname()[1]
+    workdir = tmp_path / "run"
+    flags = ["--num_processes=2", "--process_id=0", f"--coordinator_address=localhost:{port}"]
+    result = _launch(
+        ["experiments.train", f"--workdir={workdir}", *flags, "--distributed_timeout=2"],
+        tmp_path / "data",
+    )
+    assert result.returncode == 3
+    assert f"did not all join at localhost:{port} within 2 s" in result.stderr
+    assert not workdir.exists()
 
 
 def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_dir, tmp_path):
@@ -163,7 +221,7 @@ def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
         tiny_scenes_dir,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    report = json.loads((workdir / "eval" / "metrics.json").read_text())
+    report = json.loads((workdir / "eval_flow-gt" / "metrics.json").read_text())
     exact = report["methods"][method]["abs_inv"]["mean"]
     mean_baseline = report["methods"]["dataset_mean"]["abs_inv"]["mean"]
     # ground-truth flow and pose: triangulation is near exact, far better than the mean
@@ -220,3 +278,51 @@ def test_evaluate_refuses_the_files_resolution_without_demon_files(tiny_scenes_d
         "id; gld_scenes/tiny is not a demon/* dataset" in result.stderr
     )
     assert not workdir.exists()
+
+
+def _write_custom_file(path, scenes: int) -> None:
+    sys.path.insert(0, str(REPO_ROOT / "tests" / "data"))
+    import demon_files
+
+    rng = np.random.default_rng(0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w") as h5_file:
+        for index in range(scenes):
+            demon_files.write_scene(h5_file, f"s{index}", demon_files.moving_views(rng, 2, 48, 64))
+
+
+def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
+    train_only, test_only = tmp_path / "train_only", tmp_path / "test_only"
+    _write_custom_file(train_only / "custom_train.h5", scenes=4)
+    _write_custom_file(test_only / "custom_test.h5", scenes=2)
+
+    def launch(args, manual_dir, workdir):
+        return _launch(
+            [*args, f"--manual_dir={manual_dir}", f"--workdir={workdir}"],
+            tmp_path / f"data_{manual_dir.name}",
+            dataset="demon/custom",
+        )
+
+    trained = launch(
+        ["experiments.train", "--steps=3", "--eval_every=0", "--nofinal_eval", *TINY_FLAGS],
+        train_only,
+        tmp_path / "trained",
+    )
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert "4 train pairs" in trained.stdout
+    refused = launch(["experiments.train", *TINY_FLAGS], train_only, tmp_path / "refused")
+    assert refused.returncode != 0
+    assert "no test split to evaluate on" in refused.stderr
+    assert not (tmp_path / "refused").exists()
+
+    oracle = launch(
+        ["experiments.evaluate", "--method=oracle_pair_median", "--num_figures=0"],
+        test_only,
+        tmp_path / "oracle",
+    )
+    assert oracle.returncode == 0, oracle.stderr[-3000:]
+    report = json.loads((tmp_path / "oracle" / "eval" / "metrics.json").read_text())
+    assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 2
+    mean = launch(["experiments.evaluate", "--method=dataset_mean"], test_only, tmp_path / "mean")
+    assert mean.returncode != 0
+    assert "--method=dataset_mean is fitted on the train split" in mean.stderr

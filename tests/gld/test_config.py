@@ -56,3 +56,36 @@ def test_a_stored_config_is_read_whatever_version_wrote_it():
     assert (loaded.flow_source, loaded.steps) == ("gt", 5)
     # Model options added after the first runs take the values those runs trained with.
     assert loaded.model_config["flow_scale"] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("values", "named"),
+    [
+        ({"learning_rate": -0.01}, "learning_rate must be above 0"),
+        ({"learning_rate": float("nan")}, "learning_rate must be finite"),
+        ({"steps": -5}, "steps must be at least 1"),
+        ({"log_every": 0}, "log_every must be at least 1"),
+        ({"checkpoint_every": 0}, "checkpoint_every must be at least 1"),
+        ({"eval_every": -1}, "eval_every must be at least 0"),
+        ({"model": "foo"}, "model must be one of"),
+        ({"flow_source": "exact"}, "flow_source must be one of"),
+        ({"lr_schedule": "cosine", "steps": 10, "warmup_steps": 10}, "warmup_steps"),
+        ({"model_config": {"global_dim": 0}}, "global_dim must be at least 1"),
+        ({"model_config": {"bank_channels": [20, 0, 20]}}, r"bank_channels must be .*every item"),
+        ({"model_config": {"flow_scale": 0.0}}, "flow_scale must be positive"),
+        ({"model_config": {"encoder_strides": [2, 2]}}, "same length"),
+        ({"model_config": {"global_norm": "layer"}}, "global_norm must be one of"),
+        ({"model_config": {"globl_dim": 3}}, "no option"),
+    ],
+)
+def test_validate_names_the_option_that_cannot_give_a_sound_run(values, named):
+    with pytest.raises(ValueError, match=named):
+        config.TrainConfig(**values).validate()
+
+
+def test_the_defaults_and_the_main_job_are_valid():
+    assert config.TrainConfig().validate() == config.TrainConfig()
+    config.TrainConfig(
+        steps=2000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
+    ).validate()
+    config.TrainConfig(eval_every=0, model="dispnet").validate()

@@ -2,11 +2,13 @@
 carries its references."""
 
 import csv
+import json
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from conftest import tiny_train_config
+from conftest import run_python, tiny_train_config
 
 from gld import evaluation, input_pipeline, records, stored_predictions
 from gld import model as model_lib
@@ -49,7 +51,7 @@ def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tin
         assert summary["abs_inv"]["count"] == 16, name
 
     # The oracle is each pair's median truth: its per-pair errors follow by hand.
-    with (tmp_path / "eval" / "per_example_oracle_pair_median.csv").open() as stream:
+    with (tmp_path / "eval_flow-gt" / "per_example_oracle_pair_median.csv").open() as stream:
         oracle_errors = [float(row["abs_inv"]) for row in csv.DictReader(stream)]
     np.testing.assert_allclose(oracle_errors, _oracle_abs_inv_by_hand(source), rtol=1e-4)
     # The best constant of each pair beats the one constant of all pairs.
@@ -57,7 +59,7 @@ def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tin
     assert oracle < mean
     assert report["abs_inv_vs_dataset_mean"]["oracle_pair_median"] == pytest.approx(oracle / mean)
 
-    table = (tmp_path / "eval" / "table.md").read_text()
+    table = (tmp_path / "eval_flow-gt" / "table.md").read_text()
     assert printed == [table]
     assert ORACLE_ROW in table and "| dataset_mean |" in table and "1.00×" in table
 
@@ -77,7 +79,7 @@ def test_the_oracle_alone_is_evaluated_once(tiny_scenes, tmp_path):
     assert list(report["methods"]) == ["oracle_pair_median"]
     assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 4
     assert report["abs_inv_vs_dataset_mean"] == {}
-    assert ORACLE_ROW in (tmp_path / "eval" / "table.md").read_text()
+    assert ORACLE_ROW in (tmp_path / "eval_first4" / "table.md").read_text()
 
 
 @pytest.fixture
@@ -368,3 +370,55 @@ def test_a_bad_prediction_file_stops_the_evaluation_before_anything_is_written(
             print_fn=lambda _: None,
         )
     assert not (tmp_path / "run").exists()
+
+
+def test_each_evaluation_has_its_own_folder():
+    assert evaluation.evaluation_dir("w") == Path("w/eval")
+    assert evaluation.evaluation_dir("w", split="train", max_examples=2) == Path(
+        "w/eval_train_first2"
+    )
+    assert evaluation.evaluation_dir(
+        "w", step=500, flow_source="gt", truth_resolution="file", dataset="demon/sun3d/1.1.0"
+    ) == Path("w/eval_demon-sun3d_step500_flow-gt_truth-file")
+
+
+def test_an_evaluation_of_something_else_is_never_replaced(tiny_scenes, tmp_path):
+    def evaluate(dataset):
+        return evaluation.evaluate_workdir(
+            tmp_path,
+            tiny_scenes.as_data_source("test"),
+            dataset=dataset,
+            height=48,
+            width=64,
+            num_figures=0,
+            classical_method="oracle_pair_median",
+            max_examples=2,
+            print_fn=lambda _: None,
+        )
+
+    evaluate("gld_scenes/tiny/1.0.0")
+    written = (tmp_path / "eval_first2" / "metrics.json").read_text()
+    evaluate("gld_scenes/tiny/1.0.0")  # the same evaluation again: replaced
+    with pytest.raises(ValueError, match="dataset: 'gld_scenes/tiny/1.0.0' there vs 'other/x'"):
+        evaluate("other/x")
+    assert (tmp_path / "eval_first2" / "metrics.json").read_text() == written
+
+
+THREE_DEVICE_SCRIPT = """
+import json, sys
+import data
+from gld import evaluation, model as model_lib, state as state_lib
+source = data.get_builder("gld_scenes/tiny", sys.argv[1]).as_data_source("test")
+model = model_lib.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8])
+variables = state_lib.init_variables(model, 48, 64, seed=0)
+per_example, ids = evaluation.evaluate_source(model, variables, source, batch_size=16)
+print(json.dumps({"rows": len(ids), "examples": int(per_example["example_mask"].sum()),
+                  "ids": len(set(i for i, m in zip(ids, per_example["example_mask"]) if m))}))
+"""
+
+
+def test_any_evaluation_batch_size_runs_on_any_number_of_devices(tiny_scenes_dir):
+    # 16 does not split over 3 devices: batches of 18 with two padded rows each.
+    result = run_python(THREE_DEVICE_SCRIPT, str(tiny_scenes_dir), device_count=3)
+    counted = json.loads(result.stdout.strip().splitlines()[-1])
+    assert counted == {"rows": 18, "examples": 16, "ids": 16}

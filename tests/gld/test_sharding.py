@@ -37,3 +37,15 @@ def test_without_a_mesh_per_example_code_runs_unsharded():
     with jax.set_mesh(mesh):
         # one device: nothing to split
         assert sharding.on_batch_shards(apply, 8) is apply
+
+
+def test_an_evaluation_batch_is_rounded_up_to_the_devices():
+    class ThreeDevices:
+        devices = np.empty(3, object)
+
+    assert [sharding.evaluation_batch_size(n, ThreeDevices) for n in (1, 3, 16, 18)] == [
+        3,
+        3,
+        18,
+        18,
+    ]

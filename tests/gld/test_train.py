@@ -1,5 +1,7 @@
+import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -20,6 +22,8 @@ def _params_of(workdir):
     return variables["params"]
 
 
+# The loss weight is cast to float32 on purpose: it overflows to inf.
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")
 def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoint(
     tiny_scenes, tmp_path
 ):
@@ -28,18 +32,123 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
         tiny_train_config(), tmp_path, source, progress=False, print_fn=lambda _: None
     )
     good = _params_of(tmp_path)
+    stored = (tmp_path / "config.json").read_bytes()
+    messages = []
     with pytest.raises(train.NonFiniteLossError, match="at step 5"):
         train.train_and_evaluate(
-            tiny_train_config(steps=8, depth_weight=float("nan")),
+            # Finite, but infinite in float32: the loss overflows on the first step.
+            tiny_train_config(steps=8, depth_weight=1e39),
             tmp_path,
             source,
             progress=False,
-            print_fn=lambda _: None,
+            print_fn=messages.append,
         )
     manager = workdir_lib.checkpoint_manager(tmp_path)
     assert manager.latest_step() == 4
     manager.close()
     jax.tree_util.tree_map(np.testing.assert_array_equal, _params_of(tmp_path), good)
+    # The changed options are reported, but no step of them was kept: config.json stays.
+    assert any("depth_weight 5.0 -> 1e+39, steps 4 -> 8" in m for m in messages)
+    assert (tmp_path / "config.json").read_bytes() == stored
+
+
+@pytest.fixture(scope="module")
+def four_step_run(tiny_scenes, tmp_path_factory):
+    """A tiny run of 4 steps, checkpoints at steps 2 and 4, metrics at every step."""
+    run_dir = tmp_path_factory.mktemp("four_steps") / "run"
+    config = tiny_train_config(log_every=1)
+    train.train_and_evaluate(
+        config, run_dir, tiny_scenes.as_data_source("train"), progress=False, print_fn=_quiet
+    )
+    return run_dir, config
+
+
+def _quiet(_):
+    pass
+
+
+def _metrics_steps(run_dir):
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [(record["step"], record["split"]) for record in map(json.loads, lines)]
+
+
+def test_resume_skips_a_damaged_latest_checkpoint_and_trains_to_the_same_state(
+    four_step_run, tiny_scenes, tmp_path
+):
+    original, config = four_step_run
+    run_dir = tmp_path / "run"
+    shutil.copytree(original, run_dir)
+    step_dir = run_dir / "checkpoints" / "4"
+    damaged = max(
+        (path for path in (step_dir / "state").rglob("*") if path.is_file()),
+        key=lambda path: path.stat().st_size,
+    )
+    data = bytearray(damaged.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    damaged.write_bytes(bytes(data))
+
+    messages = []
+    state = train.train_and_evaluate(
+        config,
+        run_dir,
+        tiny_scenes.as_data_source("train"),
+        progress=False,
+        print_fn=messages.append,
+    )
+    assert f"checkpoint step 4 skipped: {damaged} does not match its saved SHA-256" in messages
+    assert f"resumed from step 2 in {run_dir / 'checkpoints'}" in messages
+    [moved] = (run_dir / "corrupt_checkpoints").iterdir()
+    assert moved.name.startswith("4-") and (moved / damaged.relative_to(step_dir)).exists()
+    # Steps 3 and 4 trained again, with the same data, to the same parameters.
+    assert int(state.step) == 4
+    _, expected, _ = workdir_lib.load_trained(original)
+    jax.tree_util.tree_map(
+        np.testing.assert_array_equal, jax.device_get(state.params), expected["params"]
+    )
+    jax.tree_util.tree_map(np.testing.assert_array_equal, _params_of(run_dir), expected["params"])
+    # One metrics line per step: the lines of steps 3 and 4 were dropped, then rewritten.
+    assert _metrics_steps(run_dir) == [(step, "train") for step in (1, 2, 3, 4)]
+    assert "metrics.jsonl: dropped 2 lines after step 2" in messages
+
+
+def test_changed_options_are_stored_only_by_a_launch_that_trains(
+    four_step_run, tiny_scenes, tmp_path
+):
+    original, config = four_step_run
+    run_dir = tmp_path / "run"
+    shutil.copytree(original, run_dir)
+    source = tiny_scenes.as_data_source("train")
+    stored = (run_dir / "config.json").read_bytes()
+
+    # The run is finished: a relaunch with another learning rate trains nothing, so
+    # it stores nothing, not even its flags.
+    messages = []
+    changed = dataclasses.replace(config, learning_rate=1e-3)
+    records = {"flags.txt": "--learning_rate=0.001\n"}
+    train.train_and_evaluate(
+        changed, run_dir, source, progress=False, print_fn=messages.append, records=records
+    )
+    assert any(
+        "learning_rate 0.0001 -> 0.001 (not stored: no step to train beyond 4)" in m
+        for m in messages
+    )
+    assert (run_dir / "config.json").read_bytes() == stored
+    assert not (run_dir / "flags.txt").exists()
+
+    # Two more steps with it: stored with the first checkpoint, and kept in the history.
+    longer = dataclasses.replace(changed, steps=6)
+    records = {"flags.txt": "--learning_rate=0.001\n--steps=6\n"}
+    train.train_and_evaluate(longer, run_dir, source, progress=False, records=records)
+    stored_config = workdir_lib.load_run_config(run_dir)
+    assert (stored_config.learning_rate, stored_config.steps) == (1e-3, 6)
+    [entry] = json.loads((run_dir / "config.json").read_text())["history"]
+    assert entry["step"] == 4
+    assert entry["changed"] == {
+        "learning_rate": {"from": 1e-4, "to": 1e-3},
+        "steps": {"from": 4, "to": 6},
+    }
+    assert (run_dir / "flags.txt").read_text() == records["flags.txt"]
+    assert _metrics_steps(run_dir) == [(step, "train") for step in range(1, 7)]
 
 
 def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
