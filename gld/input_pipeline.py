@@ -425,6 +425,27 @@ def _enable_grain_workers() -> None:
         flags.FLAGS.mark_as_parsed()
 
 
+def exit_with_parent(worker_index: int = 0, worker_count: int = 0, period: float = 1.0) -> None:
+    """Makes this (worker) process exit within `period` seconds of its parent's death.
+
+    A training process killed with SIGKILL runs no clean-up, and grain's workers would
+    live on (~250 MB each); a daemon thread that sees the worker re-parented ends it.
+    """
+    del worker_index, worker_count
+    import os
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 class _PrepareTrainExample:
     """The training map (index in the repeated shard, record index) -> example.
 
@@ -523,7 +544,10 @@ def train_dataset(
     )
     if worker_count > 0:
         _enable_grain_workers()
-        dataset = dataset.mp_prefetch(grain.MultiprocessingOptions(num_workers=worker_count))
+        dataset = dataset.mp_prefetch(
+            grain.MultiprocessingOptions(num_workers=worker_count),
+            worker_init_fn=exit_with_parent,
+        )
     return dataset
 
 

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO_ROOT
 
 from gld import geometry, input_pipeline, records
 
@@ -598,3 +605,47 @@ def test_gld_scenes_corrupt_record_names_file_and_index(tiny_builder):
         ValueError, match=r"gld_scenes-test\.array_record-00000-of-00001, record 6 .*image1"
     ):
         list(input_pipeline.eval_batches(source, batch_size=4))
+
+
+_ORPHAN_SCRIPT = """
+import multiprocessing, sys, time
+
+def child():
+    from gld import input_pipeline
+    input_pipeline.exit_with_parent(period=0.1)
+    print("watching", flush=True)
+    time.sleep(120)
+
+if __name__ == "__main__":
+    process = multiprocessing.get_context("spawn").Process(target=child)
+    process.start()
+    print(process.pid, flush=True)
+    time.sleep(120)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "\\tZ" not in next(line for line in state.splitlines() if line.startswith("State"))
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
+def test_a_worker_ends_when_its_parent_is_killed(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(_ORPHAN_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), JAX_PLATFORMS="cpu")
+    parent = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env, cwd=REPO_ROOT
+    )
+    child_pid = int(parent.stdout.readline())
+    assert parent.stdout.readline().strip() == "watching"
+    assert _alive(child_pid)
+    parent.send_signal(signal.SIGKILL)  # no clean-up runs in the parent
+    parent.wait()
+    deadline = time.monotonic() + 30
+    while _alive(child_pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(child_pid)
