@@ -1,9 +1,10 @@
-"""Benchmarks: `python -m experiments.benchmark [--suite=model|renderer|pipeline|demon]`.
+"""Benchmarks: `python -m experiments.benchmark [--suite=model|renderer|pipeline|demon|robot]`.
 
     python -m experiments.benchmark                                        # the model
     python -m experiments.benchmark --torch_python=.torchref/bin/python    # + PyTorch
     python -m experiments.benchmark --formulations=fused,vmap --repeats=3
     python -m experiments.benchmark --suite=pipeline                       # other suites
+    python -m experiments.benchmark --suite=robot      # flow + depth + scale per pair
 
 The default suite (`experiments/benchmarks/model.py`) times the depth networks per
 `apply_filter_banks` formulation: compile time, forward latency at batch 1 (median,
@@ -25,7 +26,7 @@ from absl import app, flags
 
 FLAGS = flags.FLAGS
 
-flags.DEFINE_string("suite", "model", "Benchmark suite: model, renderer, pipeline or demon.")
+flags.DEFINE_string("suite", "model", "Benchmark suite: model, renderer, pipeline, demon or robot.")
 flags.DEFINE_string("output", "benchmark.json", "Where the JSON result is written.")
 flags.DEFINE_list("models", ["global_local"], "Models of gld.model.MODELS to time.")
 flags.DEFINE_list("formulations", None, "apply_filter_banks formulations to time (default: all).")
@@ -48,7 +49,7 @@ flags.DEFINE_bool(
     "quick", False, "Tiny shapes and one repeat: checks that everything runs, times nothing."
 )
 
-SUITES = ("model", "renderer", "pipeline", "demon")
+SUITES = ("model", "renderer", "pipeline", "demon", "robot")
 
 
 def run_model_suite() -> dict:

@@ -1,0 +1,93 @@
+r"""Exports a trained model to one file that runs with JAX alone (`gld.deploy`).
+
+    python -m experiments.export --workdir=runs/demo --output=runs/demo/model.gldx
+    python -m experiments.export --workdir=runs/demo --output=gpu.gldx \
+        --platforms=cuda --formulation=vmap --batch_size=1
+    python -m experiments.export --workdir=runs/demo --output=both.gldx --platforms=cpu,cuda
+    python -m experiments.export --workdir=runs/demo --output=model.gldx --onnx_output=model.onnx
+
+The file (a zip: metadata.json, the `jax.export` module, the weights as .npz) holds the
+forward pass at the run's training resolution, with a symbolic batch size unless
+--batch_size fixes it. --formulation chooses how the per-example filters are applied
+(default: the first platform's, `gld.filter_banks.default_formulation`; "vmap" needs
+--batch_size). --onnx_output also writes an ONNX model (needs `pip install jax2onnx
+onnxruntime`; checked against JAX with onnxruntime before it is written). On the robot:
+
+    from gld.deploy import DeployedModel
+    depth = DeployedModel.load("model.gldx")(image1, image2, flow)   # jax + numpy only
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+from experiments import common
+from gld.export import PLATFORMS, check_platforms
+from gld.filter_banks import FORMULATIONS
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_string("workdir", None, "Training workdir to export.")
+flags.DEFINE_string("output", None, "File to write (e.g. runs/demo/model.gldx).")
+flags.DEFINE_integer("step", None, "Checkpoint step (default: latest).")
+flags.DEFINE_list("platforms", ["cpu"], f"Platforms to lower for, of {', '.join(PLATFORMS)}.")
+flags.DEFINE_enum(
+    "formulation",
+    None,
+    list(FORMULATIONS),
+    "Per-example filter formulation (default: the first platform's).",
+)
+flags.DEFINE_integer(
+    "batch_size", None, "Fixed batch size (default: any, symbolic).", lower_bound=1
+)
+flags.DEFINE_string("onnx_output", None, "Also write an ONNX model here (needs jax2onnx).")
+flags.mark_flags_as_required(["workdir", "output"])
+
+
+def _platforms_are_known(platforms: list[str]) -> bool:
+    try:
+        check_platforms(platforms)
+    except ValueError as error:
+        raise flags.ValidationError(str(error)) from error
+    return True
+
+
+flags.register_validator("platforms", _platforms_are_known)
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    common.initialise()
+    from gld import export
+
+    metadata = export.export_workdir(
+        FLAGS.workdir,
+        FLAGS.output,
+        step=FLAGS.step,
+        platforms=FLAGS.platforms,
+        batch_size=FLAGS.batch_size,
+        formulation=FLAGS.formulation,
+        onnx_output=FLAGS.onnx_output,
+    )
+    batch = metadata["batch_size"] or "any"
+    print(
+        f"wrote {FLAGS.output}: {metadata['model']} at step {metadata['source']['step']}, "
+        f"{metadata['height']}x{metadata['width']} (HxW), batch {batch}, "
+        f"platforms {','.join(metadata['platforms'])}, formulation {metadata['formulation']}"
+    )
+    for entry in metadata["inputs"]:
+        print(f"  input  {entry['name']}: {entry['shape']} {entry['dtype']}; {entry['help']}")
+    for entry in metadata["outputs"]:
+        print(f"  output {entry['name']}: {entry['shape']} {entry['dtype']}")
+    print(f"  depth units: {metadata['depth_units']}")
+    if "onnx" in metadata:
+        onnx = metadata["onnx"]
+        print(
+            f"wrote {FLAGS.onnx_output}: ONNX opset {onnx['onnx_opset']}, formulation "
+            f"{onnx['formulation']}, matches JAX within {onnx['onnxruntime_check']['tolerance']}"
+        )
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,68 @@
+"""The export launcher (python -m experiments.export) on a tiny trained workdir."""
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+from conftest import REPO_ROOT
+
+from gld import export
+from gld import workdir as workdir_lib
+from gld.deploy import DeployedModel
+
+
+def _launch(*flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "experiments.export", *flags],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        timeout=300,
+    )
+
+
+def test_exports_the_latest_checkpoint_at_the_training_resolution(trained_workdir, tmp_path):
+    output = tmp_path / "export" / "model.gldx"
+    completed = _launch(f"--workdir={trained_workdir}", f"--output={output}")
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    assert f"wrote {output}" in completed.stdout
+
+    model, variables, config = workdir_lib.load_trained(trained_workdir)
+    deployed = DeployedModel.load(output)
+    metadata = deployed.metadata
+    assert (deployed.height, deployed.width) == (config.height, config.width) == (48, 64)
+    assert metadata["source"]["workdir"] == str(trained_workdir.absolute())
+    assert metadata["source"]["step"] == 2 and metadata["source"]["dataset"] == "gld_scenes/tiny"
+    assert metadata["model_config"]["encoder_channels"] == config.model_config["encoder_channels"]
+    rng = np.random.default_rng(0)
+    image1 = rng.integers(0, 256, (2, 48, 64, 3), dtype=np.uint8)
+    image2 = rng.integers(0, 256, (2, 48, 64, 3), dtype=np.uint8)
+    flow = rng.normal(0, 2, (2, 48, 64, 2)).astype(np.float32)
+    live = model.apply(variables, image1 / 255.0 - 0.5, image2 / 255.0 - 0.5, flow)
+    np.testing.assert_allclose(deployed(image1, image2, flow), live["depth"], rtol=1e-5)
+
+
+def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_path):
+    output = tmp_path / "model.gldx"
+    completed = _launch(f"--workdir={trained_workdir}", f"--output={output}", "--platforms=gpu")
+    assert completed.returncode != 0
+    assert "unknown platform(s) ['gpu']" in completed.stderr
+    with pytest.raises(ValueError, match=r"no checkpoint of step 5 .* available: \[2\]"):
+        export.export_workdir(trained_workdir, output, step=5)
+    with pytest.raises(ValueError, match="'vmap' needs a fixed batch size"):
+        export.export_workdir(trained_workdir, output, formulation="vmap")
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        export.export_workdir(tmp_path / "nowhere", output)
+    assert not output.exists()
+    # A fixed batch for the GPU formulation is accepted (lowered here for CPU).
+    metadata = export.export_workdir(
+        trained_workdir, output, formulation="vmap", batch_size=1, step=2
+    )
+    assert metadata["batch_size"] == 1 and metadata["formulation"] == "vmap"
+    with zipfile.ZipFile(output) as archive:
+        assert json.loads(archive.read("metadata.json"))["source"]["step"] == 2
