@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 from absl import flags
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, run_python
 
 import data
 
@@ -78,3 +78,22 @@ def test_scenes11_flagfiles_share_the_base_and_change_one_setting(train_flags, p
     changed = {name for name in values if values[name] != base_values[name]}
     assert values["dataset"] == "demon/scenes11" and values["steps"] == 94_000
     assert changed - {"workdir", "flagfile"} == {line.split("=")[0][2:] for line in lines[2:]}
+
+
+FLOW_FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags" / "flow").glob("*.flags"))
+FLOW_PARSE = """
+import sys
+from absl import flags
+import data
+import experiments.train_flow  # noqa: F401  (defines the flow trainer's flags)
+flags.FLAGS(["train_flow", "--flagfile=" + sys.argv[1]])
+data.parse_name(flags.FLAGS.dataset)
+assert flags.FLAGS.workdir.startswith("runs/"), flags.FLAGS.workdir
+"""
+
+
+@pytest.mark.parametrize("path", FLOW_FLAGFILES, ids=lambda p: p.stem)
+def test_flow_flagfiles_parse_with_the_flow_trainer_and_document_themselves(path: Path):
+    header = [line for line in path.read_text().splitlines() if line.startswith("#")]
+    assert any("Command:" in line and "experiments.train_flow" in line for line in header)
+    run_python(FLOW_PARSE, str(path))

@@ -1,0 +1,149 @@
+r"""Trains the learned optical-flow network on the records' exact flow and compares it
+with the stored DIS flow: `python -m experiments.train_flow [--flagfile=...]`.
+
+    python -m experiments.train_flow --dataset=gld_scenes/small --workdir=runs/flow_net \
+        --steps=5000
+
+Builds the dataset on first use, trains `gld.flow_net.FlowNet` (PWC-Net style) against
+`gt_flow`, evaluates its end-point error periodically, and finally writes
+`<workdir>/eval/flow.json` and `flow_table.md`: EPE of the network and of DIS on the
+test split (same pairs, same valid pixels), parameters and ms per pair. Re-running the
+same command resumes from the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from absl import app, flags
+
+from experiments import common
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_string("workdir", "runs/flow_net", "Run directory (checkpoints, logs, eval).")
+flags.DEFINE_bool("final_eval", True, "Evaluate the final network on the whole test split.")
+flags.DEFINE_integer(
+    "latency_repeats", 30, "Timed batch-1 forward passes for the report's ms/pair.", lower_bound=1
+)
+
+
+def _define_flags() -> None:
+    """A flag for every option of FlowTrainConfig and every FlowNet argument, each with
+    its one default and help."""
+    from gld import flow_net, flow_training
+
+    for field in flow_training.flag_fields():
+        name, default, metadata = field.name, field.default, field.metadata
+        if metadata["choices"]:
+            flags.DEFINE_enum(name, default, list(metadata["choices"]), metadata["help"])
+        elif isinstance(default, bool):
+            flags.DEFINE_bool(name, default, metadata["help"])
+        elif isinstance(default, int):
+            flags.DEFINE_integer(name, default, metadata["help"], lower_bound=metadata["at_least"])
+        else:
+            flags.DEFINE_float(name, default, metadata["help"], lower_bound=metadata["at_least"])
+        if metadata["above"] is not None:
+            above = metadata["above"]
+            flags.register_validator(
+                name, lambda value, above=above: value > above, f"--{name} must be above {above}"
+            )
+    for field in dataclasses.fields(flow_net.FlowNet):
+        if field.name not in flow_net.ARCHITECTURE_HELP:
+            continue
+        help_text = flow_net.ARCHITECTURE_HELP[field.name]
+        if isinstance(field.default, tuple):
+            flags.DEFINE_list(field.name, [str(v) for v in field.default], help_text)
+        else:
+            flags.DEFINE_integer(field.name, field.default, help_text, lower_bound=1)
+
+
+_define_flags()
+common.define_data_flags()
+
+
+def _architecture() -> dict:
+    from gld import flow_net
+
+    values = {}
+    for name in flow_net.ARCHITECTURE_HELP:
+        value = FLAGS[name].value
+        if isinstance(value, list):
+            try:
+                value = [int(item) for item in value]
+            except ValueError:
+                raise app.UsageError(f"--{name} must be integers, got {value}") from None
+        values[name] = value
+    return values
+
+
+def main(argv):
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    common.initialise()
+    from gld import flow_net, flow_training
+
+    def make_config(**values):
+        options = {field.name: FLAGS[field.name].value for field in flow_training.flag_fields()}
+        try:
+            return flow_training.FlowTrainConfig(
+                **options, model_config=_architecture(), dataset=FLAGS.dataset, **values
+            ).validate()
+        except ValueError as error:
+            raise app.UsageError(f"--{error}") from None
+
+    # Every option is checked before the dataset is built or the workdir touched.
+    make_config()
+    builder = common.prepare_dataset()
+    splits = builder.info.splits
+    if "train" not in splits:
+        raise app.UsageError(f"{FLAGS.dataset} has no train split: nothing to train on")
+    evaluates = FLAGS.final_eval or FLAGS.eval_every > 0
+    if evaluates and "test" not in splits:
+        raise app.UsageError(
+            f"{FLAGS.dataset} has no test split to evaluate on; train without evaluation "
+            "with --eval_every=0 --nofinal_eval"
+        )
+    height, width = common.dataset_resolution(builder)
+    config = make_config(height=height, width=width)
+    print(
+        f"dataset {FLAGS.dataset}: {splits['train'].num_examples} train pairs at {width}x{height}"
+    )
+    train_source = common.data_source(builder, "train")
+    test_source = common.data_source(builder, "test") if evaluates else None
+    try:
+        state = flow_training.train_flow(config, FLAGS.workdir, train_source, test_source)
+    except ValueError as error:
+        raise app.UsageError(str(error)) from None
+    if not FLAGS.final_eval:
+        return
+    from pathlib import Path
+
+    import jax
+
+    model = config.make_model()
+    variables = jax.device_get(state.variables())
+    _, _, summary = flow_training.evaluate_flow(
+        model, variables, test_source, batch_size=config.eval_batch_size, progress=True
+    )
+    latency = flow_training.forward_latency(
+        model, variables, height, width, repeats=FLAGS.latency_repeats
+    )
+    table = flow_training.write_flow_report(
+        Path(FLAGS.workdir) / "eval",
+        summary,
+        parameters=flow_net.parameter_count(variables["params"]),
+        latency=latency,
+        info={
+            "dataset": builder.info.full_name,
+            "split": "test",
+            "step": int(jax.device_get(state.step)),
+            "height": height,
+            "width": width,
+        },
+    )
+    print(table)
+
+
+if __name__ == "__main__":
+    app.run(main)
