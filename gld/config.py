@@ -15,7 +15,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from gld import losses
+from gld import losses, photometric
 from gld import model as model_lib
 
 FLOW_SOURCES = ("estimated", "gt")
@@ -56,6 +56,9 @@ class TrainConfig:
     warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
     depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.", at_least=0)
     smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.", at_least=0)
+    photometric_smoothness_weight: float = option(
+        1e-3, "Smoothness weight of the self-supervised loss (struct2depth models).", at_least=0
+    )
     gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.", at_least=0)
     fixed_sparse_pixels: bool = option(False, "Keep the same supervised pixels every epoch.")
     flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
@@ -100,7 +103,10 @@ class TrainConfig:
         config = {k: v for k, v in full.items() if k not in speed_only}
         return {"model": self.model, **dict(sorted(config.items()))}
 
-    def loss_weights(self) -> losses.LossWeights:
+    def loss_weights(self) -> losses.LossWeights | photometric.SelfSupervisedWeights:
+        """The weights of the model's training loss (self-supervised or sparse)."""
+        if getattr(model_lib.MODELS.get(self.model), "LOSS", "supervised") == "self_supervised":
+            return photometric.SelfSupervisedWeights(smoothness=self.photometric_smoothness_weight)
         return losses.LossWeights(depth=self.depth_weight, smoothness=self.smoothness_weight)
 
 

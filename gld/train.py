@@ -23,7 +23,7 @@ import optax
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
-from gld import evaluation, input_pipeline, losses, metrics, sharding
+from gld import evaluation, input_pipeline, losses, metrics, photometric, sharding
 from gld import model as model_lib
 from gld import workdir as workdir_lib
 from gld.config import TrainConfig
@@ -31,6 +31,18 @@ from gld.state import TrainState, config_optimizer, create_train_state
 
 # Keys of a batch that the train step reads (the rest, like "id", stay on the host).
 TRAIN_KEYS = ("image1", "image2", "flow", "depth", "sparse_mask")
+# Training losses by the name a model class gives as `LOSS` (default "supervised"), and
+# the batch keys each reads: the self-supervised loss sees no depth, only the cameras.
+LOSSES = {"supervised": losses.total_loss, "self_supervised": photometric.self_supervised_loss}
+LOSS_KEYS = {
+    "supervised": TRAIN_KEYS,
+    "self_supervised": ("image1", "image2", "flow", "intrinsics1", "intrinsics2"),
+}
+
+
+def loss_name(model: nn.Module) -> str:
+    """The training loss a model is trained with (`LOSSES`)."""
+    return getattr(model, "LOSS", "supervised")
 
 
 class NonFiniteLossError(RuntimeError):
@@ -41,9 +53,11 @@ def make_train_step(
     *,
     model: nn.Module,
     optimizer: optax.GradientTransformation,
-    loss_weights: losses.LossWeights,
+    loss_weights: losses.LossWeights | photometric.SelfSupervisedWeights,
 ) -> Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]:
-    """Builds the pure `train_step(state, batch, rng) -> (state, metrics)`."""
+    """Builds the pure `train_step(state, batch, rng) -> (state, metrics)`; the loss is
+    the model's (`loss_name`): the sparse supervised loss, or the self-supervised one."""
+    loss_function = LOSSES[loss_name(model)]
 
     def train_step(state: TrainState, batch: dict, rng: jax.Array):
         has_batch_stats = bool(state.batch_stats)
@@ -62,7 +76,7 @@ def make_train_step(
                 mutable=["batch_stats"] if has_batch_stats else False,
             )
             outputs, updates = outputs if has_batch_stats else (outputs, {})
-            loss, terms = losses.total_loss(outputs, batch, loss_weights)
+            loss, terms = loss_function(outputs, batch, loss_weights)
             return loss, (terms, updates.get("batch_stats", state.batch_stats))
 
         (_, (terms, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
@@ -158,7 +172,7 @@ def train_and_evaluate(
         augment=config.augment,
         fixed_sparse_pixels=config.fixed_sparse_pixels,
         worker_count=config.worker_count,
-        keys=TRAIN_KEYS,
+        keys=LOSS_KEYS[loss_name(model)],
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
@@ -272,7 +286,7 @@ def _train(
     pending: tuple[int, dict] | None = None
     try:
         for step in range(start_step, config.steps):
-            batch = sharding.to_global_batch(next(iterator), mesh, TRAIN_KEYS)
+            batch = sharding.to_global_batch(next(iterator), mesh, LOSS_KEYS[loss_name(model)])
             state, step_metrics = train_step(state, batch, jax.random.fold_in(base_rng, step))
             # Check the previous step's loss while this one runs (keeps dispatch async).
             if pending is not None:

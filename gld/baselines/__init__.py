@@ -19,6 +19,7 @@ from gld.baselines.classical import CLASSICAL
 from gld.baselines.dispnet import DispNet
 from gld.baselines.eigen import EigenNet
 from gld.baselines.fcrn import FCRN
+from gld.baselines.self_supervised import SelfSupervised, SelfSupervisedFlow
 from gld.baselines.small_encdec import SmallEncDec
 
 LEARNED: dict[str, type[nn.Module]] = {
@@ -26,6 +27,9 @@ LEARNED: dict[str, type[nn.Module]] = {
     "dispnet": DispNet,
     "fcrn": FCRN,
     "small_encdec": SmallEncDec,
+    # Self-supervised (no depth labels; `LOSS = "self_supervised"`), without / with flow.
+    "struct2depth": SelfSupervised,
+    "struct2depth_flow": SelfSupervisedFlow,
 }
 
 __all__ = [
@@ -34,6 +38,8 @@ __all__ = [
     "DispNet",
     "EigenNet",
     "FCRN",
+    "SelfSupervised",
+    "SelfSupervisedFlow",
     "SmallEncDec",
     "parameter_count",
 ]

@@ -319,3 +319,27 @@ def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scen
     statistics = probes.depth_statistics(pairs)
     assert statistics["pair_scale_correlation"] > 0.95
     assert statistics["within_pair_correlation"] > 0.93
+
+
+# Compiling the self-supervised step (U-Net, pose net, warps at four scales) takes ~20 s.
+@pytest.mark.slow
+def test_a_self_supervised_model_trains_on_images_and_cameras_alone(tiny_scenes, tmp_path):
+    from gld import evaluation
+
+    config = tiny_train_config(
+        model="struct2depth", model_config={}, learning_rate=1e-4, steps=2, log_every=1
+    )
+    assert config.validate().loss_weights().smoothness == config.photometric_smoothness_weight
+    source = tiny_scenes.as_data_source("train")
+    train.train_and_evaluate(config, tmp_path, source, progress=False, print_fn=lambda _: None)
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [record["step"] for record in records] == [1, 2]
+    for record in records:
+        assert {"photometric", "auto_mask_fraction"} <= set(record)
+        assert "depth_l1" not in record  # no depth label is read
+        assert np.isfinite(record["loss"]) and record["grad_norm"] > 0
+    model, variables, _ = workdir_lib.load_trained(tmp_path)
+    per_example, _ = evaluation.evaluate_source(
+        model, variables, tiny_scenes.as_data_source("test"), batch_size=4, max_examples=4
+    )
+    assert np.all(np.isfinite(per_example["abs_inv"][per_example["example_mask"]]))
