@@ -7,6 +7,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import pytest
 from conftest import REPO_ROOT
 
 from gld import flow_training
@@ -44,6 +45,7 @@ def _records(workdir):
     return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_train_flow_trains_evaluates_and_resumes(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "flow"
     result = _launch(

@@ -291,6 +291,7 @@ def _write_custom_file(path, scenes: int) -> None:
             demon_files.write_scene(h5_file, f"s{index}", demon_files.moving_views(rng, 2, 48, 64))
 
 
+@pytest.mark.slow
 def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
     train_only, test_only = tmp_path / "train_only", tmp_path / "test_only"
     _write_custom_file(train_only / "custom_train.h5", scenes=4)

@@ -417,6 +417,7 @@ print(json.dumps({"rows": len(ids), "examples": int(per_example["example_mask"].
 """
 
 
+@pytest.mark.slow
 def test_any_evaluation_batch_size_runs_on_any_number_of_devices(tiny_scenes_dir):
     # 16 does not split over 3 devices: batches of 18 with two padded rows each.
     result = run_python(THREE_DEVICE_SCRIPT, str(tiny_scenes_dir), device_count=3)

@@ -1,6 +1,7 @@
 import baseline_checks
 import jax
 import jax.numpy as jnp
+import pytest
 
 from gld import baselines
 from gld.baselines.dispnet import DispNet
@@ -43,6 +44,7 @@ def test_original_layer_sizes():
     assert baselines.LEARNED["dispnet"] is DispNet
 
 
+@pytest.mark.slow
 def test_training_lowers_sparse_loss():
     losses, outputs, _ = baseline_checks.train_tiny(DispNet(**NARROW))
     baseline_checks.check_trained_outputs(losses, outputs)

@@ -2,6 +2,7 @@ import baseline_checks
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gld import baselines
 from gld.baselines.fcrn import FCRN, unpool
@@ -37,6 +38,7 @@ def test_resnet50_shapes_and_parameter_count():
     assert baselines.LEARNED["fcrn"] is FCRN
 
 
+@pytest.mark.slow
 def test_training_lowers_sparse_loss_and_updates_batch_statistics():
     losses, outputs, variables = baseline_checks.train_tiny(FCRN(**NARROW))
     baseline_checks.check_trained_outputs(losses, outputs)
