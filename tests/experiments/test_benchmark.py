@@ -36,6 +36,7 @@ def fake_torch_reference(tmp_path):
     return script
 
 
+@pytest.mark.slow
 def test_quick_run_writes_every_figure(tmp_path, fake_torch_reference):
     output = tmp_path / "out" / "bench.json"
     command = [
