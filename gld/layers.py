@@ -44,3 +44,16 @@ def depth_outputs(logits: jax.Array) -> dict[str, jax.Array]:
         logits = logits[..., 0]
     inv_depth = positive_inv_depth(logits)
     return {"inv_depth": inv_depth, "depth": 1.0 / inv_depth}
+
+
+def check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None:
+    """Raises ValueError unless the images are [B, H, W, 3] and the flow [B, H, W, 2] of
+    one batch and size (the call signature every depth model shares)."""
+    for name, array, channels in (("image1", image1, 3), ("image2", image2, 3), ("flow", flow, 2)):
+        if array.ndim != 4 or array.shape[-1] != channels:
+            raise ValueError(f"{name} must be [B, H, W, {channels}], got shape {array.shape}")
+    if not image1.shape[:3] == image2.shape[:3] == flow.shape[:3]:
+        raise ValueError(
+            f"image1 {image1.shape}, image2 {image2.shape} and flow {flow.shape} must share "
+            "batch size and image size"
+        )

@@ -95,7 +95,7 @@ class GlobalLocal(nn.Module):
            "global_params": [B, global_dim] (zeros without a global module),
            "filter_banks": list of FilterBank(kernel [B, k, k, C_in, C_out], bias [B, C_out])}.
         """
-        _check_inputs(image1, image2, flow)
+        layers.check_inputs(image1, image2, flow)
         batch_size, height, width, _ = flow.shape
         image_pair = jnp.concatenate([image1, image2], axis=-1)
         normalised_flow = layers.normalise_flow(flow) * self.flow_scale
@@ -187,17 +187,6 @@ class ConvParameters(nn.Module):
         kernel = self.param("kernel", nn.initializers.lecun_normal(), shape)
         bias = self.param("bias", nn.initializers.zeros_init(), (self.out_channels,))
         return SharedConv(kernel=kernel, bias=bias)
-
-
-def _check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None:
-    for name, array, channels in (("image1", image1, 3), ("image2", image2, 3), ("flow", flow, 2)):
-        if array.ndim != 4 or array.shape[-1] != channels:
-            raise ValueError(f"{name} must be [B, H, W, {channels}], got shape {array.shape}")
-    if not image1.shape[:3] == image2.shape[:3] == flow.shape[:3]:
-        raise ValueError(
-            f"image1 {image1.shape}, image2 {image2.shape} and flow {flow.shape} must share "
-            "batch size and image size"
-        )
 
 
 # Every learned depth network, by name (`--model`).

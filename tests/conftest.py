@@ -110,3 +110,24 @@ def eval_batch(tiny_scenes):
 
     source = tiny_scenes.as_data_source("test")
     return next(input_pipeline.eval_batches([source[i] for i in range(4)], batch_size=4))
+
+
+def random_variables(model, height: int, width: int, seed: int) -> dict:
+    """Variables of `model`'s structure drawn with numpy (std 1/sqrt(fan-in), biases 0):
+    jit-compiling `model.init` would cost seconds per test module."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    zeros = jax.ShapeDtypeStruct((1, height, width, 3), jnp.float32)
+    flow = jax.ShapeDtypeStruct((1, height, width, 2), jnp.float32)
+    shapes = jax.eval_shape(model.init, jax.random.key(0), zeros, zeros, flow)
+    rng = np.random.default_rng(seed)
+
+    def draw(leaf):
+        if len(leaf.shape) < 2:
+            return np.zeros(leaf.shape, leaf.dtype)
+        fan_in = int(np.prod(leaf.shape[:-1]))
+        return rng.normal(0.0, fan_in**-0.5, leaf.shape).astype(leaf.dtype)
+
+    return jax.tree_util.tree_map(draw, shapes)

@@ -85,17 +85,6 @@ def rotation_from_axis_angle(axis_angle: jax.Array) -> jax.Array:
     return eye + sine_term[..., None, None] * cross + cosine_term[..., None, None] * (cross @ cross)
 
 
-def _check_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> None:
-    for name, array, channels in (("image1", image1, 3), ("image2", image2, 3), ("flow", flow, 2)):
-        if array.ndim != 4 or array.shape[-1] != channels:
-            raise ValueError(f"{name} must be [B, H, W, {channels}], got shape {array.shape}")
-    if not image1.shape[:3] == image2.shape[:3] == flow.shape[:3]:
-        raise ValueError(
-            f"image1 {image1.shape}, image2 {image2.shape} and flow {flow.shape} must share "
-            "batch size and image size"
-        )
-
-
 class DepthNet(nn.Module):
     """U-Net from one image (+ flow) to multi-scale inverse depth.
 
@@ -230,7 +219,7 @@ class SelfSupervised(nn.Module):
           'translation': [B, 3] in the network's units (X2 = R X1 + t).
         """
         del train
-        _check_inputs(image1, image2, flow)
+        layers.check_inputs(image1, image2, flow)
         flow_input = [layers.normalise_flow(flow)] if self.use_flow else []
         depth_input = jnp.concatenate([image1, *flow_input], axis=-1)
         pose_input = jnp.concatenate([image1, image2, *flow_input], axis=-1)

@@ -8,11 +8,9 @@ import sys
 import textwrap
 import zipfile
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, TINY_MODEL
+from conftest import REPO_ROOT, TINY_MODEL, random_variables
 
 from gld import export
 from gld import model as model_lib
@@ -21,23 +19,6 @@ from gld.deploy import DeployedModel
 HEIGHT, WIDTH = 24, 32
 # What a robot need not install: importing any of these in the isolated run fails.
 TRAINING_PACKAGES = ("flax", "optax", "orbax", "tensorflow", "tensorflow_datasets", "grain", "cv2")
-
-
-def random_variables(model, height: int, width: int, seed: int) -> dict:
-    """Variables of `model`'s structure drawn with numpy (std 1/sqrt(fan-in), biases 0):
-    jit-compiling `model.init` would cost seconds per test module."""
-    zeros = jax.ShapeDtypeStruct((1, height, width, 3), jnp.float32)
-    flow = jax.ShapeDtypeStruct((1, height, width, 2), jnp.float32)
-    shapes = jax.eval_shape(model.init, jax.random.key(0), zeros, zeros, flow)
-    rng = np.random.default_rng(seed)
-
-    def draw(leaf):
-        if len(leaf.shape) < 2:
-            return np.zeros(leaf.shape, leaf.dtype)
-        fan_in = int(np.prod(leaf.shape[:-1]))
-        return rng.normal(0.0, fan_in**-0.5, leaf.shape).astype(leaf.dtype)
-
-    return jax.tree_util.tree_map(draw, shapes)
 
 
 @pytest.fixture(scope="module")
