@@ -38,6 +38,7 @@ import optax
 from jax.sharding import Mesh
 
 from gld import evaluation, input_pipeline, sharding
+from gld import train as train_lib
 from gld import workdir as workdir_lib
 from gld.config import LR_SCHEDULES, check_option, option
 from gld.flow_net import FlowNet, check_architecture, check_image_pair, init_params, parameter_count
@@ -57,10 +58,6 @@ NETWORK = "flow_net"
 # PWC-Net's robust fine-tuning loss: (|du| + |dv| + epsilon) ** q.
 _ROBUST_EPSILON = 0.01
 _ROBUST_EXPONENT = 0.4
-
-
-class NonFiniteFlowLossError(RuntimeError):
-    """The loss became NaN or inf; the last good checkpoint is kept."""
 
 
 @dataclasses.dataclass
@@ -595,7 +592,7 @@ def train_flow(
       ValueError: a bad option, or a workdir holding another run (nothing is written).
       gld.workdir.WorkdirLockedError: another process trains in the workdir.
       gld.workdir.CorruptCheckpointError: no checkpoint of the workdir is intact.
-      NonFiniteFlowLossError: the loss became NaN/inf (the step is named).
+      gld.train.NonFiniteLossError: the loss became NaN/inf (the step is named).
     """
     workdir = Path(workdir)
     config.validate()
@@ -630,15 +627,7 @@ def train_flow(
             )
         manager = workdir_lib.checkpoint_manager(workdir, keep=config.keep_checkpoints)
         try:
-            if manager.latest_step() is not None:
-                restored = workdir_lib.restore_intact_checkpoint(
-                    manager, state, iterator, print_fn=print_fn
-                )
-                state = restored.state
-                print_fn(f"resumed from step {restored.step} in {workdir / 'checkpoints'}")
-                if restored.skipped and jax.process_index() == 0:
-                    for moved in workdir_lib.move_aside(workdir, manager, restored.skipped):
-                        print_fn(f"damaged checkpoint moved to {moved}")
+            state = train_lib.resume(workdir, manager, state, iterator, print_fn)
             write_flow_config(workdir, config)
             return _train_loop(
                 config,
@@ -672,97 +661,47 @@ def _train_loop(
     progress: bool,
     print_fn: Callable[[str], None],
 ) -> TrainState:
-    from gld.train import jit_train_step
-
-    start_step = int(jax.device_get(state.step))
-    if jax.process_index() == 0:
-        dropped = workdir_lib.drop_metrics_after(workdir, start_step)
-        if dropped:
-            print_fn(f"metrics.jsonl: dropped {dropped} lines after step {start_step}")
-    state = jax.device_put(state, sharding.replicated(mesh))
-    train_step = jit_train_step(
-        make_flow_train_step(
-            model=model,
-            optimizer=optimizer,
-            loss=config.loss,
-            pyramid_weight=config.pyramid_weight,
-        ),
-        mesh,
-    )
+    """The flow network's step and evaluation in the trainers' shared loop."""
     eval_step = evaluation.jit_eval_step(make_flow_eval_step(model=model), mesh)
-    logger = workdir_lib.MetricsLogger(workdir)
-    base_rng = jax.random.wrap_key_data(jnp.asarray(jax.device_get(state.rng)))
-    bar = None
-    if progress and jax.process_index() == 0:
-        from tqdm import tqdm
 
-        bar = tqdm(
-            total=config.steps,
-            initial=start_step,
-            desc="train flow",
-            unit="step",
-            dynamic_ncols=True,
+    def evaluate(state: TrainState) -> tuple[dict[str, float], str]:
+        _, _, summary = evaluate_flow(
+            model,
+            state.variables(),
+            test_source,
+            batch_size=config.eval_batch_size,
+            max_examples=config.eval_examples,
+            mesh=mesh,
+            eval_step=eval_step,
         )
-    window_start, window_steps = time.perf_counter(), 0
-    try:
-        for step in range(start_step, config.steps):
-            batch = sharding.to_global_batch(next(iterator), mesh, FLOW_TRAIN_KEYS)
-            state, step_metrics = train_step(state, batch, jax.random.fold_in(base_rng, step))
-            window_steps += 1
-            done = step + 1
-            if bar is not None:
-                bar.update(1)
-            logs = done % config.log_every == 0 or done == config.steps
-            saves = done % config.checkpoint_every == 0 or done == config.steps
-            if logs or saves:
-                values = {k: float(v) for k, v in jax.device_get(step_metrics).items()}
-                if not math.isfinite(values["loss"]):
-                    raise NonFiniteFlowLossError(
-                        f"loss is {values['loss']} at step {done}; stopping. The last good "
-                        "checkpoint is kept; lower --learning_rate"
-                    )
-            if logs:
-                elapsed = time.perf_counter() - window_start
-                values["steps_per_sec"] = window_steps / max(elapsed, 1e-9)
-                logger.write(done, values)
-                if bar is not None:
-                    bar.set_postfix(epe=f"{values['epe']:.3f}")
-                window_start, window_steps = time.perf_counter(), 0
-            if saves:
-                workdir_lib.save_checkpoint(manager, state, iterator)
-            if (
-                test_source is not None
-                and config.eval_every
-                and (done % config.eval_every == 0 or done == config.steps)
-            ):
-                _, _, summary = evaluate_flow(
-                    model,
-                    state.variables(),
-                    test_source,
-                    batch_size=config.eval_batch_size,
-                    max_examples=config.eval_examples,
-                    mesh=mesh,
-                    eval_step=eval_step,
-                )
-                logger.write(
-                    done,
-                    {
-                        "epe": summary[NETWORK]["epe"],
-                        "outliers": summary[NETWORK]["outliers"],
-                        "dis_epe": summary[STORED_FLOW]["epe"],
-                    },
-                    prefix="test",
-                )
-                message = (
-                    f"step {done}: test EPE {summary[NETWORK]['epe']:.3f} px "
-                    f"(DIS {summary[STORED_FLOW]['epe']:.3f} px)"
-                )
-                if bar is not None:
-                    bar.write(message)
-                else:
-                    print_fn(message)
-    finally:
-        if bar is not None:
-            bar.close()
-        logger.close()
-    return state
+        values = {
+            "epe": summary[NETWORK]["epe"],
+            "outliers": summary[NETWORK]["outliers"],
+            "dis_epe": summary[STORED_FLOW]["epe"],
+        }
+        message = (
+            f"test EPE {summary[NETWORK]['epe']:.3f} px (DIS {summary[STORED_FLOW]['epe']:.3f} px)"
+        )
+        return values, message
+
+    train_step = make_flow_train_step(
+        model=model,
+        optimizer=optimizer,
+        loss=config.loss,
+        pyramid_weight=config.pyramid_weight,
+    )
+    return train_lib.run_loop(
+        state,
+        iterator,
+        manager,
+        workdir=workdir,
+        mesh=mesh,
+        train_step=train_step,
+        batch_keys=FLOW_TRAIN_KEYS,
+        schedule=config,
+        evaluate=evaluate if test_source is not None else None,
+        progress=progress,
+        description="train flow",
+        postfix="epe",
+        print_fn=print_fn,
+    )

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -202,11 +203,12 @@ def train_and_evaluate(
             manager.close()
 
 
-def _resume(
+def resume(
     workdir: Path, manager, state: TrainState, iterator, print_fn: Callable[[str], None]
 ) -> TrainState:
     """The newest intact checkpoint restored into `state` and `iterator` (or `state` on a
-    new run); damaged newer checkpoints are moved aside so their steps can be saved again."""
+    new run); damaged newer checkpoints are moved aside so their steps can be saved again
+    (every trainer resumes so)."""
     if manager.latest_step() is None:
         return state
     restored = workdir_lib.restore_intact_checkpoint(manager, state, iterator, print_fn=print_fn)
@@ -240,8 +242,8 @@ def _train(
     progress: bool,
     print_fn: Callable[[str], None],
 ) -> TrainState:
-    """The training loop of `train_and_evaluate`, in a workdir it holds."""
-    state = _resume(workdir, manager, state, iterator, print_fn)
+    """The depth trainer in a workdir it holds: resume, the run's records, `run_loop`."""
+    state = resume(workdir, manager, state, iterator, print_fn)
     start_step = int(jax.device_get(state.step))
     will_train = start_step < config.steps
     # On a new workdir the records are written now; on an existing one with the first
@@ -261,32 +263,115 @@ def _train(
                 f"{workdir_lib.describe_changes(changes)} ({when})"
             )
         records_pending = bool(changes) or workdir_lib.records_differ(workdir, records)
+
+    def after_checkpoint() -> None:
+        nonlocal records_pending
+        if records_pending:
+            workdir_lib.write_run_config(workdir, config, step=start_step, records=records)
+            records_pending = False
+
+    eval_step = evaluation.jit_eval_step(evaluation.make_eval_step(model=model), mesh)
+
+    def evaluate(state: TrainState) -> tuple[dict[str, float], str]:
+        per_example, _ = evaluation.evaluate_source(
+            model,
+            state.variables(),
+            test_source,
+            batch_size=config.eval_batch_size,
+            flow_source=config.flow_source,
+            mesh=mesh,
+            max_examples=config.eval_examples,
+            eval_step=eval_step,
+        )
+        summary = metrics.summarise(per_example, per_example.pop("example_mask"))
+        message = "test " + ", ".join(
+            f"{metrics.METRIC_NAMES[k]} {summary[k]['mean']:.4f}" for k in metrics.DEPTH_METRICS
+        )
+        return {k: v["mean"] for k, v in summary.items() if k in metrics.DEPTH_METRICS}, message
+
+    train_step = make_train_step(
+        model=model, optimizer=optimizer, loss_weights=config.loss_weights()
+    )
+    return run_loop(
+        state,
+        iterator,
+        manager,
+        workdir=workdir,
+        mesh=mesh,
+        train_step=train_step,
+        batch_keys=LOSS_KEYS[loss_name(model)],
+        schedule=config,
+        evaluate=evaluate if test_source is not None else None,
+        after_checkpoint=after_checkpoint,
+        progress=progress,
+        print_fn=print_fn,
+    )
+
+
+def run_loop(
+    state: TrainState,
+    iterator,
+    manager,
+    *,
+    workdir: Path,
+    mesh: Mesh,
+    train_step: Callable,
+    batch_keys: Sequence[str],
+    schedule: Any,
+    evaluate: Callable[[TrainState], tuple[dict[str, float], str]] | None,
+    after_checkpoint: Callable[[], None] | None = None,
+    progress: bool,
+    description: str = "train",
+    postfix: str = "loss",
+    print_fn: Callable[[str], None],
+) -> TrainState:
+    """The training loop of every trainer (depth and flow), in a workdir it holds.
+
+    Steps `state` from its step to `schedule.steps` with the pure `train_step(state,
+    batch, rng) -> (state, metrics)` (compiled here over `mesh`; its metrics hold
+    "loss") on the `batch_keys` of `iterator`'s batches, with the key of each step
+    folded from the state's base key. Every `log_every` steps (and at the end) the
+    metrics go to metrics.jsonl and TensorBoard, with the step rate; every
+    `checkpoint_every` steps the state and the iterator are saved (then
+    `after_checkpoint()` runs); every `eval_every` steps `evaluate(state)` returns the
+    test values to log and a line to show. Lines logged after the starting step by an
+    earlier launch are dropped first.
+
+    Args:
+      schedule: anything with the int attributes steps, batch_size, log_every,
+        checkpoint_every and eval_every (a TrainConfig, a FlowTrainConfig).
+      description, postfix: the progress bar's label and the metric it shows.
+
+    Raises:
+      NonFiniteLossError: the loss became NaN/inf (the step is named; the last good
+        checkpoint is kept).
+    """
+    start_step = int(jax.device_get(state.step))
     if jax.process_index() == 0:
         dropped = workdir_lib.drop_metrics_after(workdir, start_step)
         if dropped:
             print_fn(f"metrics.jsonl: dropped {dropped} lines after step {start_step}")
-
     state = jax.device_put(state, sharding.replicated(mesh))
-    train_step = jit_train_step(
-        make_train_step(model=model, optimizer=optimizer, loss_weights=config.loss_weights()),
-        mesh,
-    )
-    eval_step = evaluation.jit_eval_step(evaluation.make_eval_step(model=model), mesh)
+    train_step = jit_train_step(train_step, mesh)
     logger = workdir_lib.MetricsLogger(workdir)
     base_rng = jax.random.wrap_key_data(jnp.asarray(jax.device_get(state.rng)))
+    steps = schedule.steps
+
+    def due(every: int, done: int) -> bool:
+        return bool(every) and (done % every == 0 or done == steps)
 
     bar = None
     if progress and jax.process_index() == 0:
         from tqdm import tqdm
 
         bar = tqdm(
-            total=config.steps, initial=start_step, desc="train", unit="step", dynamic_ncols=True
+            total=steps, initial=start_step, desc=description, unit="step", dynamic_ncols=True
         )
     window_start, window_steps = time.perf_counter(), 0
     pending: tuple[int, dict] | None = None
     try:
-        for step in range(start_step, config.steps):
-            batch = sharding.to_global_batch(next(iterator), mesh, LOSS_KEYS[loss_name(model)])
+        for step in range(start_step, steps):
+            batch = sharding.to_global_batch(next(iterator), mesh, batch_keys)
             state, step_metrics = train_step(state, batch, jax.random.fold_in(base_rng, step))
             # Check the previous step's loss while this one runs (keeps dispatch async).
             if pending is not None:
@@ -296,51 +381,28 @@ def _train(
             done = step + 1
             if bar is not None:
                 bar.update(1)
-            if done % config.log_every == 0 or done == config.steps:
+            if due(schedule.log_every, done):
                 _raise_if_not_finite(*pending)
                 values = {k: float(v) for k, v in jax.device_get(step_metrics).items()}
                 elapsed = time.perf_counter() - window_start
                 values["steps_per_sec"] = window_steps / max(elapsed, 1e-9)
-                values["examples_per_sec"] = values["steps_per_sec"] * config.batch_size
+                values["examples_per_sec"] = values["steps_per_sec"] * schedule.batch_size
                 logger.write(done, values)
                 if bar is not None:
-                    bar.set_postfix(loss=f"{values['loss']:.4f}")
+                    bar.set_postfix({postfix: f"{values[postfix]:.4f}"})
                 window_start, window_steps = time.perf_counter(), 0
-            if done % config.checkpoint_every == 0 or done == config.steps:
+            if due(schedule.checkpoint_every, done):
                 _raise_if_not_finite(*pending)
                 workdir_lib.save_checkpoint(manager, state, iterator)
-                if records_pending:
-                    workdir_lib.write_run_config(workdir, config, step=start_step, records=records)
-                    records_pending = False
-            if (
-                test_source is not None
-                and config.eval_every
-                and (done % config.eval_every == 0 or done == config.steps)
-            ):
-                per_example, _ = evaluation.evaluate_source(
-                    model,
-                    state.variables(),
-                    test_source,
-                    batch_size=config.eval_batch_size,
-                    flow_source=config.flow_source,
-                    mesh=mesh,
-                    max_examples=config.eval_examples,
-                    eval_step=eval_step,
-                )
-                summary = metrics.summarise(per_example, per_example.pop("example_mask"))
-                logger.write(
-                    done,
-                    {k: v["mean"] for k, v in summary.items() if k in metrics.DEPTH_METRICS},
-                    prefix="test",
-                )
+                if after_checkpoint is not None:
+                    after_checkpoint()
+            if evaluate is not None and due(schedule.eval_every, done):
+                values, message = evaluate(state)
+                logger.write(done, values, prefix="test")
                 if bar is not None:
-                    bar.write(
-                        f"step {done}: test "
-                        + ", ".join(
-                            f"{metrics.METRIC_NAMES[k]} {summary[k]['mean']:.4f}"
-                            for k in metrics.DEPTH_METRICS
-                        )
-                    )
+                    bar.write(f"step {done}: {message}")
+                else:
+                    print_fn(f"step {done}: {message}")
         if pending is not None:
             _raise_if_not_finite(*pending)
     finally:
