@@ -39,7 +39,12 @@ flags.DEFINE_integer("workers", None, "gld_scenes: rendering processes.")
 flags.DEFINE_bool("strict", None, "demon: fail at the first damaged pair.")
 flags.DEFINE_float("max_bad_fraction", None, "demon: fail when more pairs than this are bad.")
 flags.DEFINE_bool("verify_checksums", None, "demon: check known files' published MD5 sums.")
-flags.DEFINE_string("flow_estimator", None, "demon: flow estimator stored with the records.")
+flags.DEFINE_string(
+    "flow_estimator",
+    None,
+    "The stored flow's estimator: dis, dis_fast, farneback, or flow_net:<workdir> of a network "
+    "trained by experiments.train_flow (default: the dataset's, dis).",
+)
 flags.DEFINE_float(
     "min_relative_baseline",
     None,

@@ -2,13 +2,18 @@
 
 Flow is in pixels, I1 -> I2: pixel p of image 1 sits at p + flow(p) in image 2.
 The default, OpenCV's DIS, is used off the shelf (neither trained nor tuned on
-gld's data), as the paper uses a pre-trained flow network. Flow is computed once,
-when a dataset is built, and stored with the records.
+gld's data), as the paper uses a pre-trained flow network. A flow network trained
+by `experiments.train_flow` is selected as "flow_net:<its workdir>" (its newest
+intact checkpoint; JAX is imported on first use and the network runs in the calling
+process). Flow is computed once, when a dataset is built, and stored with the records.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,6 +38,24 @@ def _as_gray_uint8(image: np.ndarray, name: str) -> np.ndarray:
     if image.ndim == 3 and image.shape[-1] == 3:
         return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return image.reshape(image.shape[:2])
+
+
+def as_unit_rgb(image: np.ndarray, name: str) -> np.ndarray:
+    """[H, W, 3] float32 in gld's image contract ([-0.5, 0.5]) from uint8 or float
+    ([-0.5, 0.5] or [0, 1]) RGB, or from [H, W] greyscale (replicated)."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise ValueError(f"{name} must be [H, W] or [H, W, 3], got shape {image.shape}")
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / 255.0 - 0.5
+    if not np.issubdtype(image.dtype, np.floating):
+        raise ValueError(f"{name} must be uint8 or float, got dtype {image.dtype}")
+    if not np.all(np.isfinite(image)):
+        raise ValueError(f"{name} contains NaN or inf")
+    offset = 0.0 if image.min() < 0 else 0.5
+    return (image - offset).astype(np.float32)
 
 
 def _check_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,10 +135,59 @@ ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
 }
 
 
+# A trained flow network: "flow_net:<workdir of experiments.train_flow>".
+LEARNED_PREFIX = "flow_net:"
+# The file that marks a flow network's workdir (`gld.flow_training.FLOW_CONFIG_FILE`).
+_FLOW_RUN_MARKER = "flow_config.json"
+
+
+def is_learned(method: str) -> bool:
+    """Whether `method` names a trained flow network rather than a classical estimator."""
+    return method.startswith(LEARNED_PREFIX)
+
+
+def check_estimator(method: str) -> None:
+    """Raises ValueError unless `method` is an `ESTIMATORS` name or "flow_net:<workdir>"
+    of a flow network's run (checked before anything is built)."""
+    if method in ESTIMATORS:
+        return
+    if is_learned(method):
+        workdir = Path(method[len(LEARNED_PREFIX) :]).expanduser()
+        if not (workdir / _FLOW_RUN_MARKER).is_file():
+            raise ValueError(
+                f"flow estimator {method!r}: {workdir} holds no flow-network run (no "
+                f"{_FLOW_RUN_MARKER}); train one with python -m experiments.train_flow"
+            )
+        return
+    raise ValueError(
+        f"unknown flow estimator {method!r}; valid: {sorted(ESTIMATORS)} or "
+        f"'{LEARNED_PREFIX}<workdir of a trained flow network>'"
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def _trained_network(workdir: str):
+    from gld import flow_training  # JAX: imported only when a network is asked for
+
+    return flow_training.TrainedFlowNet(workdir)
+
+
+def describe(method: str) -> dict[str, Any]:
+    """What produced the stored flow, for a dataset's card: {"estimator": method}, plus
+    the workdir, checkpoint step and parameter digest of a trained network."""
+    check_estimator(method)
+    if not is_learned(method):
+        return {"estimator": method}
+    network = _trained_network(str(Path(method[len(LEARNED_PREFIX) :]).expanduser().resolve()))
+    return {"estimator": method, **network.describe()}
+
+
 def estimate(image1: np.ndarray, image2: np.ndarray, method: str = DEFAULT_ESTIMATOR) -> np.ndarray:
-    """Flow I1 -> I2 [H, W, 2] with the named estimator (see `ESTIMATORS`)."""
-    if method not in ESTIMATORS:
-        raise ValueError(f"unknown flow estimator {method!r}; valid: {sorted(ESTIMATORS)}")
+    """Flow I1 -> I2 [H, W, 2] float32 with the named estimator (see `check_estimator`)."""
+    check_estimator(method)
+    if is_learned(method):
+        workdir = str(Path(method[len(LEARNED_PREFIX) :]).expanduser().resolve())
+        return _trained_network(workdir)(image1, image2)
     return ESTIMATORS[method](image1, image2)
 
 

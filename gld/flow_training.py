@@ -23,6 +23,7 @@ A flow run's workdir:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import statistics
@@ -555,6 +556,49 @@ def load_flow_run(
     finally:
         manager.close()
     return model, restored.state.variables(), config, restored.step
+
+
+def params_digest(params) -> str:
+    """SHA-256 of a parameter tree's values (in the tree's order): names a checkpoint's
+    weights in a dataset card or a depth run's log."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(params):
+        digest.update(np.ascontiguousarray(np.asarray(leaf, np.float32)).tobytes())
+    return digest.hexdigest()
+
+
+class TrainedFlowNet:
+    """A trained flow network as a numpy estimator, `(image1, image2) -> [H, W, 2]`
+    float32 pixels (the signature of `gld.flow.ESTIMATORS`; images uint8 or float, see
+    `gld.flow.as_unit_rgb`). One compiled forward pass per image size."""
+
+    def __init__(self, workdir: str | Path, step: int | None = None):
+        self.workdir = Path(workdir)
+        self.model, self.variables, self.config, self.step = load_flow_run(workdir, step)
+        self._forward = jax.jit(
+            lambda variables, image1, image2: self.model.apply(variables, image1, image2)["flow"]
+        )
+
+    def describe(self) -> dict[str, Any]:
+        """The network's workdir, checkpoint step, architecture and parameter digest."""
+        return {
+            "workdir": str(self.workdir.resolve()),
+            "step": int(self.step),
+            "architecture": self.config.architecture(),
+            "params_sha256": params_digest(self.variables["params"]),
+        }
+
+    def __call__(self, image1: np.ndarray, image2: np.ndarray) -> np.ndarray:
+        from gld import flow as flow_lib
+
+        first = flow_lib.as_unit_rgb(image1, "image1")
+        second = flow_lib.as_unit_rgb(image2, "image2")
+        if first.shape != second.shape:
+            raise ValueError(
+                f"image1 and image2 must have the same size, got {first.shape} and {second.shape}"
+            )
+        flow = self._forward(self.variables, first[None], second[None])
+        return np.asarray(flow[0], np.float32)
 
 
 def _optimizer(config: FlowTrainConfig) -> optax.GradientTransformation:

@@ -16,9 +16,10 @@ to reuse the dataset for other files or options). Every input file is checked
 Builder keyword arguments: `strict` (fail at the first damaged pair),
 `max_bad_fraction` (fail when more of a split's pairs are damaged, default 0.05),
 `verify_checksums` (check files against their published MD5 sums, default True),
-`flow_estimator` (a `gld.flow.ESTIMATORS` name), `min_relative_baseline` (skip pairs
-whose baseline is at most this x the median depth; default 1e-4 for train and 0 for
-test, so the test split keeps every pair DeMoN evaluates), `depth_resampling`
+`flow_estimator` (a `gld.flow.ESTIMATORS` name, or "flow_net:<workdir>" for a trained
+flow network), `min_relative_baseline` (skip pairs whose baseline is at most this x
+the median depth; default 1e-4 for train and 0 for test, so the test split keeps every
+pair DeMoN evaluates), `depth_resampling`
 (`demon`: DeMoN's INTER_NEAREST, the default of scenes11 / sun3d / rgbd; `centred`:
 centre-aligned with hole filling, the default of custom) and `image_decoder`
 (`opencv`, the default: libwebp's defaults, as DeMoN's Python reader; `demon`: libwebp
@@ -159,10 +160,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         `data.FILE_FORMAT`. Other arguments go to TFDS."""
         if not 0.0 <= max_bad_fraction <= 1.0:
             raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
-        if flow_estimator not in flow_lib.ESTIMATORS:
-            raise ValueError(
-                f"unknown flow_estimator {flow_estimator!r}; valid: {sorted(flow_lib.ESTIMATORS)}"
-            )
+        flow_lib.check_estimator(flow_estimator)
         if depth_resampling is not None and depth_resampling not in pairs.DEPTH_RESAMPLING:
             raise ValueError(
                 f"unknown depth_resampling {depth_resampling!r}; "
@@ -289,3 +287,4 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         print(report.format(), flush=True)
         self.info.metadata.setdefault("build_report", {})[split] = report.as_dict()
         self.info.metadata.setdefault("build_options", {})[split] = options
+        self.info.metadata["flow_estimator_source"] = flow_lib.describe(options["flow_estimator"])

@@ -175,7 +175,7 @@ def make_example(
     Args:
       view1, view2: views at the output resolution (see `resize_view`).
       example_id: the id stored with the record.
-      flow_estimator: a `gld.flow.ESTIMATORS` name.
+      flow_estimator: a `gld.flow.check_estimator` name.
 
     Returns:
       dict with images [H, W, 3] uint8, metric depths [H, W], normalised intrinsics,

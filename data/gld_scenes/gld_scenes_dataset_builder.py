@@ -4,7 +4,8 @@ Each example is a pair of views of a random room with boxes, spheres and
 cylinders (drawn by `scenes.py`, ray cast by `raycast.py`, paired by `renderer.py`),
 with both camera-z depth maps, both intrinsics, the relative pose, the exact flow
 and its validity, and the flow estimated from the two images by an off-the-shelf
-estimator (OpenCV DIS by default). Records follow `gld.records`.
+estimator (OpenCV DIS by default; `Builder(flow_estimator="flow_net:<workdir>")` stores a
+trained flow network's instead). Records follow `gld.records`.
 
 Build with `data.prepare("gld_scenes/small", data_dir)`, `python -m data.build
 --dataset=gld_scenes/small` or `tfds.builder("gld_scenes/small").download_and_prepare()`
@@ -16,8 +17,9 @@ records are identical across builds and independent of the number of workers.
 The dataset card (`metadata.json`) records, per split, the estimated flow's end-point
 error and the benchmark's signal (`signal_<split>`, see `signal_statistics`): how far
 pixels move, how much of that motion is parallax (the part that carries depth), and
-how well triangulation with the true pose recovers depth from the estimated and from
-the true flow.
+how well triangulation with the true pose recovers depth (and each pair's depth scale)
+from the estimated and from the true flow, and the per-pair oracle constant's error; and
+what produced the stored flow (`flow_estimator_source`).
 """
 
 from __future__ import annotations
@@ -76,7 +78,8 @@ class SceneConfig(tfds.core.BuilderConfig):
       num_train, num_test: number of pairs per split.
       seed: seed of the whole dataset (with the split and the index).
       intrinsics_jitter: relative perturbation of each view's fx, fy, cx, cy (0 = nominal).
-      flow_estimator: name in `gld.flow.ESTIMATORS` of the stored estimated flow.
+      flow_estimator: the stored estimated flow's estimator (`gld.flow.check_estimator`);
+        a build may override it (`Builder(flow_estimator=...)`).
     """
 
     height: int = 192
@@ -119,25 +122,38 @@ def _configs() -> list[SceneConfig]:
 
 
 def render_example(
-    config: SceneConfig, split: str, index: int
+    config: SceneConfig, split: str, index: int, flow_estimator: str | None = None
 ) -> tuple[str, dict[str, Any], float, float]:
     """Renders example `index` of `split` (a raw record, see `gld.records`).
+
+    Args:
+      flow_estimator: the stored flow's estimator; None is the config's.
 
     Returns:
       The example id, the example (numpy, before `records.encode`), the end-point
       error (pixels) of the estimated flow against the true flow on valid pixels,
       and the fraction of valid true-flow pixels.
     """
+    return add_flow(render_pair(config, split, index), flow_estimator or config.flow_estimator)
+
+
+def render_pair(config: SceneConfig, split: str, index: int) -> dict[str, Any]:
+    """Example `index` of `split` without its estimated flow (numpy only: safe in a
+    forked worker), with its "id"."""
     example = renderer.render_pair(
         renderer.example_rng(config.seed, split, index), config.scene_settings()
     )
-    example["flow"] = flow_lib.estimate(
-        example["image1"], example["image2"], method=config.flow_estimator
-    )
-    example_id = f"gld_scenes/{config.name}/{split}/{index:05d}"
-    example["id"] = example_id
+    example["id"] = f"gld_scenes/{config.name}/{split}/{index:05d}"
+    return example
+
+
+def add_flow(
+    example: dict[str, Any], flow_estimator: str
+) -> tuple[str, dict[str, Any], float, float]:
+    """`render_example`'s result from a `render_pair` example: its estimated flow added."""
+    example["flow"] = flow_lib.estimate(example["image1"], example["image2"], method=flow_estimator)
     epe = flow_lib.endpoint_error(example["flow"], example["gt_flow"], example["gt_flow_valid"])
-    return example_id, example, epe, float(example["gt_flow_valid"].mean())
+    return example["id"], example, epe, float(example["gt_flow_valid"].mean())
 
 
 def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
@@ -160,7 +176,13 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
         (the flow at infinite depth), so the rest is the parallax that carries depth;
       triangulation_abs_inv_estimated_flow, triangulation_abs_inv_gt_flow: Abs-Inv of
         triangulation with the true pose from each flow, over every valid depth pixel,
-        depth scaled so that ||t|| = 1.
+        depth scaled so that ||t|| = 1;
+      triangulation_scale_log_error_estimated_flow: log of the pair's median
+        triangulated inverse depth (true pose, estimated flow) over its median true
+        inverse depth: how well the estimated flow fixes the pair's depth scale even
+        given the pose;
+      oracle_constant_abs_inv: Abs-Inv of the pair's own median true inverse depth
+        predicted everywhere (the per-pair oracle constant of the evaluations).
       The flow values are NaN for a pair without a valid true-flow pixel.
     """
     depth = np.asarray(example["depth1"], np.float64)
@@ -196,6 +218,8 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
     depth_valid = geometry.valid_depth(depth)
     true_inv_depth = np.linalg.norm(translation) / depth[depth_valid]
     abs_inv = [np.abs(true_inv_depth - pair[depth_valid]).mean() for pair in predicted]
+    true_median = np.median(true_inv_depth)
+    scale_log_error = np.log(np.median(predicted[0][depth_valid]) / true_median)
     has_flow = bool(flow_valid.any())
     return {
         "gt_flow_px_mean": float(magnitude.mean()) if has_flow else float("nan"),
@@ -203,6 +227,8 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
         "translational_flow_px_mean": float(parallax.mean()) if has_flow else float("nan"),
         "triangulation_abs_inv_estimated_flow": float(abs_inv[0]),
         "triangulation_abs_inv_gt_flow": float(abs_inv[1]),
+        "triangulation_scale_log_error_estimated_flow": float(scale_log_error),
+        "oracle_constant_abs_inv": float(np.abs(true_inv_depth - true_median).mean()),
     }
 
 
@@ -210,8 +236,10 @@ def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict
     """The card's `signal_<split>` entry from `signal_statistics` of some of its pairs.
 
     Every value is the mean over pairs of the per-pair value, except gt_flow_px_median,
-    the median over pairs of each pair's median; pairs without a valid true-flow pixel
-    are left out of the flow values.
+    the median over pairs of each pair's median; a log error also gets its standard
+    deviation over pairs (`<name>_std`: the spread a per-pair scale keeps once a
+    constant bias is removed). Pairs without a valid true-flow pixel are left out of
+    the flow values.
     """
     summary: dict[str, Any] = {
         "pairs": len(per_pair),
@@ -221,7 +249,8 @@ def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict
             "per-pair values (gt_flow_px_median: the median of the pairs' medians); flow in "
             "pixels over valid true-flow pixels; translational = true flow minus the "
             "rotation-only flow (zero translation); triangulation with the true pose, "
-            "Abs-Inv at ||t|| = 1 over valid depth pixels"
+            "Abs-Inv at ||t|| = 1 over valid depth pixels; scale log error: log(median "
+            "triangulated / median true inverse depth), mean and std over pairs"
         ),
     }
     for name in per_pair[0] if per_pair else ():
@@ -229,18 +258,31 @@ def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict
         values = values[np.isfinite(values)]
         reduce = np.median if name == "gt_flow_px_median" else np.mean
         summary[name] = float(reduce(values)) if values.size else None
+        if "log_error" in name:
+            summary[f"{name}_std"] = float(values.std()) if values.size else None
     return summary
 
 
 def _render_record(
-    task: tuple[SceneConfig, str, int],
+    task: tuple[SceneConfig, str, int, str],
 ) -> tuple[str, dict[str, Any], float, float, dict[str, float] | None]:
-    """Pool worker: `render_example` with the record already encoded (PNG in parallel),
-    and the stored record's `signal_statistics` for the first CARD_PAIRS of a split."""
-    example_id, example, epe, valid_fraction = render_example(*task)
+    """Pool worker (or this process): `render_example` with the record already encoded
+    (PNG in parallel), and the stored record's `signal_statistics` for the first
+    CARD_PAIRS of a split."""
+    return _finish_record(render_example(*task), task[2])
+
+
+def _finish_record(
+    rendered: tuple[str, dict[str, Any], float, float], index: int
+) -> tuple[str, dict[str, Any], float, float, dict[str, float] | None]:
+    example_id, example, epe, valid_fraction = rendered
     record = records.encode(example)
-    signal = signal_statistics(record) if task[2] < CARD_PAIRS else None
+    signal = signal_statistics(record) if index < CARD_PAIRS else None
     return example_id, record, epe, valid_fraction, signal
+
+
+def _render_pair_task(task: tuple[SceneConfig, str, int]) -> dict[str, Any]:
+    return render_pair(*task)
 
 
 class Builder(tfds.core.GeneratorBasedBuilder):
@@ -251,14 +293,36 @@ class Builder(tfds.core.GeneratorBasedBuilder):
     BUILDER_CONFIGS = _configs()
     DEFAULT_CONFIG_NAME = "small"
 
-    def __init__(self, *, workers: int = 1, file_format: str | None = None, **kwargs):
+    def __init__(
+        self,
+        *,
+        workers: int = 1,
+        flow_estimator: str | None = None,
+        file_format: str | None = None,
+        **kwargs,
+    ):
         """Args: workers: processes rendering in parallel (1 renders in this process);
-        the records do not depend on it. file_format: None is `data.FILE_FORMAT`.
-        Other arguments go to TFDS."""
+        the records do not depend on it. flow_estimator: the stored flow's estimator
+        (`gld.flow.check_estimator`; None: the config's); a trained flow network runs in
+        this process, after the workers have rendered. file_format: None is
+        `data.FILE_FORMAT`. Other arguments go to TFDS."""
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
+        if flow_estimator is not None:
+            flow_lib.check_estimator(flow_estimator)
         self._workers = int(workers)
+        self._flow_estimator = flow_estimator
         super().__init__(file_format=file_format or data.FILE_FORMAT, **kwargs)
+
+    @property
+    def flow_estimator(self) -> str:
+        """The stored flow's estimator: the build's override or the config's."""
+        return self._flow_estimator or self.builder_config.flow_estimator
+
+    def build_options(self, split: str) -> dict[str, Any]:
+        """The options that shape the records of `split` (stored in the metadata)."""
+        del split  # every split is built alike
+        return {"flow_estimator": self.flow_estimator}
 
     def _info(self) -> tfds.core.DatasetInfo:
         config = self.builder_config
@@ -268,7 +332,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             seed=config.seed,
             num_train=config.num_train,
             num_test=config.num_test,
-            flow_estimator=config.flow_estimator,
+            flow_estimator=self.flow_estimator,
         )
         return self.dataset_info_from_configs(
             description=_DESCRIPTION,
@@ -286,17 +350,30 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         }
 
     def _generate_examples(self, split: str, count: int) -> Iterator[tuple[str, dict[str, Any]]]:
-        tasks = [(self.builder_config, split, index) for index in range(count)]
+        estimator = self.flow_estimator
         errors, valid_fractions, signal = [], [], []
         if self._workers == 1:
+            tasks = [(self.builder_config, split, index, estimator) for index in range(count)]
             results = map(_render_record, tasks)
             yield from self._collect(results, errors, valid_fractions, signal)
         else:
             # Fork: workers inherit the imported modules (the builder may have been imported
-            # from a path that a fresh interpreter could not import).
+            # from a path that a fresh interpreter could not import). A trained network's
+            # flow (JAX, which must not be forked) is computed here, as the pairs come in.
             context = multiprocessing.get_context("fork")
             with context.Pool(self._workers) as pool:
-                results = pool.imap(_render_record, tasks, chunksize=4)
+                if flow_lib.is_learned(estimator):
+                    tasks = [(self.builder_config, split, index) for index in range(count)]
+                    pairs = pool.imap(_render_pair_task, tasks, chunksize=4)
+                    results = (
+                        _finish_record(add_flow(pair, estimator), index)
+                        for index, pair in enumerate(pairs)
+                    )
+                else:
+                    tasks = [
+                        (self.builder_config, split, index, estimator) for index in range(count)
+                    ]
+                    results = pool.imap(_render_record, tasks, chunksize=4)
                 yield from self._collect(results, errors, valid_fractions, signal)
         # The dataset card: written to metadata.json after the splits are generated.
         errors = np.asarray(errors, np.float64)
@@ -305,6 +382,8 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         self.info.metadata[f"flow_epe_{split}_std"] = float(finite.std()) if finite.size else None
         self.info.metadata[f"gt_flow_valid_fraction_{split}"] = float(np.mean(valid_fractions))
         self.info.metadata[f"signal_{split}"] = summarise_signal(signal, count)
+        self.info.metadata.setdefault("build_options", {})[split] = self.build_options(split)
+        self.info.metadata["flow_estimator_source"] = flow_lib.describe(estimator)
 
     @staticmethod
     def _collect(results, errors: list, valid_fractions: list, signal: list):

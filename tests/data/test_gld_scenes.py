@@ -167,6 +167,21 @@ def test_signal_of_a_pure_translation_is_all_parallax():
     )
 
 
+def test_signal_scale_error_and_oracle_constant_by_hand():
+    example = _moving_pair(np.eye(3), np.array([0.3, 0.0, 0.0]))
+    true_inv_depth = 0.3 / example["depth1"].astype(np.float64)
+    oracle = np.abs(true_inv_depth - np.median(true_inv_depth)).mean()
+    exact = builder_module.signal_statistics({**example, "flow": example["gt_flow"]})
+    assert exact["triangulation_scale_log_error_estimated_flow"] == pytest.approx(0.0, abs=1e-4)
+    assert exact["oracle_constant_abs_inv"] == pytest.approx(oracle, rel=1e-6)
+    # A sideways translation: twice the flow is twice the parallax, so twice the inverse
+    # depth everywhere (log 2).
+    doubled = builder_module.signal_statistics({**example, "flow": 2.0 * example["gt_flow"]})
+    assert doubled["triangulation_scale_log_error_estimated_flow"] == pytest.approx(
+        np.log(2.0), abs=1e-3
+    )
+
+
 def test_signal_of_a_pure_rotation_has_no_parallax():
     rotation = geometry.rotation_matrix(np.radians([1.0, 2.0, 0.5]))
     example = _moving_pair(rotation, np.array([1e-9, 0.0, 0.0]))
@@ -193,6 +208,11 @@ def test_signal_summary_counts_pairs_and_skips_pairs_without_flow():
     assert summary["gt_flow_px_mean"] == pytest.approx(5.0)
     assert summary["gt_flow_px_median"] == pytest.approx(3.0)  # median of 1, 3, 8
     assert summary["triangulation_abs_inv_gt_flow"] == pytest.approx(0.3)
+    errors = builder_module.summarise_signal(
+        [{"scale_log_error": value} for value in (0.1, 0.3, 0.5)], split_pairs=3
+    )
+    assert errors["scale_log_error"] == pytest.approx(0.3)
+    assert errors["scale_log_error_std"] == pytest.approx(np.std([0.1, 0.3, 0.5]))
 
 
 def _by_hand_flow_signal(example) -> tuple[float, float, float]:
