@@ -125,6 +125,43 @@ def architecture_options() -> dict[str, Any]:
     return values
 
 
+def define_flow_net_flags() -> None:
+    """Flags of the depth models with a learned flow network (`gld.flow_depth`)."""
+    flags.DEFINE_string(
+        "flow_net_workdir",
+        "",
+        "global_local_flow_net, flow_net_head: a flow network's run "
+        "(experiments.train_flow) to start from; empty: random initialisation.",
+    )
+    flags.DEFINE_bool(
+        "flow_trainable",
+        False,
+        "global_local_flow_net: fine-tune the flow network with the depth loss (default: fixed).",
+    )
+
+
+def flow_net_options(model_name: str) -> dict[str, Any]:
+    """The flow-network flags' values that `model_name` takes (none but for the models of
+    `gld.flow_depth`)."""
+    if model_name == "global_local_flow_net":
+        return {
+            "flow_net_workdir": FLAGS.flow_net_workdir,
+            "flow_trainable": FLAGS.flow_trainable,
+        }
+    if model_name == "flow_net_head":
+        return {"flow_net_workdir": FLAGS.flow_net_workdir}
+    return {}
+
+
+def model_options(model_name: str) -> dict[str, Any]:
+    """The constructor arguments of `model_name` from this launcher's flags: the
+    architecture flags for the global-local model, the flow-network flags for the models
+    of `gld.flow_depth`, none for the baselines (their paper's architectures)."""
+    if model_name == "global_local":
+        return architecture_options()
+    return flow_net_options(model_name)
+
+
 def define_distributed_flags() -> None:
     flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process).")
     flags.DEFINE_integer("num_processes", 1, "Number of JAX processes.", lower_bound=1)

@@ -44,6 +44,7 @@ common.define_training_flags(exclude=("model",), steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
 flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
 common.define_data_flags()
+common.define_flow_net_flags()
 
 
 def _finished_step(workdir: Path) -> int | None:
@@ -76,6 +77,7 @@ def run_comparison(
     split: str = "test",
     eval_batch_size: int = 16,
     max_examples: int = 0,
+    model_configs: dict[str, dict[str, Any]] | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Trains (or reuses) each learned model, evaluates all methods, writes the table.
@@ -90,6 +92,8 @@ def run_comparison(
         loss weights, supervision, flow, ...); `model`, dataset and size are set here.
       split: the evaluation split.
       eval_batch_size, max_examples: evaluation batching; 0 examples = the whole split.
+      model_configs: model name -> its constructor options (default: the model's
+        defaults), e.g. the flow network's run of `global_local_flow_net`.
       print_fn: progress messages.
 
     Returns:
@@ -121,6 +125,7 @@ def run_comparison(
         run_config = config.TrainConfig(
             **train_config,
             model=name,
+            model_config=dict((model_configs or {}).get(name, {})),
             dataset=builder.info.full_name,
             height=height,
             width=width,
@@ -225,8 +230,9 @@ def main(argv):
         unknown = sorted(set(names) - set(valid))
         if unknown:
             raise app.UsageError(f"--{flag}: unknown {unknown}; valid: {sorted(valid)}")
+    model_configs = {name: common.flow_net_options(name) for name in FLAGS.models}
     for name in FLAGS.models:  # every run's options, before anything is built or trained
-        common.train_config(model=name)
+        common.train_config(model=name, model_config=model_configs[name])
     builder = common.prepare_dataset()
     train_config = common.training_options()
     run_comparison(
@@ -238,6 +244,7 @@ def main(argv):
         split=FLAGS.split,
         eval_batch_size=FLAGS.eval_batch_size,
         max_examples=FLAGS.max_examples,
+        model_configs=model_configs,
     )
     # Next to the table it produced: the flags that made it (a valid --flagfile).
     common.write_text_atomically(

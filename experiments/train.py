@@ -23,6 +23,7 @@ common.define_training_flags(
     steps=2000, eval_every=1000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
 )
 common.define_architecture_flags()
+common.define_flow_net_flags()
 common.define_data_flags()
 common.define_distributed_flags()
 
@@ -36,7 +37,7 @@ def main(argv):
 
     # Every option is checked before the dataset is built or the workdir touched.
     run_config = common.train_config(
-        model_config=common.architecture_options() if FLAGS.model == "global_local" else {},
+        model_config=common.model_options(FLAGS.model),
         dataset=FLAGS.dataset,
     )
     builder = common.prepare_dataset()

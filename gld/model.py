@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from gld import baselines, geometry, layers
 from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
+from gld.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
 from gld.global_encoder import GlobalEncoder
 from gld.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
 
@@ -190,7 +191,13 @@ class ConvParameters(nn.Module):
 
 
 # Every learned depth network, by name (`--model`).
-MODELS: dict[str, type[nn.Module]] = {"global_local": GlobalLocal, **baselines.LEARNED}
+MODELS: dict[str, type[nn.Module]] = {
+    "global_local": GlobalLocal,
+    **baselines.LEARNED,
+    # The learned flow network inside the depth model (`gld.flow_depth`).
+    "global_local_flow_net": GlobalLocalFlowNet,
+    "flow_net_head": FlowNetHead,
+}
 
 # Help of GlobalLocal's options that launchers expose as flags (`--<name>`); defaults
 # and types come from the class, choices from `ARCHITECTURE_CHOICES`.
@@ -270,6 +277,8 @@ def check_config(name: str, config: dict) -> None:
     """Raises ValueError naming the first option of `config` a registered model cannot be
     built with: unknown, a choice or bound broken, lists of mismatched length."""
     values = full_config(name, config)
+    if "flow_net_workdir" in values:
+        check_flow_net_workdir(values["flow_net_workdir"])
     if name != "global_local":
         return
     for option, choices in ARCHITECTURE_CHOICES.items():

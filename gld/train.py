@@ -160,6 +160,7 @@ def train_and_evaluate(
     optimizer = config_optimizer(config)
     workdir_lib.check_run_config(workdir, config)
     state = create_train_state(model, optimizer, config.height, config.width, config.seed)
+    state = _with_pretrained(model, state, workdir, print_fn)
     if jax.process_index() == 0:
         for name, count in model_lib.parameter_counts(state.params).items():
             print_fn(f"parameters {name}: {count:,}")
@@ -201,6 +202,24 @@ def train_and_evaluate(
         finally:
             manager.wait_until_finished()
             manager.close()
+
+
+def _with_pretrained(
+    model: nn.Module, state: TrainState, workdir: Path, print_fn: Callable[[str], None]
+) -> TrainState:
+    """A new run of a model with pretrained parts (its `pretrained_params(params)`, e.g.
+    `gld.flow_depth`'s flow network) starts from them; a run with checkpoints restores
+    its own (the pretrained run need not exist any more)."""
+    load = getattr(model, "pretrained_params", None)
+    if load is None or any((workdir / workdir_lib.CHECKPOINTS_DIR).glob("[0-9]*")):
+        return state
+    loaded = load(state.params)
+    if loaded is None:
+        return state
+    params, note = loaded
+    if jax.process_index() == 0:
+        print_fn(note)
+    return state.replace(params=params)
 
 
 def resume(

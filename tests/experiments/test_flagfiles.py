@@ -38,10 +38,14 @@ def test_flagfile_parses_and_documents_itself(train_flags, path: Path):
         train_flags.unparse_flags()
 
 
-# The main job and its longer run use the main job's recipe; the rest are the paper's.
-MAIN_JOB_RECIPE = ("demo", "gld_scenes_small_long")
+# The main job and the CPU-budget runs on gld_scenes/small (its longer run, the flow
+# experiments) use the main job's recipe; the rest are the paper's.
+def _main_job_recipe(path: Path) -> bool:
+    return path.stem == "demo" or path.stem.startswith("gld_scenes_small_")
+
+
 PAPER_FLAGFILES = [
-    p for p in FLAGFILES if not p.stem.startswith("compare_") and p.stem not in MAIN_JOB_RECIPE
+    p for p in FLAGFILES if not p.stem.startswith("compare_") and not _main_job_recipe(p)
 ]
 
 

@@ -159,6 +159,7 @@ def test_a_multi_process_run_whose_peers_never_join_says_what_to_check(tmp_path)
     assert not workdir.exists()
 
 
+@pytest.mark.slow  # a subprocess killed mid-run; the in-process resume test is in the default run
 def test_a_run_killed_with_sigkill_resumes_to_the_same_parameters(tiny_scenes_dir, tmp_path):
     common = [
         "experiments.train",
