@@ -241,6 +241,34 @@ def dataset_resolution(builder) -> tuple[int, int]:
     return int(height), int(width)
 
 
+def training_data(evaluates: bool):
+    """A trainer's data: the dataset built on first use, checked to have a train split
+    (and a test split when the run `evaluates`), announced with its resolution.
+
+    Returns:
+      (builder, height, width, train source, test source or None).
+    """
+    from absl import app
+
+    builder = prepare_dataset()
+    splits = builder.info.splits
+    if "train" not in splits:
+        raise app.UsageError(f"{FLAGS.dataset} has no train split: nothing to train on")
+    if evaluates and "test" not in splits:
+        raise app.UsageError(
+            f"{FLAGS.dataset} has no test split to evaluate on; train without evaluation "
+            "with --eval_every=0 --nofinal_eval"
+        )
+    height, width = dataset_resolution(builder)
+    counts = ", ".join(
+        f"{splits[split].num_examples} {split}" for split in ("train", "test") if split in splits
+    )
+    print(f"dataset {FLAGS.dataset}: {counts} pairs at {width}x{height}")
+    train_source = data_source(builder, "train")
+    test_source = data_source(builder, "test") if evaluates else None
+    return builder, height, width, train_source, test_source
+
+
 def flags_file_text() -> str:
     """This run's gld flags (the launcher's, the shared ones and the dataset builders'),
     one per line: a valid --flagfile for the same launcher. Flags that libraries define

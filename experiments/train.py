@@ -40,24 +40,9 @@ def main(argv):
         model_config=common.model_options(FLAGS.model),
         dataset=FLAGS.dataset,
     )
-    builder = common.prepare_dataset()
-    splits = builder.info.splits
-    if "train" not in splits:
-        raise app.UsageError(f"{FLAGS.dataset} has no train split: nothing to train on")
     evaluates = FLAGS.final_eval or run_config.eval_every > 0
-    if evaluates and "test" not in splits:
-        raise app.UsageError(
-            f"{FLAGS.dataset} has no test split to evaluate on; train without evaluation "
-            "with --eval_every=0 --nofinal_eval"
-        )
-    height, width = common.dataset_resolution(builder)
+    builder, height, width, train_source, test_source = common.training_data(evaluates)
     run_config = dataclasses.replace(run_config, height=height, width=width)
-    counts = ", ".join(
-        f"{splits[split].num_examples} {split}" for split in ("train", "test") if split in splits
-    )
-    print(f"dataset {FLAGS.dataset}: {counts} pairs at {width}x{height}")
-    train_source = common.data_source(builder, "train")
-    test_source = common.data_source(builder, "test") if evaluates else None
     train.train_and_evaluate(
         run_config,
         FLAGS.workdir,

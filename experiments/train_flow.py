@@ -94,23 +94,9 @@ def main(argv):
 
     # Every option is checked before the dataset is built or the workdir touched.
     make_config()
-    builder = common.prepare_dataset()
-    splits = builder.info.splits
-    if "train" not in splits:
-        raise app.UsageError(f"{FLAGS.dataset} has no train split: nothing to train on")
     evaluates = FLAGS.final_eval or FLAGS.eval_every > 0
-    if evaluates and "test" not in splits:
-        raise app.UsageError(
-            f"{FLAGS.dataset} has no test split to evaluate on; train without evaluation "
-            "with --eval_every=0 --nofinal_eval"
-        )
-    height, width = common.dataset_resolution(builder)
+    builder, height, width, train_source, test_source = common.training_data(evaluates)
     config = make_config(height=height, width=width)
-    print(
-        f"dataset {FLAGS.dataset}: {splits['train'].num_examples} train pairs at {width}x{height}"
-    )
-    train_source = common.data_source(builder, "train")
-    test_source = common.data_source(builder, "test") if evaluates else None
     try:
         state = flow_training.train_flow(config, FLAGS.workdir, train_source, test_source)
     except ValueError as error:

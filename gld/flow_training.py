@@ -663,32 +663,28 @@ def train_flow(
         process_count=jax.process_count(),
     )
     iterator = iter(dataset)
-    with workdir_lib.training_lock(workdir):
-        changes = check_flow_workdir(workdir, config)
+    with workdir_lib.held_run(
+        workdir, config.keep_checkpoints, lambda: check_flow_workdir(workdir, config)
+    ) as (changes, manager):
         if changes:
             print_fn(
                 f"options changed since the stored config: {workdir_lib.describe_changes(changes)}"
             )
-        manager = workdir_lib.checkpoint_manager(workdir, keep=config.keep_checkpoints)
-        try:
-            state = train_lib.resume(workdir, manager, state, iterator, print_fn)
-            write_flow_config(workdir, config)
-            return _train_loop(
-                config,
-                workdir,
-                state,
-                iterator,
-                manager,
-                model=model,
-                optimizer=optimizer,
-                mesh=mesh,
-                test_source=test_source,
-                progress=progress,
-                print_fn=print_fn,
-            )
-        finally:
-            manager.wait_until_finished()
-            manager.close()
+        state = train_lib.resume(workdir, manager, state, iterator, print_fn)
+        write_flow_config(workdir, config)
+        return _train_loop(
+            config,
+            workdir,
+            state,
+            iterator,
+            manager,
+            model=model,
+            optimizer=optimizer,
+            mesh=mesh,
+            test_source=test_source,
+            progress=progress,
+            print_fn=print_fn,
+        )
 
 
 def _train_loop(

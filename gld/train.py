@@ -179,29 +179,25 @@ def train_and_evaluate(
         process_count=jax.process_count(),
     )
     iterator = iter(dataset)
-    with workdir_lib.training_lock(workdir):
-        # Read again under the lock: the previous holder may have changed it.
-        changes = workdir_lib.check_run_config(workdir, config)
-        manager = workdir_lib.checkpoint_manager(workdir, keep=config.keep_checkpoints)
-        try:
-            return _train(
-                config,
-                workdir,
-                state,
-                iterator,
-                manager,
-                changes=changes,
-                records=records,
-                model=model,
-                optimizer=optimizer,
-                mesh=mesh,
-                test_source=test_source,
-                progress=progress,
-                print_fn=print_fn,
-            )
-        finally:
-            manager.wait_until_finished()
-            manager.close()
+    # The stored config is read again under the lock: the previous holder may have changed it.
+    with workdir_lib.held_run(
+        workdir, config.keep_checkpoints, lambda: workdir_lib.check_run_config(workdir, config)
+    ) as (changes, manager):
+        return _train(
+            config,
+            workdir,
+            state,
+            iterator,
+            manager,
+            changes=changes,
+            records=records,
+            model=model,
+            optimizer=optimizer,
+            mesh=mesh,
+            test_source=test_source,
+            progress=progress,
+            print_fn=print_fn,
+        )
 
 
 def _with_pretrained(

@@ -210,6 +210,22 @@ def training_lock(workdir: str | Path) -> Iterator[None]:
         yield
 
 
+@contextlib.contextmanager
+def held_run(workdir: str | Path, keep: int, check: Callable[[], Any]) -> Iterator[tuple[Any, Any]]:
+    """A trainer's hold on its workdir: the lock taken, `check()` run again under it (the
+    previous holder may have changed the stored config) before the checkpoint manager
+    opens; yields (what `check` returned, the manager). On exit pending saves finish and
+    the manager closes, then the lock is released."""
+    with training_lock(workdir):
+        checked = check()
+        manager = checkpoint_manager(workdir, keep=keep)
+        try:
+            yield checked, manager
+        finally:
+            manager.wait_until_finished()
+            manager.close()
+
+
 # ------------------------------------------------------------------ the stored config
 
 
