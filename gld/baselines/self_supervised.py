@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 
 from gld import layers
+from gld.baselines.small_encdec import encode, upsample_to
 
 # Translation norms below this are treated as this (a pose net whose output is exactly
 # zero); keeps 'depth' finite.
@@ -120,17 +121,7 @@ class DepthNet(nn.Module):
             raise ValueError(
                 f"need 0 < min_depth < max_depth, got {self.min_depth} and {self.max_depth}"
             )
-        skips = [inputs]
-        features = inputs
-        for index, (channels, kernel) in enumerate(
-            zip(self.encoder_features, self.encoder_kernels, strict=True)
-        ):
-            features = nn.Conv(
-                channels, (kernel, kernel), strides=2, padding="SAME", name=f"encoder{index + 1}"
-            )(features)
-            features = layers.leaky_relu(features)
-            skips.append(features)
-        skips.pop()  # the last encoder map is the bottleneck itself.
+        features, skips = encode(inputs, self.encoder_features, self.encoder_kernels)
 
         min_inv_depth, max_inv_depth = 1.0 / self.max_depth, 1.0 / self.min_depth
         first_head = len(self.decoder_features) - self.num_scales
@@ -139,9 +130,7 @@ class DepthNet(nn.Module):
             skip = skips.pop()
             features = nn.Conv(channels, (3, 3), name=f"upconv{index + 1}")(features)
             features = layers.leaky_relu(features)
-            features = jnp.repeat(jnp.repeat(features, 2, axis=1), 2, axis=2)
-            # Ceil-halved maps can up-sample one pixel too large; crop to the skip.
-            features = features[:, : skip.shape[1], : skip.shape[2]]
+            features = upsample_to(features, skip)
             features = jnp.concatenate([features, skip], axis=-1)
             features = nn.Conv(channels, (3, 3), name=f"iconv{index + 1}")(features)
             features = layers.leaky_relu(features)

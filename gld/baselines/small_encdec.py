@@ -20,6 +20,33 @@ import jax.numpy as jnp
 from gld import layers
 
 
+def encode(
+    inputs: jax.Array, features: Sequence[int], kernels: Sequence[int]
+) -> tuple[jax.Array, list[jax.Array]]:
+    """The stride-2 LeakyReLU encoder of the U-Nets (inside the caller's compact
+    `__call__`; convolutions named encoder1, encoder2, ...).
+
+    Returns:
+      The bottleneck, and the skips for the decoder: the input, then every encoder map
+      but the bottleneck (popped from the end, deepest first).
+    """
+    skips = [inputs]
+    for index, (channels, kernel) in enumerate(zip(features, kernels, strict=True)):
+        inputs = nn.Conv(
+            channels, (kernel, kernel), strides=2, padding="SAME", name=f"encoder{index + 1}"
+        )(inputs)
+        inputs = layers.leaky_relu(inputs)
+        skips.append(inputs)
+    return inputs, skips[:-1]
+
+
+def upsample_to(features: jax.Array, skip: jax.Array) -> jax.Array:
+    """x2 nearest-neighbour up-sampling, cropped to the skip's size (ceil-halved maps can
+    come back one pixel too large)."""
+    features = jnp.repeat(jnp.repeat(features, 2, axis=1), 2, axis=2)
+    return features[:, : skip.shape[1], : skip.shape[2]]
+
+
 class SmallEncDec(nn.Module):
     """Reduced DispNet.
 
@@ -56,23 +83,11 @@ class SmallEncDec(nn.Module):
                 f"{len(self.encoder_features)} and {len(self.decoder_features)} layers"
             )
         inputs = layers.network_inputs(image1, image2, flow)
-        skips = [inputs]
-        features = inputs
-        for index, (channels, kernel) in enumerate(
-            zip(self.encoder_features, self.encoder_kernels, strict=True)
-        ):
-            features = nn.Conv(
-                channels, (kernel, kernel), strides=2, padding="SAME", name=f"encoder{index + 1}"
-            )(features)
-            features = layers.leaky_relu(features)
-            skips.append(features)
-        skips.pop()  # the last encoder map is the bottleneck itself.
+        features, skips = encode(inputs, self.encoder_features, self.encoder_kernels)
 
         for index, channels in enumerate(self.decoder_features):
             skip = skips.pop()
-            features = jnp.repeat(jnp.repeat(features, 2, axis=1), 2, axis=2)
-            # Ceil-halved maps can up-sample one pixel too large; crop to the skip.
-            features = features[:, : skip.shape[1], : skip.shape[2]]
+            features = upsample_to(features, skip)
             features = nn.Conv(channels, (self.decoder_kernel,) * 2, name=f"decoder{index + 1}")(
                 features
             )
