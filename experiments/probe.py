@@ -44,13 +44,16 @@ def main(argv):
     builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
     flow_source = FLAGS.flow_source or config.flow_source
 
+    from gld import layers
+
     @jax.jit
-    def forward(variables, image1, image2, flow_field):
-        outputs = model.apply(variables, image1, image2, flow_field, train=False)
+    def forward(variables, batch):
+        outputs = layers.apply_model(model, variables, batch, train=False)
         return {k: outputs[k] for k in ("inv_depth", "global_params") if k in outputs}
 
     def apply_fn(batch):
-        return forward(variables, batch["image1"], batch["image2"], batch["flow"])
+        keys = layers.input_keys(model)
+        return forward(variables, {key: batch[key] for key in keys})
 
     def run(split):
         return probes.collect(

@@ -19,6 +19,7 @@ DeMoN's evaluation at its files' resolution, `data.demon.file_truth`).
 from __future__ import annotations
 
 import collections
+import functools
 import json
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -29,7 +30,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from gld import input_pipeline, metrics, reports, sharding, stored_predictions
+from gld import input_pipeline, layers, metrics, reports, sharding, stored_predictions
 from gld import workdir as workdir_lib
 
 # The per-pair oracle constant reported next to every method (`classical.OraclePairMedian`).
@@ -117,9 +118,7 @@ def make_eval_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
     """Builds the pure `eval_step(variables, batch) -> per-example metrics` ([B] each)."""
 
     def eval_step(variables: dict, batch: dict) -> dict:
-        outputs = model.apply(
-            variables, batch["image1"], batch["image2"], batch["flow"], train=False
-        )
+        outputs = layers.apply_model(model, variables, batch, train=False)
         return score_batch(outputs["depth"], batch)
 
     return eval_step
@@ -130,9 +129,7 @@ def make_predict_step(*, model: nn.Module) -> Callable[[dict, dict], dict]:
     scoring on the host against a `Truth`."""
 
     def predict_step(variables: dict, batch: dict) -> dict:
-        outputs = model.apply(
-            variables, batch["image1"], batch["image2"], batch["flow"], train=False
-        )
+        outputs = layers.apply_model(model, variables, batch, train=False)
         return {"depth": outputs["depth"], "example_mask": batch["example_mask"]}
 
     return predict_step
@@ -230,18 +227,19 @@ def evaluate_source(
     batch_size = sharding.evaluation_batch_size(batch_size, mesh)
     local_batch = sharding.per_process_batch_size(batch_size, mesh)
     variables = jax.device_put(variables, sharding.replicated(mesh))
+    keys = EVAL_KEYS + tuple(key for key in layers.input_keys(model) if key not in EVAL_KEYS)
     if truth is None:
         eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
 
         def score(batch, ids):
-            device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
+            device_batch = sharding.to_global_batch(batch, mesh, keys)
             return sharding.gather(eval_step(variables, device_batch))
 
     else:
         predict_step = jit_eval_step(make_predict_step(model=model), mesh)
 
         def score(batch, ids):
-            device_batch = sharding.to_global_batch(batch, mesh, EVAL_KEYS)
+            device_batch = sharding.to_global_batch(batch, mesh, keys)
             outputs = sharding.gather(predict_step(variables, device_batch))
             return score_against_truth(outputs["depth"], ids, outputs["example_mask"], truth)
 
@@ -250,7 +248,7 @@ def evaluate_source(
         batch_size=local_batch,
         flow_source=flow_source,
         max_examples=max_examples,
-        keys=EVAL_KEYS,
+        keys=keys,
         progress=progress,
     )
     return evaluate_batches(batches, score)
@@ -542,9 +540,10 @@ def evaluate_workdir(
             progress=True,
             truth=truth,
         )
-        apply = jax.jit(model.apply)
+        apply = jax.jit(functools.partial(layers.apply_model, model))
+        input_keys = layers.input_keys(model)
         predict_depth = lambda batch: apply(  # noqa: E731
-            variables, batch["image1"], batch["image2"], batch["flow"]
+            variables, {key: batch[key] for key in input_keys}
         )["depth"]
         gt_pixels, seed = config.gt_pixels, config.seed
         # The step restored: the newest intact checkpoint unless one was asked for.

@@ -143,6 +143,11 @@ def _checked(
     if batch_size is not None and (not isinstance(batch_size, int | np.integer) or batch_size < 1):
         raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}")
     name = model_name(model)
+    if getattr(model, "extra_inputs", ()):
+        raise ValueError(
+            f"model {name!r} also reads {list(model.extra_inputs)} (it is given the relative "
+            "pose); only models of the images and flow can be exported"
+        )
     if hasattr(model, "filter_formulation"):
         formulation = choose_formulation(formulation, platforms, batch_size)
         model = model.clone(filter_formulation=formulation)

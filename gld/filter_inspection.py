@@ -9,7 +9,7 @@ from pathlib import Path
 import flax.linen as nn
 import numpy as np
 
-from gld import geometry
+from gld import geometry, layers
 
 
 def filter_banks(
@@ -30,7 +30,7 @@ def filter_banks(
         from gld.model import GlobalLocal
 
         model = GlobalLocal()
-    outputs = model.apply(variables, batch["image1"], batch["image2"], batch["flow"])
+    outputs = layers.apply_model(model, variables, batch)
     banks = outputs["filter_banks"]
     return {
         "global_params": np.asarray(outputs["global_params"]),

@@ -27,6 +27,30 @@ def normalise_flow(flow: jax.Array) -> jax.Array:
     return flow / jnp.asarray([width, height], flow.dtype)
 
 
+# The inputs every depth model is called with, in order: model(image1, image2, flow).
+MODEL_INPUTS = ("image1", "image2", "flow")
+
+
+def input_keys(model) -> tuple[str, ...]:
+    """The example-contract keys a depth model reads: `MODEL_INPUTS`, then the keys it
+    declares in `extra_inputs` (e.g. the given relative pose), passed by keyword."""
+    return MODEL_INPUTS + tuple(getattr(model, "extra_inputs", ()))
+
+
+def model_arguments(model, batch) -> tuple[tuple, dict]:
+    """(args, kwargs) of a depth model's call on a batch of the example contract: the
+    images and flow, then the model's `extra_inputs` by keyword."""
+    args = tuple(batch[key] for key in MODEL_INPUTS)
+    return args, {key: batch[key] for key in getattr(model, "extra_inputs", ())}
+
+
+def apply_model(model, variables, batch, **kwargs):
+    """`model.apply` on a batch of the example contract (`model_arguments`); `kwargs`
+    (train, rngs, mutable) pass through."""
+    args, extra = model_arguments(model, batch)
+    return model.apply(variables, *args, **extra, **kwargs)
+
+
 def network_inputs(image1: jax.Array, image2: jax.Array, flow: jax.Array) -> jax.Array:
     """The 8-channel input of encoders and baselines: [B, H, W, 3 + 3 + 2]."""
     return jnp.concatenate([image1, image2, normalise_flow(flow)], axis=-1)

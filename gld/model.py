@@ -26,6 +26,38 @@ from gld.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
+GLOBAL_SOURCES = ("encoder", "pose")
+# The example-contract keys a model with `global_source="pose"` reads.
+POSE_INPUTS = ("rotation", "translation")
+# Factor on the rotation's vector part in the given-pose global parameters: rotations of
+# a few degrees (sin 3.65 deg ~ 0.064) then vary on the scale of the unit translation.
+POSE_ROTATION_SCALE = 10.0
+
+
+def pose_parameters(rotation: jax.Array, translation: jax.Array) -> jax.Array:
+    """The relative pose as six global parameters ([B, 6]): the rotation's vector part
+    (sin of the angle times the axis, from the skew-symmetric part of R) times
+    `POSE_ROTATION_SCALE`, then the translation's direction.
+
+    Args:
+      rotation: [B, 3, 3], X2 = R X1 + t.
+      translation: [B, 3] (any norm; the contract's has norm 1).
+    """
+    if rotation.ndim != 3 or rotation.shape[1:] != (3, 3):
+        raise ValueError(f"rotation must be [B, 3, 3], got shape {rotation.shape}")
+    if translation.ndim != 2 or translation.shape[1] != 3:
+        raise ValueError(f"translation must be [B, 3], got shape {translation.shape}")
+    vector_part = 0.5 * jnp.stack(
+        [
+            rotation[:, 2, 1] - rotation[:, 1, 2],
+            rotation[:, 0, 2] - rotation[:, 2, 0],
+            rotation[:, 1, 0] - rotation[:, 0, 1],
+        ],
+        axis=-1,
+    )
+    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
+    direction = translation / jnp.maximum(norm, 1e-12)
+    return jnp.concatenate([POSE_ROTATION_SCALE * vector_part, direction], axis=-1)
 
 
 class GlobalLocal(nn.Module):
@@ -49,6 +81,11 @@ class GlobalLocal(nn.Module):
         ~0.6 for the coordinates and ~0.2 for the images; at 10 the flow is on their
         scale, and the local network learns structure several times faster (within-pair
         correlation 0.76 vs 0.42 after 600 steps with true flow; WORKSPACE.md).
+      global_source: "encoder" (the paper's) computes g from the inputs; "pose" gives
+        the model the true relative pose instead (the paper's "GT Pose" variant):
+        g = `pose_parameters(rotation, translation)`, which the call then needs as
+        keyword arguments (the contract's "rotation" and "translation"), and the
+        global encoder is not built. Needs global_dim 6.
       global_norm: "batch" standardises each global parameter over the batch (running
         statistics at test time), so that g varies across pairs from the first step
         (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
@@ -70,6 +107,7 @@ class GlobalLocal(nn.Module):
     use_flow: bool = True
     local_flow_units: str = "normalised"
     flow_scale: float = 10.0
+    global_source: str = "encoder"
     global_norm: str = "none"
     modulation_scale: float = MODULATION_SCALE
     filter_formulation: str | None = None
@@ -79,15 +117,29 @@ class GlobalLocal(nn.Module):
         """Channels of the local network's input."""
         return (2 if self.use_flow else 6) + (2 if self.use_coordinates else 0)
 
+    @property
+    def extra_inputs(self) -> tuple[str, ...]:
+        """Contract keys the call reads by keyword besides the images and flow."""
+        return POSE_INPUTS if self.use_global_module and self.global_source == "pose" else ()
+
     @nn.compact
     def __call__(
-        self, image1: jax.Array, image2: jax.Array, flow: jax.Array, *, train: bool = False
+        self,
+        image1: jax.Array,
+        image2: jax.Array,
+        flow: jax.Array,
+        *,
+        rotation: jax.Array | None = None,
+        translation: jax.Array | None = None,
+        train: bool = False,
     ) -> dict[str, jax.Array]:
         """Predicts inverse depth for view 1.
 
         Args:
           image1, image2: [B, H, W, 3] float32 in [-0.5, 0.5].
           flow: [B, H, W, 2] pixels, I1 -> I2.
+          rotation, translation: [B, 3, 3] and [B, 3], the relative pose; read only
+            with global_source="pose".
           train: batch statistics (global_norm="batch") come from the batch and are
             recorded when True, from the running averages when False.
 
@@ -125,7 +177,28 @@ class GlobalLocal(nn.Module):
             bank_channels=tuple(self.bank_channels),
             kernel_size=self.kernel_size,
         )
-        if self.use_global_module:
+        if self.global_source not in GLOBAL_SOURCES:
+            raise ValueError(
+                f"global_source must be one of {GLOBAL_SOURCES}, got {self.global_source!r}"
+            )
+        if self.use_global_module and self.global_source == "pose":
+            if rotation is None or translation is None:
+                raise ValueError(
+                    'global_source="pose" needs the relative pose: call with rotation= '
+                    "[B, 3, 3] and translation= [B, 3]"
+                )
+            if self.global_dim != 6:
+                raise ValueError(
+                    'global_source="pose" gives 6 global parameters; global_dim is '
+                    f"{self.global_dim}"
+                )
+            if rotation.shape[0] != batch_size or translation.shape[0] != batch_size:
+                raise ValueError(
+                    f"rotation {rotation.shape} and translation {translation.shape} must "
+                    f"have the batch size of the flow ({batch_size})"
+                )
+            global_params = pose_parameters(rotation, translation).astype(flow.dtype)
+        elif self.use_global_module:
             global_params = GlobalEncoder(
                 channels=tuple(self.encoder_channels),
                 strides=tuple(self.encoder_strides),
@@ -133,6 +206,9 @@ class GlobalLocal(nn.Module):
                 kernel_size=self.kernel_size,
                 name="global_encoder",
             )(global_inputs)
+        if self.global_norm not in GLOBAL_NORMS:
+            raise ValueError(f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}")
+        if self.use_global_module:
             if self.global_norm == "batch":
                 global_params = nn.BatchNorm(
                     use_running_average=not train,
@@ -143,10 +219,6 @@ class GlobalLocal(nn.Module):
                     epsilon=1e-8,
                     name="global_norm",
                 )(global_params)
-            elif self.global_norm != "none":
-                raise ValueError(
-                    f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}"
-                )
             filter_banks = HyperNetwork(
                 **bank_kwargs, modulation_scale=self.modulation_scale, name="hypernet"
             )(global_params)
@@ -213,6 +285,7 @@ ARCHITECTURE_FLAGS = {
     "use_flow": "Ablation switch: optical flow as the local input.",
     "local_flow_units": "Units of the local network's flow.",
     "flow_scale": "Factor on the normalised flow fed to both modules.",
+    "global_source": "Where g comes from: the global encoder, or the true relative pose.",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
     "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
@@ -220,6 +293,7 @@ ARCHITECTURE_FLAGS = {
 ARCHITECTURE_CHOICES = {
     "local_flow_units": LOCAL_FLOW_UNITS,
     "global_norm": GLOBAL_NORMS,
+    "global_source": GLOBAL_SOURCES,
     "filter_formulation": tuple(FORMULATIONS),
 }
 
@@ -236,7 +310,12 @@ def architecture_options() -> dict[str, tuple[Any, str, tuple[str, ...] | None]]
 # Architecture fields added after the first runs were written, with the value those
 # runs were trained with: a stored config without the field was trained with this.
 FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
-    "global_local": {"flow_scale": 1.0, "global_norm": "none", "modulation_scale": 0.2},
+    "global_local": {
+        "flow_scale": 1.0,
+        "global_norm": "none",
+        "modulation_scale": 0.2,
+        "global_source": "encoder",
+    },
 }
 
 
@@ -291,6 +370,10 @@ def check_config(name: str, config: dict) -> None:
             raise ValueError(f"{option} must be at least {minimum}{each}, got {values[option]!r}")
     if not (values["flow_scale"] > 0 and math.isfinite(values["flow_scale"])):
         raise ValueError(f"flow_scale must be positive and finite, got {values['flow_scale']}")
+    if values["global_source"] == "pose" and values["global_dim"] != 6:
+        raise ValueError(
+            f'global_source="pose" gives 6 global parameters; global_dim is {values["global_dim"]}'
+        )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
             f"encoder_channels {values['encoder_channels']} and encoder_strides "

@@ -230,6 +230,11 @@ class DepthPredictor:
     ):
         if aspect not in ASPECT_MODES:
             raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
+        if getattr(model, "extra_inputs", ()):
+            raise ValueError(
+                f"the model also reads {list(model.extra_inputs)} (it was trained given the "
+                "true relative pose), which a predictor of images does not have"
+            )
         self.model, self.variables = model, variables
         self.height, self.width = height, width
         self.flow_method = flow_method

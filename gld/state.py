@@ -17,6 +17,7 @@ import numpy as np
 import optax
 
 from gld import config as config_lib
+from gld import layers
 from gld.config import LR_SCHEDULES
 
 
@@ -43,15 +44,17 @@ def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarra
         "image1": np.zeros((batch_size, height, width, 3), np.float32),
         "image2": np.zeros((batch_size, height, width, 3), np.float32),
         "flow": np.zeros((batch_size, height, width, 2), np.float32),
+        # The relative pose, for models given it (`GlobalLocal.global_source="pose"`).
+        "rotation": np.broadcast_to(np.eye(3, dtype=np.float32), (batch_size, 3, 3)).copy(),
+        "translation": np.tile(np.array([0.0, 0.0, 1.0], np.float32), (batch_size, 1)),
     }
 
 
 def init_variables(model: nn.Module, height: int, width: int, seed: int) -> dict[str, Any]:
     """Initial model variables for images of the given size."""
     batch = dummy_batch(1, height, width)
-    return model.init(
-        jax.random.key(seed), batch["image1"], batch["image2"], batch["flow"], train=False
-    )
+    args, extra = layers.model_arguments(model, batch)
+    return model.init(jax.random.key(seed), *args, **extra, train=False)
 
 
 def create_train_state(

@@ -24,7 +24,7 @@ import optax
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
-from gld import evaluation, input_pipeline, losses, metrics, photometric, sharding
+from gld import evaluation, input_pipeline, layers, losses, metrics, photometric, sharding
 from gld import model as model_lib
 from gld import workdir as workdir_lib
 from gld.config import TrainConfig
@@ -44,6 +44,12 @@ LOSS_KEYS = {
 def loss_name(model: nn.Module) -> str:
     """The training loss a model is trained with (`LOSSES`)."""
     return getattr(model, "LOSS", "supervised")
+
+
+def batch_keys(model: nn.Module) -> tuple[str, ...]:
+    """The batch keys a model's train step reads: its loss's and its own inputs."""
+    keys = LOSS_KEYS[loss_name(model)]
+    return keys + tuple(key for key in layers.input_keys(model) if key not in keys)
 
 
 class NonFiniteLossError(RuntimeError):
@@ -67,11 +73,10 @@ def make_train_step(
             variables = {"params": params}
             if has_batch_stats:
                 variables["batch_stats"] = state.batch_stats
-            outputs = model.apply(
+            outputs = layers.apply_model(
+                model,
                 variables,
-                batch["image1"],
-                batch["image2"],
-                batch["flow"],
+                batch,
                 train=True,
                 rngs={"dropout": rng},
                 mutable=["batch_stats"] if has_batch_stats else False,
@@ -174,7 +179,7 @@ def train_and_evaluate(
         augment=config.augment,
         fixed_sparse_pixels=config.fixed_sparse_pixels,
         worker_count=config.worker_count,
-        keys=LOSS_KEYS[loss_name(model)],
+        keys=batch_keys(model),
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
@@ -314,7 +319,7 @@ def _train(
         workdir=workdir,
         mesh=mesh,
         train_step=train_step,
-        batch_keys=LOSS_KEYS[loss_name(model)],
+        batch_keys=batch_keys(model),
         schedule=config,
         evaluate=evaluate if test_source is not None else None,
         after_checkpoint=after_checkpoint,

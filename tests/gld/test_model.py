@@ -202,3 +202,56 @@ def test_batch_normalised_global_params_use_running_statistics_at_test_time():
     assert not np.allclose(moved, variables["batch_stats"]["global_norm"]["mean"])
     with pytest.raises(ValueError, match="global_norm"):
         model_lib.GlobalLocal(global_norm="layer").init(jax.random.key(0), image1, image2, flow)
+
+
+def test_given_pose_global_parameters_are_the_rotation_vector_part_and_translation_direction():
+    from gld import geometry
+
+    axis_angle = np.array([[0.0, 0.1, 0.0], [0.05, -0.02, 0.03]])
+    rotation = jnp.asarray(geometry.rotation_matrix(axis_angle), jnp.float32)
+    translation = jnp.asarray([[0.0, 0.0, 2.0], [3.0, 4.0, 0.0]], jnp.float32)
+    params = np.asarray(model_lib.pose_parameters(rotation, translation))
+    angle = np.linalg.norm(axis_angle, axis=-1, keepdims=True)
+    expected_rotation = model_lib.POSE_ROTATION_SCALE * np.sin(angle) * axis_angle / angle
+    np.testing.assert_allclose(params[:, :3], expected_rotation, atol=1e-6)
+    np.testing.assert_allclose(params[:, 3:], [[0, 0, 1], [0.6, 0.8, 0]], atol=1e-6)
+    with pytest.raises(ValueError, match="rotation must be"):
+        model_lib.pose_parameters(rotation[0], translation)
+    with pytest.raises(ValueError, match="translation must be"):
+        model_lib.pose_parameters(rotation, translation[:, :2])
+
+
+def test_a_model_given_the_pose_steers_its_filters_with_it_and_has_no_encoder():
+    from gld import geometry, state
+
+    image1, image2, flow = _inputs(batch=2)
+    rotation = jnp.asarray(geometry.rotation_matrix(np.array([[0.0, 0.1, 0.0]] * 2)), jnp.float32)
+    translation = jnp.asarray([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], jnp.float32)
+    model = model_lib.GlobalLocal(global_source="pose")
+    assert model.extra_inputs == ("rotation", "translation")
+    assert model_lib.GlobalLocal().extra_inputs == ()
+    variables = state.init_variables(model, 24, 32, seed=0)
+    assert set(variables["params"]) == {"hypernet", "final_conv"}
+    outputs = model.apply(
+        variables, image1, image2, flow, rotation=rotation, translation=translation
+    )
+    np.testing.assert_allclose(
+        outputs["global_params"], model_lib.pose_parameters(rotation, translation), atol=1e-6
+    )
+    # Same inputs, other translation: other filters, other depth.
+    kernels = [np.asarray(bank.kernel) for bank in outputs["filter_banks"]]
+    assert not np.allclose(kernels[0][0], kernels[0][1])
+    swapped = model.apply(
+        variables, image1, image2, flow, rotation=rotation, translation=translation[::-1]
+    )
+    assert not np.allclose(swapped["inv_depth"], outputs["inv_depth"])
+    with pytest.raises(ValueError, match="needs the relative pose"):
+        model.apply(variables, image1, image2, flow)
+    with pytest.raises(ValueError, match="global_dim is 4"):
+        model_lib.GlobalLocal(global_source="pose", global_dim=4).init(
+            jax.random.key(0), image1, image2, flow, rotation=rotation, translation=translation
+        )
+    with pytest.raises(ValueError, match="global_dim is 4"):
+        model_lib.check_config("global_local", {"global_source": "pose", "global_dim": 4})
+    with pytest.raises(ValueError, match="global_source must be one of"):
+        model_lib.check_config("global_local", {"global_source": "imu"})

@@ -343,3 +343,39 @@ def test_a_self_supervised_model_trains_on_images_and_cameras_alone(tiny_scenes,
         model, variables, tiny_scenes.as_data_source("test"), batch_size=4, max_examples=4
     )
     assert np.all(np.isfinite(per_example["abs_inv"][per_example["example_mask"]]))
+
+
+def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
+    tiny_scenes, tmp_path
+):
+    """The pose reaches the model in training (augmented with the images) and in
+    evaluation; a predictor of images alone and the exporter refuse such a model."""
+    from gld import evaluation, export, predict
+
+    config = tiny_train_config(
+        model_config={**TINY_MODEL, "global_source": "pose"}, eval_every=4, log_every=1
+    )
+    train.train_and_evaluate(
+        config,
+        tmp_path,
+        tiny_scenes.as_data_source("train"),
+        tiny_scenes.as_data_source("test"),
+        progress=False,
+        print_fn=lambda _: None,
+    )
+    model, variables, _ = workdir_lib.load_trained(tmp_path)
+    assert model.extra_inputs == ("rotation", "translation")
+    assert "global_encoder" not in variables["params"]
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["loss"]) for r in records if r["split"] == "train")
+    assert [r["abs_inv"] > 0 for r in records if r["split"] == "test"] == [True]
+    # The same pairs scored with the wrong pose score differently: the pose is read.
+    test_source = tiny_scenes.as_data_source("test")
+    per_pair, _ = evaluation.evaluate_source(model, variables, test_source, batch_size=4)
+    flipped = [dict(test_source[i], translation=-test_source[i]["translation"]) for i in range(4)]
+    per_pair_flipped, _ = evaluation.evaluate_source(model, variables, flipped, batch_size=4)
+    assert not np.allclose(per_pair["abs_inv"][:4], per_pair_flipped["abs_inv"])
+    with pytest.raises(ValueError, match="relative pose"):
+        predict.DepthPredictor(model, variables, 48, 64)
+    with pytest.raises(ValueError, match="relative pose"):
+        export.export_model(model, variables, tmp_path / "model.gld", height=48, width=64)
