@@ -56,6 +56,12 @@ class TrainConfig:
     warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
     depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.", at_least=0)
     smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.", at_least=0)
+    epipolar_weight: float = option(
+        0.0,
+        "Weight of the epipolar loss on the pose the global parameters stand for (not the "
+        "paper's; 0 = off).",
+        at_least=0,
+    )
     photometric_smoothness_weight: float = option(
         1e-3, "Smoothness weight of the self-supervised loss (struct2depth models).", at_least=0
     )
@@ -94,6 +100,19 @@ class TrainConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         model_lib.check_config(self.model, self.model_config)
+        if self.epipolar_weight > 0:
+            full = model_lib.full_config(self.model, self.model_config)
+            if not (
+                self.model == "global_local"
+                and full["use_global_module"]
+                and full["global_source"] == "encoder"
+                and full["global_dim"] == 6
+            ):
+                raise ValueError(
+                    "epipolar_weight needs global parameters that the model infers and that "
+                    "stand for a pose: global_local with its global module, global_source "
+                    "encoder and global_dim 6"
+                )
         return self
 
     def architecture(self) -> dict[str, Any]:
@@ -107,7 +126,11 @@ class TrainConfig:
         """The weights of the model's training loss (self-supervised or sparse)."""
         if getattr(model_lib.MODELS.get(self.model), "LOSS", "supervised") == "self_supervised":
             return photometric.SelfSupervisedWeights(smoothness=self.photometric_smoothness_weight)
-        return losses.LossWeights(depth=self.depth_weight, smoothness=self.smoothness_weight)
+        return losses.LossWeights(
+            depth=self.depth_weight,
+            smoothness=self.smoothness_weight,
+            epipolar=self.epipolar_weight,
+        )
 
 
 def flag_fields() -> list[dataclasses.Field]:

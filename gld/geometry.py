@@ -288,6 +288,58 @@ def triangulate_depth(
     return xp.where(denominator > 1e-12, depth, 0.0)
 
 
+def skew(vector: Array) -> Array:
+    """[..., 3] -> the cross-product matrix [..., 3, 3] ([v]x w = v x w)."""
+    xp = _xp(vector)
+    x, y, z = vector[..., 0], vector[..., 1], vector[..., 2]
+    zero = xp.zeros_like(x)
+    return xp.stack(
+        [xp.stack([zero, -z, y], -1), xp.stack([z, zero, -x], -1), xp.stack([-y, x, zero], -1)],
+        axis=-2,
+    )
+
+
+def epipolar_distance(
+    flow: Array, rotation: Array, translation: Array, intrinsics1: Array, intrinsics2: Array
+) -> Array:
+    """How far each flow correspondence is from satisfying the pose's epipolar constraint:
+    the first-order geometric (Sampson) distance, in pixels of view 1's focal length.
+
+    With x1, x2 the normalised camera coordinates of a pixel and of where its flow
+    lands, and E = [t]x R, the distance is |x2^T E x1| / sqrt((E x1)_0^2 + (E x1)_1^2
+    + (E^T x2)_0^2 + (E^T x2)_1^2) times fx. It is 0 for every pixel when the flow is
+    that of a rigid scene seen under the pose, is unchanged by the scale (and sign) of
+    t, and is undefined for t = 0 (the pose then fixes no epipolar geometry).
+
+    Args:
+      flow: [B, H, W, 2] pixels, view 1 -> view 2.
+      rotation, translation: [B, 3, 3], [B, 3]; X2 = R X1 + t.
+      intrinsics1, intrinsics2: [B, 4] normalised.
+
+    Returns:
+      [B, H, W] distances.
+    """
+    xp = _xp(flow, rotation, translation, intrinsics1, intrinsics2)
+    height, width = flow.shape[-3:-1]
+    pixels1 = pixel_grid(height, width, xp)[None]
+    pixels2 = pixels1 + flow
+
+    def camera_coordinates(pixels, intrinsics):
+        inverse_k = xp.linalg.inv(intrinsics_matrix(intrinsics, height, width))
+        homogeneous = xp.concatenate([pixels, xp.ones_like(pixels[..., :1])], axis=-1)
+        return xp.einsum("bij,bhwj->bhwi", inverse_k, homogeneous)
+
+    x1 = camera_coordinates(pixels1, intrinsics1)
+    x2 = camera_coordinates(pixels2, intrinsics2)
+    essential = skew(translation) @ rotation
+    e_x1 = xp.einsum("bij,bhwj->bhwi", essential, x1)
+    et_x2 = xp.einsum("bji,bhwj->bhwi", essential, x2)
+    residual = xp.sum(x2 * e_x1, axis=-1)
+    gradient_sq = e_x1[..., 0] ** 2 + e_x1[..., 1] ** 2 + et_x2[..., 0] ** 2 + et_x2[..., 1] ** 2
+    focal = intrinsics1[:, 0, None, None] * width
+    return focal * xp.abs(residual) / xp.sqrt(gradient_sq + 1e-20)
+
+
 def relative_pose(
     rotation1: Array, translation1: Array, rotation2: Array, translation2: Array
 ) -> tuple[Array, Array]:

@@ -1,4 +1,5 @@
-"""The paper's training loss: sparse L1 on inverse depth + edge-aware smoothness."""
+"""The paper's training loss: sparse L1 on inverse depth + edge-aware smoothness, and an
+optional epipolar term that asks the global parameters to encode the camera motion."""
 
 from __future__ import annotations
 
@@ -7,13 +8,17 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from gld import geometry
+
 
 @dataclasses.dataclass(frozen=True)
 class LossWeights:
-    """Weights of the loss terms (the paper's lambda_p and lambda_s)."""
+    """Weights of the loss terms (the paper's lambda_p and lambda_s; the epipolar term is
+    not the paper's and is off by default)."""
 
     depth: float = 5.0
     smoothness: float = 2.0
+    epipolar: float = 0.0
 
 
 def inverse_depth_target(depth: jax.Array, mask: jax.Array) -> jax.Array:
@@ -53,6 +58,31 @@ def edge_aware_smoothness(inv_depth: jax.Array, image: jax.Array) -> jax.Array:
     return smooth_x + smooth_y
 
 
+def epipolar_term(outputs: dict, batch: dict) -> jax.Array:
+    """Mean epipolar distance (pixels) of the input flow under the pose the model's global
+    parameters stand for (`outputs["global_pose"]`, `gld.geometry.epipolar_distance`).
+
+    It needs no label: the flow the model is given and the cameras' intrinsics say which
+    motions are consistent with the pair, so this term trains the global module to
+    encode the motion (rotation and translation direction; not the translation's sign
+    or scale), which the local network needs to turn flow into depth.
+    """
+    if "global_pose" not in outputs:
+        raise ValueError(
+            "the epipolar loss needs a model whose six global parameters stand for a pose "
+            "(global_local with its global module and global_dim 6)"
+        )
+    pose = outputs["global_pose"]
+    distance = geometry.epipolar_distance(
+        batch["flow"],
+        pose["rotation"],
+        pose["translation"],
+        batch["intrinsics1"],
+        batch["intrinsics2"],
+    )
+    return jnp.mean(distance)
+
+
 def total_loss(
     outputs: dict[str, jax.Array],
     batch: dict[str, jax.Array],
@@ -66,11 +96,13 @@ def total_loss(
 
     Args:
       outputs: the model's outputs, with `inv_depth` [B, H, W].
-      batch: the example contract (`depth`, `sparse_mask`, `image1` are used).
+      batch: the example contract (`depth`, `sparse_mask`, `image1` are used; `flow`,
+        `intrinsics1`, `intrinsics2` too with the epipolar term).
       weights: the loss weights.
 
     Returns:
-      (loss, {"loss", "depth_l1", "smoothness"}) where the terms are unweighted.
+      (loss, {"loss", "depth_l1", "smoothness"} and "epipolar" when weighted) where the
+      terms are unweighted.
     """
     image = batch["image1"]
     mask = batch["sparse_mask"]
@@ -82,4 +114,8 @@ def total_loss(
     depth_term = sum(sparse_l1(p, inv_depth_true, mask) for p in predictions) / len(predictions)
     smooth_term = sum(edge_aware_smoothness(p, image) for p in predictions) / len(predictions)
     loss = weights.depth * depth_term + weights.smoothness * smooth_term
-    return loss, {"loss": loss, "depth_l1": depth_term, "smoothness": smooth_term}
+    terms = {"depth_l1": depth_term, "smoothness": smooth_term}
+    if weights.epipolar > 0:
+        terms["epipolar"] = epipolar_term(outputs, batch)
+        loss = loss + weights.epipolar * terms["epipolar"]
+    return loss, {"loss": loss, **terms}

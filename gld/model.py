@@ -34,6 +34,22 @@ POSE_INPUTS = ("rotation", "translation")
 POSE_ROTATION_SCALE = 10.0
 
 
+def global_params_pose(global_params: jax.Array) -> dict[str, jax.Array]:
+    """The relative pose six global parameters stand for, read as `pose_parameters`
+    writes it (to first order in the angle): {"rotation": [B, 3, 3] (Rodrigues of the
+    first three over `POSE_ROTATION_SCALE`), "translation": [B, 3] (the last three, any
+    norm)}. A loss on this pose (`gld.losses.epipolar_term`) makes g encode the motion."""
+    if global_params.ndim != 2 or global_params.shape[1] != 6:
+        raise ValueError(f"global_params must be [B, 6], got shape {global_params.shape}")
+    rotation_vector = global_params[:, :3] / POSE_ROTATION_SCALE
+    # Rodrigues with a norm whose gradient is finite at zero.
+    angle = jnp.sqrt(jnp.sum(rotation_vector**2, axis=-1) + 1e-12)[:, None, None]
+    cross = geometry.skew(rotation_vector / angle[:, :, 0])
+    identity = jnp.eye(3, dtype=global_params.dtype)
+    rotation = identity + jnp.sin(angle) * cross + (1.0 - jnp.cos(angle)) * (cross @ cross)
+    return {"rotation": rotation, "translation": global_params[:, 3:]}
+
+
 def pose_parameters(rotation: jax.Array, translation: jax.Array) -> jax.Array:
     """The relative pose as six global parameters ([B, 6]): the rotation's vector part
     (sin of the angle times the axis, from the skew-symmetric part of R) times
@@ -146,6 +162,8 @@ class GlobalLocal(nn.Module):
         Returns:
           {"inv_depth": [B, H, W] positive, "depth": [B, H, W],
            "global_params": [B, global_dim] (zeros without a global module),
+           "global_pose": the pose g stands for (`global_params_pose`; with a global
+             module and global_dim 6),
            "filter_banks": list of FilterBank(kernel [B, k, k, C_in, C_out], bias [B, C_out])}.
         """
         layers.check_inputs(image1, image2, flow)
@@ -237,6 +255,8 @@ class GlobalLocal(nn.Module):
         )
         outputs = layers.depth_outputs(logits)
         outputs["global_params"] = global_params
+        if self.use_global_module and self.global_dim == 6:
+            outputs["global_pose"] = global_params_pose(global_params)
         outputs["filter_banks"] = list(filter_banks)
         return outputs
 

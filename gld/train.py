@@ -46,9 +46,12 @@ def loss_name(model: nn.Module) -> str:
     return getattr(model, "LOSS", "supervised")
 
 
-def batch_keys(model: nn.Module) -> tuple[str, ...]:
-    """The batch keys a model's train step reads: its loss's and its own inputs."""
+def batch_keys(model: nn.Module, loss_weights=None) -> tuple[str, ...]:
+    """The batch keys a model's train step reads: its loss's (the intrinsics too with an
+    epipolar term) and its own inputs."""
     keys = LOSS_KEYS[loss_name(model)]
+    if getattr(loss_weights, "epipolar", 0) > 0:
+        keys += ("intrinsics1", "intrinsics2")
     return keys + tuple(key for key in layers.input_keys(model) if key not in keys)
 
 
@@ -179,7 +182,7 @@ def train_and_evaluate(
         augment=config.augment,
         fixed_sparse_pixels=config.fixed_sparse_pixels,
         worker_count=config.worker_count,
-        keys=batch_keys(model),
+        keys=batch_keys(model, config.loss_weights()),
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
@@ -319,7 +322,7 @@ def _train(
         workdir=workdir,
         mesh=mesh,
         train_step=train_step,
-        batch_keys=batch_keys(model),
+        batch_keys=batch_keys(model, config.loss_weights()),
         schedule=config,
         evaluate=evaluate if test_source is not None else None,
         after_checkpoint=after_checkpoint,

@@ -76,6 +76,11 @@ def test_a_stored_config_is_read_whatever_version_wrote_it():
         ({"model_config": {"encoder_strides": [2, 2]}}, "same length"),
         ({"model_config": {"global_norm": "layer"}}, "global_norm must be one of"),
         ({"model_config": {"globl_dim": 3}}, "no option"),
+        ({"epipolar_weight": -1.0}, "epipolar_weight must be at least 0"),
+        ({"epipolar_weight": 0.1, "model_config": {"global_dim": 4}}, "stand for a pose"),
+        ({"epipolar_weight": 0.1, "model_config": {"use_global_module": False}}, "stand for"),
+        ({"epipolar_weight": 0.1, "model_config": {"global_source": "pose"}}, "stand for"),
+        ({"epipolar_weight": 0.1, "model": "small_encdec"}, "stand for a pose"),
     ],
 )
 def test_validate_names_the_option_that_cannot_give_a_sound_run(values, named):

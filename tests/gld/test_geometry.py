@@ -90,3 +90,43 @@ def test_rotation_errors():
     assert geometry.translation_error_degrees(
         np.array([1.0, 0, 0]), np.array([0, 2.0, 0])
     ) == pytest.approx(90.0)
+
+
+def test_epipolar_distance_is_zero_for_the_true_pose_and_scale_free_in_t():
+    rng = np.random.default_rng(0)
+    height, width = 24, 32
+    depth = rng.uniform(2.0, 6.0, (height, width))
+    intrinsics = np.array([0.9, 1.2, 0.5, 0.5])
+    camera = geometry.intrinsics_matrix(intrinsics, height, width)
+    rotation = geometry.rotation_matrix(np.array([0.02, -0.05, 0.01]))
+    translation = np.array([0.3, -0.1, 0.2])
+    flow, _ = geometry.depth_to_flow(depth, camera, camera, rotation, translation)
+
+    def distance(rotation, translation):
+        return geometry.epipolar_distance(
+            flow[None], rotation[None], translation[None], intrinsics[None], intrinsics[None]
+        )
+
+    assert np.max(distance(rotation, translation)) < 1e-5
+    assert np.max(distance(rotation, -3.0 * translation)) < 1e-5
+    # A wrong translation direction or rotation leaves pixels off their epipolar lines.
+    assert np.mean(distance(rotation, np.array([0.1, 0.3, 0.2]))) > 0.5
+    assert np.mean(distance(geometry.rotation_matrix(np.zeros(3)), translation)) > 0.5
+    # jax and numpy agree.
+    np.testing.assert_allclose(
+        distance(rotation, np.array([0.1, 0.3, 0.2])),
+        geometry.epipolar_distance(
+            jnp.asarray(flow[None], jnp.float32),
+            jnp.asarray(rotation[None], jnp.float32),
+            jnp.asarray([[0.1, 0.3, 0.2]], jnp.float32),
+            jnp.asarray(intrinsics[None], jnp.float32),
+            jnp.asarray(intrinsics[None], jnp.float32),
+        ),
+        rtol=1e-3,
+        atol=1e-4,
+    )
+
+
+def test_skew_is_the_cross_product():
+    a, b = np.array([0.3, -1.2, 2.0]), np.array([1.5, 0.4, -0.7])
+    np.testing.assert_allclose(geometry.skew(a) @ b, np.cross(a, b))

@@ -60,3 +60,36 @@ def test_pyramid_levels_add_their_own_error():
     assert float(terms["depth_l1"]) == pytest.approx(0.1)  # (0 + 0.2) / 2 scales
     _, terms = losses.total_loss(exact, _batch(depth, mask))
     assert float(terms["depth_l1"]) == pytest.approx(0.0)
+
+
+def test_epipolar_term_is_the_mean_epipolar_distance_of_the_pose_g_stands_for():
+    from gld import geometry
+    from gld import model as model_lib
+
+    rng = np.random.default_rng(0)
+    flow = jnp.asarray(rng.normal(size=(2, 12, 16, 2)), jnp.float32)
+    global_params = jnp.asarray(rng.normal(size=(2, 6)) * 0.5, jnp.float32)
+    pose = model_lib.global_params_pose(global_params)
+    intrinsics = jnp.asarray([[0.9, 1.2, 0.5, 0.5]] * 2, jnp.float32)
+    batch = {"flow": flow, "intrinsics1": intrinsics, "intrinsics2": intrinsics}
+    expected = np.mean(
+        geometry.epipolar_distance(
+            flow, pose["rotation"], pose["translation"], intrinsics, intrinsics
+        )
+    )
+    np.testing.assert_allclose(losses.epipolar_term({"global_pose": pose}, batch), expected)
+    with pytest.raises(ValueError, match="six global parameters stand for a pose"):
+        losses.epipolar_term({"inv_depth": flow[..., 0]}, batch)
+    # total_loss adds the term only when it is weighted.
+    inv_depth = jnp.full((2, 12, 16), 0.2, jnp.float32)
+    batch.update(
+        depth=jnp.full((2, 12, 16), 4.0, jnp.float32),
+        sparse_mask=jnp.ones((2, 12, 16), bool),
+        image1=jnp.zeros((2, 12, 16, 3), jnp.float32),
+    )
+    outputs = {"inv_depth": inv_depth, "global_pose": pose}
+    plain, plain_terms = losses.total_loss(outputs, batch)
+    weighted, terms = losses.total_loss(outputs, batch, losses.LossWeights(epipolar=0.5))
+    assert "epipolar" not in plain_terms
+    np.testing.assert_allclose(terms["epipolar"], expected, rtol=1e-6)
+    np.testing.assert_allclose(weighted, plain + 0.5 * expected, rtol=1e-6)

@@ -255,3 +255,26 @@ def test_a_model_given_the_pose_steers_its_filters_with_it_and_has_no_encoder():
         model_lib.check_config("global_local", {"global_source": "pose", "global_dim": 4})
     with pytest.raises(ValueError, match="global_source must be one of"):
         model_lib.check_config("global_local", {"global_source": "imu"})
+
+
+def test_global_params_read_as_a_pose_invert_the_given_pose_parameters():
+    from gld import geometry
+
+    axis_angle = np.array([[0.0, 0.1, 0.0], [0.05, -0.02, 0.03]])
+    rotation = jnp.asarray(geometry.rotation_matrix(axis_angle), jnp.float32)
+    translation = jnp.asarray([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], jnp.float32)
+    pose = model_lib.global_params_pose(model_lib.pose_parameters(rotation, translation))
+    # sin(angle) is read back as the angle: exact to third order in the angle.
+    errors = geometry.rotation_error_degrees(np.asarray(pose["rotation"]), np.asarray(rotation))
+    assert np.max(errors) < 0.01
+    np.testing.assert_allclose(pose["translation"], translation, atol=1e-6)
+    # Finite gradients at g = 0 (no rotation).
+    gradient = jax.grad(lambda g: jnp.sum(model_lib.global_params_pose(g)["rotation"]))(
+        jnp.zeros((1, 6))
+    )
+    assert np.all(np.isfinite(gradient))
+    image1, image2, flow = _inputs()
+    outputs = model_lib.GlobalLocal().init_with_output(jax.random.key(0), image1, image2, flow)[0]
+    assert outputs["global_pose"]["rotation"].shape == (2, 3, 3)
+    small = model_lib.GlobalLocal(global_dim=4)
+    assert "global_pose" not in small.init_with_output(jax.random.key(0), image1, image2, flow)[0]

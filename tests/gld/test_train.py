@@ -379,3 +379,37 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
         predict.DepthPredictor(model, variables, 48, 64)
     with pytest.raises(ValueError, match="relative pose"):
         export.export_model(model, variables, tmp_path / "model.gld", height=48, width=64)
+
+
+def test_the_epipolar_term_teaches_the_global_parameters_the_motion(tiny_scenes):
+    """150 steps on 16 pairs with true flow: with the epipolar term the pose g stands for
+    approaches the true motion (translation direction ~32 deg off, from ~66), with the
+    depth loss alone it does not (~58 deg)."""
+    from gld import geometry
+
+    source = tiny_scenes.as_data_source("train")
+    batch = next(
+        input_pipeline.eval_batches([source[i] for i in range(16)], batch_size=16, flow_source="gt")
+    )
+    batch["sparse_mask"] = batch["depth_valid"]
+    model = model_lib.make_model("global_local", **TINY_MODEL)
+    optimizer = state_lib.make_optimizer(1e-3)
+
+    def direction_error(epipolar):
+        weights = losses.LossWeights(smoothness=0.0, epipolar=epipolar)
+        state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
+        step = jax.jit(
+            train.make_train_step(model=model, optimizer=optimizer, loss_weights=weights)
+        )
+        keys = train.batch_keys(model, weights)
+        assert ("intrinsics1" in keys) == (epipolar > 0)
+        for _ in range(150):
+            state, _ = step(state, {k: batch[k] for k in keys}, jax.random.key(0))
+        outputs = model.apply(state.variables(), batch["image1"], batch["image2"], batch["flow"])
+        error = geometry.translation_error_degrees(
+            np.asarray(outputs["global_pose"]["translation"]), batch["translation"]
+        )
+        return float(np.mean(np.minimum(error, 180.0 - error)))  # the sign is not observable
+
+    with_term, without = direction_error(1.0), direction_error(0.0)
+    assert with_term < 40.0 < 50.0 < without
