@@ -100,19 +100,12 @@ class TrainConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         model_lib.check_config(self.model, self.model_config)
-        if self.epipolar_weight > 0:
-            full = model_lib.full_config(self.model, self.model_config)
-            if not (
-                self.model == "global_local"
-                and full["use_global_module"]
-                and full["global_source"] == "encoder"
-                and full["global_dim"] == 6
-            ):
-                raise ValueError(
-                    "epipolar_weight needs global parameters that the model infers and that "
-                    "stand for a pose: global_local with its global module, global_source "
-                    "encoder and global_dim 6"
-                )
+        if self.epipolar_weight > 0 and not infers_pose(self.model, self.model_config):
+            raise ValueError(
+                "epipolar_weight needs global parameters that the model infers and that "
+                "stand for a pose: global_local with its global module, global_source "
+                "encoder and global_dim 6"
+            )
         return self
 
     def architecture(self) -> dict[str, Any]:
@@ -131,6 +124,17 @@ class TrainConfig:
             smoothness=self.smoothness_weight,
             epipolar=self.epipolar_weight,
         )
+
+
+def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
+    """Whether a model's global parameters are inferred from its inputs and can stand for
+    the camera motion (`gld.model.global_params_pose`): the epipolar term applies."""
+    if model != "global_local":
+        return False
+    full = model_lib.full_config(model, model_config)
+    return bool(
+        full["use_global_module"] and full["global_source"] == "encoder" and full["global_dim"] == 6
+    )
 
 
 def flag_fields() -> list[dataclasses.Field]:

@@ -393,7 +393,8 @@ class DepthPredictor:
             flow_scale = np.array([self.width / box[3], self.height / box[2]], np.float32)
             model_flow = self._prepare(flow, box) * flow_scale
         outputs = self._apply(self.variables, resized1 - 0.5, resized2 - 0.5, model_flow)
-        outputs = jax.device_get({k: v for k, v in outputs.items() if k != "filter_banks"})
+        # Per-pair arrays only: filter banks and the pose g stands for are training aids.
+        outputs = jax.device_get({k: v for k, v in outputs.items() if isinstance(v, jax.Array)})
         outputs = {k: np.asarray(v) for k, v in outputs.items()}
         top, left, crop_height, crop_width = box
         depth = np.full((batch_size, in_height, in_width), np.nan, np.float32)

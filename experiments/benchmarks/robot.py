@@ -109,7 +109,7 @@ def _networks(height: int, width: int, seed: int, scratch: Path, pair: dict) -> 
     @jax.jit
     def apply(variables, image1, image2, flow):
         outputs = model.apply(variables, image1, image2, flow)
-        return {key: value for key, value in outputs.items() if key != "filter_banks"}
+        return {key: value for key, value in outputs.items() if isinstance(value, jax.Array)}
 
     def live(image1, image2, flow):
         # The same host work as gld.deploy: uint8 -> [-0.5, 0.5], results to numpy.

@@ -56,6 +56,7 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         train_flags(["train", f"--flagfile={path}"])
         assert train_flags.learning_rate == 1e-4
         assert train_flags.lr_schedule == "constant"
+        assert train_flags.epipolar_weight == 0  # the paper's loss
     finally:
         train_flags.unparse_flags()
 

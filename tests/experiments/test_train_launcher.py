@@ -52,6 +52,7 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
         "loss",
         "depth_l1",
         "smoothness",
+        "epipolar",  # the main job's default weight is 0.1
         "learning_rate",
         "steps_per_sec",
         "examples_per_sec",
@@ -139,6 +140,17 @@ def test_a_bad_value_stops_the_trainer_before_anything_is_written(
     result = _launch(["experiments.train", f"--workdir={workdir}", flag], tiny_scenes_dir)
     assert result.returncode != 0
     assert message in result.stderr
+    assert not workdir.exists()
+
+
+def test_an_epipolar_term_asked_of_a_model_without_a_pose_stops_the_trainer(
+    tiny_scenes_dir, tmp_path
+):
+    workdir = tmp_path / "run"
+    flags = ["experiments.train", f"--workdir={workdir}", "--global_dim=4"]
+    result = _launch([*flags, "--epipolar_weight=0.1"], tiny_scenes_dir)
+    assert result.returncode != 0
+    assert "--epipolar_weight needs global parameters" in result.stderr
     assert not workdir.exists()
 
 

@@ -24,7 +24,13 @@ def test_launcher_flags_are_derived_from_the_config():
     import experiments.train  # noqa: F401  (defines the trainer's flags)
     from experiments import common
 
-    main_job = {"steps": 2000, "learning_rate": 1e-3, "lr_schedule": "cosine", "warmup_steps": 100}
+    main_job = {
+        "steps": 2000,
+        "learning_rate": 1e-3,
+        "lr_schedule": "cosine",
+        "warmup_steps": 100,
+        "epipolar_weight": 0.1,
+    }
     for field in config.flag_fields():
         flag = flags.FLAGS[field.name]
         assert flag.help.endswith(field.metadata["help"])
@@ -94,3 +100,11 @@ def test_the_defaults_and_the_main_job_are_valid():
         steps=2000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
     ).validate()
     config.TrainConfig(eval_every=0, model="dispnet").validate()
+
+
+def test_the_epipolar_term_applies_to_global_parameters_that_are_inferred_poses():
+    assert config.infers_pose("global_local", {})
+    assert not config.infers_pose("global_local", {"global_dim": 4})
+    assert not config.infers_pose("global_local", {"global_source": "pose"})
+    assert not config.infers_pose("global_local", {"use_global_module": False})
+    assert not config.infers_pose("small_encdec", {})

@@ -291,18 +291,25 @@ def test_two_processes_train_with_identical_parameters(tiny_scenes_dir, tmp_path
     assert [r["step"] for r in records] == [1, 2, 3]
 
 
-def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(tiny_scenes):
+@pytest.fixture(scope="module")
+def sixteen_pairs_dense(tiny_scenes):
+    """The first 16 training pairs as one batch: true flow, every valid pixel supervised."""
+    source = tiny_scenes.as_data_source("train")
+    batch = next(
+        input_pipeline.eval_batches([source[i] for i in range(16)], batch_size=16, flow_source="gt")
+    )
+    batch["sparse_mask"] = batch["depth_valid"]
+    return batch
+
+
+def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(sixteen_pairs_dense):
     """With flow on the scale of the other inputs (the model's default flow_scale), 300
     Adam steps on 16 pairs with true flow and dense labels learn every pair's scale and
     most of its structure; with the flow at 1/10 of that scale (flow_scale=1, the
     original input) the same budget leaves the structure at a correlation of ~0.88."""
     from gld import probes
 
-    source = tiny_scenes.as_data_source("train")
-    batch = next(
-        input_pipeline.eval_batches([source[i] for i in range(16)], batch_size=16, flow_source="gt")
-    )
-    batch["sparse_mask"] = batch["depth_valid"]
+    batch = sixteen_pairs_dense
     model = model_lib.make_model("global_local", **TINY_MODEL)
     optimizer = state_lib.make_optimizer(1e-3)
     state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
@@ -381,17 +388,13 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
         export.export_model(model, variables, tmp_path / "model.gld", height=48, width=64)
 
 
-def test_the_epipolar_term_teaches_the_global_parameters_the_motion(tiny_scenes):
+def test_the_epipolar_term_teaches_the_global_parameters_the_motion(sixteen_pairs_dense):
     """150 steps on 16 pairs with true flow: with the epipolar term the pose g stands for
     approaches the true motion (translation direction ~32 deg off, from ~66), with the
     depth loss alone it does not (~58 deg)."""
     from gld import geometry
 
-    source = tiny_scenes.as_data_source("train")
-    batch = next(
-        input_pipeline.eval_batches([source[i] for i in range(16)], batch_size=16, flow_source="gt")
-    )
-    batch["sparse_mask"] = batch["depth_valid"]
+    batch = sixteen_pairs_dense
     model = model_lib.make_model("global_local", **TINY_MODEL)
     optimizer = state_lib.make_optimizer(1e-3)
 
