@@ -227,7 +227,7 @@ def evaluate_source(
     batch_size = sharding.evaluation_batch_size(batch_size, mesh)
     local_batch = sharding.per_process_batch_size(batch_size, mesh)
     variables = jax.device_put(variables, sharding.replicated(mesh))
-    keys = EVAL_KEYS + tuple(key for key in layers.input_keys(model) if key not in EVAL_KEYS)
+    keys = layers.with_input_keys(model, EVAL_KEYS)
     if truth is None:
         eval_step = eval_step or jit_eval_step(make_eval_step(model=model), mesh)
 

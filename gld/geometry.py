@@ -376,20 +376,13 @@ def translation_error_degrees(translation: Array, translation_true: Array) -> Ar
 
 
 def rotation_matrix(axis_angle: Array) -> Array:
-    """Rodrigues: axis-angle vector [..., 3] (radians) -> rotation matrix [..., 3, 3]."""
+    """Rodrigues: axis-angle vector [..., 3] (radians) -> rotation matrix [..., 3, 3].
+
+    Differentiable everywhere, the zero rotation included (the angle's square root is
+    taken of its square plus 1e-24, which moves no angle above ~1e-12 rad)."""
     xp = _xp(axis_angle)
-    angle = xp.linalg.norm(axis_angle, axis=-1, keepdims=True)
-    axis = axis_angle / xp.maximum(angle, 1e-12)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = xp.zeros_like(x)
-    cross = xp.stack(
-        [
-            xp.stack([zero, -z, y], -1),
-            xp.stack([z, zero, -x], -1),
-            xp.stack([-y, x, zero], -1),
-        ],
-        -2,
-    )
+    angle = xp.sqrt(xp.sum(axis_angle**2, axis=-1, keepdims=True) + 1e-24)
+    cross = skew(axis_angle / angle)
     angle = angle[..., None]
     eye = xp.broadcast_to(xp.eye(3, dtype=axis_angle.dtype), cross.shape)
     return eye + xp.sin(angle) * cross + (1 - xp.cos(angle)) * (cross @ cross)

@@ -37,6 +37,11 @@ def input_keys(model) -> tuple[str, ...]:
     return MODEL_INPUTS + tuple(getattr(model, "extra_inputs", ()))
 
 
+def with_input_keys(model, keys: tuple[str, ...]) -> tuple[str, ...]:
+    """`keys` (what a step reads) followed by the model's inputs it does not hold yet."""
+    return keys + tuple(key for key in input_keys(model) if key not in keys)
+
+
 def model_arguments(model, batch) -> tuple[tuple, dict]:
     """(args, kwargs) of a depth model's call on a batch of the example contract: the
     images and flow, then the model's `extra_inputs` by keyword."""

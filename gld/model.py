@@ -41,12 +41,7 @@ def global_params_pose(global_params: jax.Array) -> dict[str, jax.Array]:
     norm)}. A loss on this pose (`gld.losses.epipolar_term`) makes g encode the motion."""
     if global_params.ndim != 2 or global_params.shape[1] != 6:
         raise ValueError(f"global_params must be [B, 6], got shape {global_params.shape}")
-    rotation_vector = global_params[:, :3] / POSE_ROTATION_SCALE
-    # Rodrigues with a norm whose gradient is finite at zero.
-    angle = jnp.sqrt(jnp.sum(rotation_vector**2, axis=-1) + 1e-12)[:, None, None]
-    cross = geometry.skew(rotation_vector / angle[:, :, 0])
-    identity = jnp.eye(3, dtype=global_params.dtype)
-    rotation = identity + jnp.sin(angle) * cross + (1.0 - jnp.cos(angle)) * (cross @ cross)
+    rotation = geometry.rotation_matrix(global_params[:, :3] / POSE_ROTATION_SCALE)
     return {"rotation": rotation, "translation": global_params[:, 3:]}
 
 

@@ -52,7 +52,7 @@ def batch_keys(model: nn.Module, loss_weights=None) -> tuple[str, ...]:
     keys = LOSS_KEYS[loss_name(model)]
     if getattr(loss_weights, "epipolar", 0) > 0:
         keys += ("intrinsics1", "intrinsics2")
-    return keys + tuple(key for key in layers.input_keys(model) if key not in keys)
+    return layers.with_input_keys(model, keys)
 
 
 class NonFiniteLossError(RuntimeError):
