@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from gld import baselines, geometry, layers
 from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
 from gld.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
-from gld.global_encoder import GlobalEncoder
+from gld.global_encoder import ENCODER_NORMS, GlobalEncoder
 from gld.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
@@ -97,6 +97,9 @@ class GlobalLocal(nn.Module):
         g = `pose_parameters(rotation, translation)`, which the call then needs as
         keyword arguments (the contract's "rotation" and "translation"), and the
         global encoder is not built. Needs global_dim 6.
+      encoder_norm: "instance" standardises each hidden channel of the global encoder
+        over the image, per example, before its activation; "none" (the paper's) does
+        not (`GlobalEncoder`).
       global_norm: "batch" standardises each global parameter over the batch (running
         statistics at test time), so that g varies across pairs from the first step
         (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
@@ -119,6 +122,7 @@ class GlobalLocal(nn.Module):
     local_flow_units: str = "normalised"
     flow_scale: float = 10.0
     global_source: str = "encoder"
+    encoder_norm: str = "none"
     global_norm: str = "none"
     modulation_scale: float = MODULATION_SCALE
     filter_formulation: str | None = None
@@ -217,6 +221,7 @@ class GlobalLocal(nn.Module):
                 strides=tuple(self.encoder_strides),
                 global_dim=self.global_dim,
                 kernel_size=self.kernel_size,
+                norm=self.encoder_norm,
                 name="global_encoder",
             )(global_inputs)
         if self.global_norm not in GLOBAL_NORMS:
@@ -301,12 +306,14 @@ ARCHITECTURE_FLAGS = {
     "local_flow_units": "Units of the local network's flow.",
     "flow_scale": "Factor on the normalised flow fed to both modules.",
     "global_source": "Where g comes from: the global encoder, or the true relative pose.",
+    "encoder_norm": "Normalisation inside the global encoder.",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
     "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
 }
 ARCHITECTURE_CHOICES = {
     "local_flow_units": LOCAL_FLOW_UNITS,
+    "encoder_norm": ENCODER_NORMS,
     "global_norm": GLOBAL_NORMS,
     "global_source": GLOBAL_SOURCES,
     "filter_formulation": tuple(FORMULATIONS),
@@ -330,6 +337,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "global_norm": "none",
         "modulation_scale": 0.2,
         "global_source": "encoder",
+        "encoder_norm": "none",
     },
 }
 

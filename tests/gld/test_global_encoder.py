@@ -134,3 +134,41 @@ def test_channels_and_strides_of_different_lengths_are_rejected(channels, stride
     encoder = GlobalEncoder(channels=channels, strides=strides)
     with pytest.raises(ValueError, match=r"channels .* and strides .* differ in length"):
         encoder.init(jax.random.key(0), _inputs(batch=1, height=8, width=8))
+
+
+def test_instance_norm_standardises_each_channel_per_example_before_the_activation():
+    encoder = GlobalEncoder(channels=CHANNELS, strides=STRIDES, global_dim=3, norm="instance")
+    inputs = _inputs(batch=3)
+    variables = _init(encoder, inputs)
+    params = variables["params"]
+    assert set(params["norm0"]) == {"scale", "bias"}
+    _, state = encoder.apply(variables, inputs, capture_intermediates=True)
+    for index in range(len(CHANNELS)):
+        normalised = np.asarray(state["intermediates"][f"norm{index}"]["__call__"][0])
+        # Unit scale and zero offset at initialisation: each channel of each example has
+        # zero mean and unit variance over the image.
+        np.testing.assert_allclose(normalised.mean(axis=(1, 2)), 0.0, atol=1e-4)
+        np.testing.assert_allclose(normalised.std(axis=(1, 2)), 1.0, rtol=1e-2)
+    # Each example is normalised alone, so a batch mate does not change its output.
+    together = encoder.apply(variables, inputs)
+    np.testing.assert_allclose(
+        encoder.apply(variables, inputs[1:2])[0], together[1], rtol=1e-4, atol=1e-6
+    )
+
+
+def test_instance_norm_makes_the_encoder_blind_to_the_inputs_contrast():
+    # conv(c x) + b = c conv(x) + b, and standardising over the image removes both c > 0
+    # and b: only the normalised encoder ignores a change of contrast.
+    inputs = _inputs(batch=2)
+    for norm, blind in (("instance", True), ("none", False)):
+        encoder = GlobalEncoder(channels=CHANNELS, strides=STRIDES, global_dim=3, norm=norm)
+        variables = _init(encoder, inputs)
+        original = encoder.apply(variables, inputs)
+        contrast = encoder.apply(variables, inputs * 4.0)
+        assert np.allclose(contrast, original, rtol=1e-3, atol=1e-5) == blind, norm
+
+
+def test_an_unknown_norm_is_named():
+    encoder = GlobalEncoder(channels=CHANNELS, strides=STRIDES, norm="batch")
+    with pytest.raises(ValueError, match=r"norm must be one of \('none', 'instance'\)"):
+        encoder.init(jax.random.key(0), _inputs(batch=1))

@@ -278,3 +278,20 @@ def test_global_params_read_as_a_pose_invert_the_given_pose_parameters():
     assert outputs["global_pose"]["rotation"].shape == (2, 3, 3)
     small = model_lib.GlobalLocal(global_dim=4)
     assert "global_pose" not in small.init_with_output(jax.random.key(0), image1, image2, flow)[0]
+
+
+def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnormalised():
+    image1, image2, flow = _inputs()
+    variables = model_lib.GlobalLocal(encoder_norm="instance").init(
+        jax.random.key(0), image1, image2, flow
+    )
+    encoder = variables["params"]["global_encoder"]
+    assert {f"norm{i}" for i in range(5)} <= set(encoder)
+    plain = model_lib.GlobalLocal(encoder_norm="none").init(
+        jax.random.key(0), image1, image2, flow
+    )
+    assert not any(name.startswith("norm") for name in plain["params"]["global_encoder"])
+    # A stored config written before the option was trained without normalisation.
+    assert model_lib.complete_stored_config("global_local", {})["encoder_norm"] == "none"
+    with pytest.raises(ValueError, match="encoder_norm must be one of"):
+        model_lib.check_config("global_local", {"encoder_norm": "layer"})
