@@ -95,13 +95,19 @@ def training_options() -> dict[str, Any]:
     }
 
 
-def define_architecture_flags() -> None:
+def define_architecture_flags(**defaults: Any) -> None:
     """A flag for every architecture option of the global-local model
-    (`gld.model.architecture_options`: its default, help and choices)."""
+    (`gld.model.architecture_options`: its default, help and choices); `defaults` replace
+    the model's defaults of some options for this launcher (the main job's recipe)."""
     from gld import model
 
-    for name, (default, help_text, choices) in model.architecture_options().items():
+    options = model.architecture_options()
+    unknown = sorted(set(defaults) - set(options))
+    if unknown:
+        raise ValueError(f"no architecture option(s) {unknown}; valid: {sorted(options)}")
+    for name, (default, help_text, choices) in options.items():
         minimum = model.ARCHITECTURE_MINIMA.get(name)
+        default = defaults.get(name, default)
         _define(name, default, help_text, choices, at_least=None if choices else minimum)
 
 

@@ -76,6 +76,10 @@ def main(argv):
     if FLAGS.pose_probe and "global_params" in test:
         train_pairs = run("train")
         report["pose_probe"] = probes.pose_probe(train_pairs, test, steps=FLAGS.probe_steps)
+        if config.epipolar_weight > 0 and test["global_params"].shape[1] == 6:
+            report["pose_probe"]["global_params_read_as_pose"] = (
+                probes.global_params_pose_errors(test)
+            )
         for name, errors in report["pose_probe"].items():
             print(
                 f"pose from global params, {name}: rotation {errors['rotation_deg']:.2f} deg, "

@@ -12,6 +12,8 @@ Two instruments:
   (the paper's Sec. 4.4): a small MLP regresses the rotation (axis-angle) and the
   translation direction from the global parameters of the training pairs, and is
   scored on the test pairs in degrees, next to predicting the training mean pose.
+  `global_params_pose_errors` reads g directly as the pose the epipolar term trains it
+  to stand for (`gld.model.global_params_pose`), with no probe in between.
 
 `collect` runs a model over a split once and keeps what both need.
 """
@@ -29,6 +31,7 @@ import numpy as np
 import optax
 
 from gld import evaluation, geometry, losses
+from gld import model as model_lib
 
 
 def rotation_vector(rotation: np.ndarray) -> np.ndarray:
@@ -277,4 +280,26 @@ def pose_probe(
     return {
         "probe": _pose_errors(predicted, test_targets),
         "mean_pose": _pose_errors(mean_pose, test_targets),
+    }
+
+
+def global_params_pose_errors(collected: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean errors (degrees) of the pose six global parameters stand for, read with
+    `gld.model.global_params_pose`: what a model trained with the epipolar term has
+    made of g. The translation direction is scored up to its sign, which the epipolar
+    constraint does not fix.
+
+    Args:
+      collected: a `collect` output with "global_params" [N, 6].
+    """
+    if "global_params" not in collected or collected["global_params"].shape[1:] != (6,):
+        raise ValueError("reading g as a pose needs six global parameters per pair")
+    pose = model_lib.global_params_pose(np.asarray(collected["global_params"], np.float64))
+    rotation_true = geometry.rotation_matrix(collected["rotation_vector"])
+    angle = geometry.translation_error_degrees(pose["translation"], collected["translation"])
+    return {
+        "rotation_deg": float(
+            np.mean(geometry.rotation_error_degrees(pose["rotation"], rotation_true))
+        ),
+        "translation_deg": float(np.mean(np.minimum(angle, 180.0 - angle))),
     }

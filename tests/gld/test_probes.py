@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from gld import geometry, input_pipeline, probes
+from gld import model as model_lib
 
 
 def test_rotation_vector_inverts_rodrigues():
@@ -110,6 +111,31 @@ def test_pose_probe_needs_global_parameters():
     del pairs["global_params"]
     with pytest.raises(ValueError, match="no global parameters"):
         probes.pose_probe(pairs, pairs, steps=1)
+
+
+def test_global_params_read_as_a_pose_score_zero_for_the_pose_and_ignore_the_sign_of_t():
+    rng = np.random.default_rng(3)
+    pairs = _pose_pairs(rng, 16, False)
+    pairs["rotation_vector"] *= 0.3  # a few degrees, as on the benchmark
+    rotation = geometry.rotation_matrix(pairs["rotation_vector"])
+    exact = np.asarray(model_lib.pose_parameters(rotation, pairs["translation"]))
+    # The rotation's vector part is read back to first order in the angle.
+    errors = probes.global_params_pose_errors({**pairs, "global_params": exact})
+    assert errors["rotation_deg"] < 0.01 and errors["translation_deg"] < 1e-3
+    flipped = exact * np.array([1, 1, 1, -3, -3, -3])
+    errors = probes.global_params_pose_errors({**pairs, "global_params": flipped})
+    assert errors["translation_deg"] < 1e-3
+    # A known error: a 90-degree turn of every translation about an axis normal to it.
+    normal = np.cross(pairs["translation"], rng.normal(size=(16, 3)))
+    turned = np.concatenate([exact[:, :3], normal], axis=-1)
+    errors = probes.global_params_pose_errors({**pairs, "global_params": turned})
+    np.testing.assert_allclose(errors["translation_deg"], 90.0, atol=1e-6)
+    no_rotation = np.concatenate([np.zeros((16, 3)), exact[:, 3:]], axis=-1)
+    errors = probes.global_params_pose_errors({**pairs, "global_params": no_rotation})
+    angles = np.degrees(np.linalg.norm(pairs["rotation_vector"], axis=-1))
+    np.testing.assert_allclose(errors["rotation_deg"], angles.mean(), rtol=1e-6)
+    with pytest.raises(ValueError, match="six global parameters"):
+        probes.global_params_pose_errors({**pairs, "global_params": exact[:, :4]})
 
 
 def test_collect_reads_every_pair_once(tiny_scenes):
