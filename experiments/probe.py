@@ -8,7 +8,9 @@ Prints and writes <workdir>/eval/probe.json:
   pair (the structure); see `gld.probes.depth_statistics`;
 - the pose probe (the paper's Sec. 4.4): an MLP trained on the frozen global
   parameters of the training pairs regresses the relative pose of the test pairs;
-  errors in degrees beside predicting the training mean pose.
+  errors in degrees beside predicting the training mean pose;
+- for a run trained with the epipolar term, g read directly as the pose the term trains
+  it to be (`gld.probes.global_params_pose_errors`; translation direction up to sign).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 from absl import app, flags
 
 from experiments import common
@@ -73,14 +76,14 @@ def main(argv):
     report["depth"] = probes.depth_statistics(test)
     for name, value in report["depth"].items():
         print(f"{name}: {value:.4f}")
+    poses = {}
     if FLAGS.pose_probe and "global_params" in test:
-        train_pairs = run("train")
-        report["pose_probe"] = probes.pose_probe(train_pairs, test, steps=FLAGS.probe_steps)
-        if config.epipolar_weight > 0 and test["global_params"].shape[1] == 6:
-            report["pose_probe"]["global_params_read_as_pose"] = (
-                probes.global_params_pose_errors(test)
-            )
-        for name, errors in report["pose_probe"].items():
+        poses = probes.pose_probe(run("train"), test, steps=FLAGS.probe_steps)
+    if config.epipolar_weight > 0 and np.shape(test.get("global_params"))[1:] == (6,):
+        poses["global_params_read_as_pose"] = probes.global_params_pose_errors(test)
+    if poses:
+        report["pose_probe"] = poses
+        for name, errors in poses.items():
             print(
                 f"pose from global params, {name}: rotation {errors['rotation_deg']:.2f} deg, "
                 f"translation direction {errors['translation_deg']:.2f} deg"

@@ -38,6 +38,29 @@ common.define_data_flags()
 common.define_distributed_flags()
 
 
+def _with_stored_architecture(model_config: dict) -> dict:
+    """A relaunch of a workdir keeps its run's architecture: an option the command line
+    does not give takes the stored value, not this launcher's default (which may have
+    changed since the run began)."""
+    from gld import model
+    from gld import workdir as workdir_lib
+
+    stored = workdir_lib.stored_architecture(FLAGS.workdir)
+    if FLAGS.model != "global_local" or not stored or stored.get("model") != FLAGS.model:
+        return model_config
+    kept = {
+        name: stored[name]
+        for name in model.architecture_options()
+        if not FLAGS[name].present
+        and stored.get(name) is not None
+        and stored[name] != model_config.get(name)
+    }
+    if kept:
+        listed = ", ".join(f"{name}={value}" for name, value in sorted(kept.items()))
+        print(f"{FLAGS.workdir} was trained with {listed}: kept (flags given override)")
+    return {**model_config, **kept}
+
+
 def main(argv):
     del argv
     common.initialise()
@@ -45,7 +68,7 @@ def main(argv):
 
     from gld import config, train
 
-    model_config = common.model_options(FLAGS.model)
+    model_config = _with_stored_architecture(common.model_options(FLAGS.model))
     # The default epipolar weight is the global-local model's; a model whose global
     # parameters cannot stand for a pose trains without the term unless it is asked for.
     epipolar_weight = FLAGS.epipolar_weight

@@ -58,6 +58,12 @@ class GlobalEncoder(nn.Module):
         features = inputs
         for index, (channels, stride) in enumerate(zip(self.channels, self.strides, strict=True)):
             features = nn.Conv(channels, kernel, strides=stride, name=f"conv{index}")(features)
+            if self.norm == "instance" and features.shape[1] * features.shape[2] < 2:
+                raise ValueError(
+                    f"conv{index} of the global encoder outputs a 1x1 map for inputs of "
+                    f"{inputs.shape[1]}x{inputs.shape[2]}: instance normalisation would "
+                    "zero it; use larger inputs, fewer strides or norm='none'"
+                )
             if self.norm == "instance":
                 features = nn.GroupNorm(num_groups=None, group_size=1, name=f"norm{index}")(
                     features

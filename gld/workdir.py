@@ -260,6 +260,21 @@ def _read_stored(workdir: Path) -> dict[str, Any] | None:
         raise ValueError(f"{path} is not valid JSON ({error}); it was not written by gld") from None
 
 
+def _completed_architecture(stored: Mapping[str, Any]) -> dict[str, Any]:
+    saved_arch = dict(stored.get("architecture", {}))
+    if "model" in saved_arch:
+        name = saved_arch.pop("model")
+        saved_arch = {"model": name, **model_lib.complete_stored_config(name, saved_arch)}
+    return saved_arch
+
+
+def stored_architecture(workdir: str | Path) -> dict[str, Any] | None:
+    """The architecture a workdir's run was trained with ({"model": name, **options},
+    the options it predates filled in as it was trained); None when it stores none."""
+    previous = _read_stored(Path(workdir))
+    return None if previous is None else _completed_architecture(previous)
+
+
 def check_run_config(
     workdir: str | Path, config: config_lib.TrainConfig
 ) -> dict[str, tuple[Any, Any]] | None:
@@ -277,10 +292,7 @@ def check_run_config(
     previous = _read_stored(workdir)
     if previous is None:
         return None
-    saved_arch = dict(previous.get("architecture", {}))
-    if "model" in saved_arch:
-        name = saved_arch.pop("model")
-        saved_arch = {"model": name, **model_lib.complete_stored_config(name, saved_arch)}
+    saved_arch = _completed_architecture(previous)
     current_arch = json.loads(json.dumps(config.architecture()))
     differing = sorted(
         key

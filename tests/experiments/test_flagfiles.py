@@ -7,6 +7,7 @@ from absl import flags
 from conftest import REPO_ROOT, run_python
 
 import data
+from gld import model as model_lib
 
 FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags").glob("*.flags"))
 
@@ -57,6 +58,8 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         assert train_flags.learning_rate == 1e-4
         assert train_flags.lr_schedule == "constant"
         assert train_flags.epipolar_weight == 0  # the paper's loss
+        assert train_flags.encoder_norm == "none"  # the paper's global module
+        assert train_flags.use_image_pair == (path.stem != "scenes11_ablation_no_image_pair")
     finally:
         train_flags.unparse_flags()
 
@@ -90,6 +93,7 @@ FLOW_PARSE = """
 import sys
 from absl import flags
 import data
+from gld import model as model_lib
 import experiments.train_flow  # noqa: F401  (defines the flow trainer's flags)
 flags.FLAGS(["train_flow", "--flagfile=" + sys.argv[1]])
 data.parse_name(flags.FLAGS.dataset)
@@ -102,3 +106,25 @@ def test_flow_flagfiles_parse_with_the_flow_trainer_and_document_themselves(path
     header = [line for line in path.read_text().splitlines() if line.startswith("#")]
     assert any("Command:" in line and "experiments.train_flow" in line for line in header)
     run_python(FLOW_PARSE, str(path))
+
+
+def test_the_trainers_architecture_defaults_are_the_models_but_the_main_jobs(train_flags):
+    main_job = {"encoder_norm": "instance", "use_image_pair": False}
+    for name, (default, _, _) in model_lib.architecture_options().items():
+        expected = main_job.get(name, default)
+        expected = [str(item) for item in expected] if isinstance(expected, tuple) else expected
+        assert train_flags[name].default == expected, name
+
+
+def test_the_demo_flagfile_is_what_the_trainer_does_without_flags(train_flags):
+    lines = (REPO_ROOT / "experiments" / "flags" / "demo.flags").read_text().splitlines()
+    stated = [line for line in lines if line.startswith("--")]
+    assert stated
+    try:
+        train_flags(["train", *stated])
+        for line in stated:
+            name = line[2:].split("=")[0]
+            name = name[2:] if name not in train_flags and name.startswith("no") else name
+            assert train_flags[name].value == train_flags[name].default, line
+    finally:
+        train_flags.unparse_flags()

@@ -154,6 +154,44 @@ def test_an_epipolar_term_asked_of_a_model_without_a_pose_stops_the_trainer(
     assert not workdir.exists()
 
 
+def test_a_relaunch_keeps_the_workdirs_architecture_where_no_flag_gives_it(
+    tiny_scenes_dir, tmp_path
+):
+    workdir = tmp_path / "run"
+    common = ["experiments.train", f"--workdir={workdir}", "--eval_every=0", "--nofinal_eval"]
+    paper_module = ["--encoder_norm=none", "--use_image_pair"]
+    first = _launch([*common, "--steps=3", *paper_module, *TINY_FLAGS], tiny_scenes_dir)
+    assert first.returncode == 0, first.stderr[-3000:]
+    # The trainer's defaults (instance norm, flow only) differ from this run's.
+    again = _launch([*common, "--steps=5", *TINY_FLAGS], tiny_scenes_dir)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "encoder_norm=none" in again.stdout and "use_image_pair=True" in again.stdout
+    assert "resumed from step 3" in again.stdout
+    stored = workdir_lib.stored_architecture(workdir)
+    assert (stored["encoder_norm"], stored["use_image_pair"]) == ("none", True)
+    # A flag given still asks for another architecture, which the workdir refuses.
+    other = _launch([*common, "--steps=7", "--encoder_norm=instance", *TINY_FLAGS], tiny_scenes_dir)
+    assert other.returncode != 0
+    assert "encoder_norm: 'none' in the workdir vs 'instance' now" in other.stderr
+
+
+def test_the_probe_reads_g_as_a_pose_for_a_run_with_the_epipolar_term(tiny_scenes_dir, tmp_path):
+    workdir = tmp_path / "run"
+    train = ["experiments.train", f"--workdir={workdir}", "--steps=3", "--eval_every=0"]
+    trained = _launch([*train, "--nofinal_eval", *TINY_FLAGS], tiny_scenes_dir)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    probed = _launch(
+        ["experiments.probe", f"--workdir={workdir}", "--nopose_probe"], tiny_scenes_dir
+    )
+    assert probed.returncode == 0, probed.stderr[-3000:]
+    report = json.loads((workdir / "eval" / "probe.json").read_text())
+    assert set(report["pose_probe"]) == {"global_params_read_as_pose"}
+    errors = report["pose_probe"]["global_params_read_as_pose"]
+    assert 0 <= errors["translation_deg"] <= 90 and errors["rotation_deg"] >= 0
+    assert "global_params_read_as_pose: rotation" in probed.stdout
+    assert -1 <= report["depth"]["pair_scale_correlation"] <= 1
+
+
 def test_a_multi_process_run_whose_peers_never_join_says_what_to_check(tmp_path):
     import socket
 

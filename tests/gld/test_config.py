@@ -1,13 +1,11 @@
 """The run configuration: one definition of every training option."""
 
 import dataclasses
-from pathlib import Path
 
 import pytest
 from absl import flags
 
 from gld import config
-from gld import model as model_lib
 
 
 def test_every_option_has_help_and_valid_choices():
@@ -55,32 +53,6 @@ def test_a_launcher_default_must_name_an_option():
         common.define_training_flags(stepz=3)
     with pytest.raises(ValueError, match="encoder_normz"):
         common.define_architecture_flags(encoder_normz="instance")
-
-
-def test_the_trainers_architecture_defaults_are_the_models_but_the_main_jobs():
-    import experiments.train  # noqa: F401  (defines the trainer's flags)
-
-    main_job = {"encoder_norm": "instance", "use_image_pair": False}
-    for name, (default, _, _) in model_lib.architecture_options().items():
-        expected = main_job.get(name, default)
-        expected = [str(item) for item in expected] if isinstance(expected, tuple) else expected
-        assert flags.FLAGS[name].default == expected, name
-
-
-def test_the_demo_flagfile_is_what_the_trainer_does_without_flags():
-    import experiments.train  # noqa: F401
-
-    lines = (Path(__file__).parents[2] / "experiments/flags/demo.flags").read_text().splitlines()
-    stated = [line for line in lines if line.startswith("--")]
-    assert stated
-    try:
-        flags.FLAGS(["train", *stated])
-        for line in stated:
-            name = line[2:].split("=")[0]
-            name = name[2:] if name not in flags.FLAGS and name.startswith("no") else name
-            assert flags.FLAGS[name].value == flags.FLAGS[name].default, line
-    finally:
-        flags.FLAGS.unparse_flags()
 
 
 def test_a_stored_config_is_read_whatever_version_wrote_it():

@@ -24,9 +24,10 @@ def _inputs(batch=2, height=16, width=12, channels=8, seed=0):
     return jnp.asarray(rng.normal(size=(batch, height, width, channels)), jnp.float32)
 
 
-def _reference(params, inputs, strides):
-    """The documented encoder written out: SAME convs, LeakyReLU after each hidden one,
-    a conv to global_dim, the spatial mean."""
+def _reference(params, inputs, strides, instance_norm=False):
+    """The documented encoder written out: SAME convs, LeakyReLU after each hidden one
+    (after standardising each channel over the image, scaled and shifted, with
+    `instance_norm`), a conv to global_dim, the spatial mean."""
 
     def conv(features, layer, stride):
         out = lax.conv_general_dilated(
@@ -42,6 +43,11 @@ def _reference(params, inputs, strides):
     features = inputs
     for index, stride in enumerate(strides):
         pre = conv(features, params[f"conv{index}"], stride)
+        if instance_norm:
+            norm = params[f"norm{index}"]
+            mean = pre.mean(axis=(1, 2), keepdims=True)
+            variance = pre.var(axis=(1, 2), keepdims=True)
+            pre = (pre - mean) / jnp.sqrt(variance + 1e-6) * norm["scale"] + norm["bias"]
         features = jnp.where(pre > 0, pre, layers.NEGATIVE_SLOPE * pre)
     final = conv(features, params["to_global"], 1)
     return final, jnp.mean(final, axis=(1, 2))
@@ -142,6 +148,17 @@ def test_instance_norm_standardises_each_channel_per_example_before_the_activati
     variables = _init(encoder, inputs)
     params = variables["params"]
     assert set(params["norm0"]) == {"scale", "bias"}
+    # Non-trivial scales and offsets, so that where they act shows in the output.
+    rng = np.random.default_rng(5)
+    for index in range(len(CHANNELS)):
+        for name in ("scale", "bias"):
+            shape = params[f"norm{index}"][name].shape
+            params[f"norm{index}"][name] = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    _, expected = _reference(params, inputs, STRIDES, instance_norm=True)
+    np.testing.assert_allclose(
+        encoder.apply({"params": params}, inputs), expected, rtol=1e-3, atol=1e-5
+    )
+    variables = _init(encoder, inputs)
     _, state = encoder.apply(variables, inputs, capture_intermediates=True)
     for index in range(len(CHANNELS)):
         normalised = np.asarray(state["intermediates"][f"norm{index}"]["__call__"][0])
@@ -166,6 +183,12 @@ def test_instance_norm_makes_the_encoder_blind_to_the_inputs_contrast():
         original = encoder.apply(variables, inputs)
         contrast = encoder.apply(variables, inputs * 4.0)
         assert np.allclose(contrast, original, rtol=1e-3, atol=1e-5) == blind, norm
+
+
+def test_instance_norm_refuses_a_map_it_would_zero():
+    encoder = GlobalEncoder(channels=(4, 4), strides=(2, 2), norm="instance")
+    with pytest.raises(ValueError, match="conv1 of the global encoder outputs a 1x1 map"):
+        encoder.init(jax.random.key(0), _inputs(batch=1, height=4, width=4))
 
 
 def test_an_unknown_norm_is_named():

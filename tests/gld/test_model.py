@@ -287,9 +287,7 @@ def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnorma
     )
     encoder = variables["params"]["global_encoder"]
     assert {f"norm{i}" for i in range(5)} <= set(encoder)
-    plain = model_lib.GlobalLocal(encoder_norm="none").init(
-        jax.random.key(0), image1, image2, flow
-    )
+    plain = model_lib.GlobalLocal(encoder_norm="none").init(jax.random.key(0), image1, image2, flow)
     assert not any(name.startswith("norm") for name in plain["params"]["global_encoder"])
     # A stored config written before the option was trained without normalisation.
     assert model_lib.complete_stored_config("global_local", {})["encoder_norm"] == "none"
