@@ -303,3 +303,89 @@ def global_params_pose_errors(collected: dict[str, np.ndarray]) -> dict[str, flo
         ),
         "translation_deg": float(np.mean(np.minimum(angle, 180.0 - angle))),
     }
+
+
+def train_encoder_on_pose(
+    train_source: Sequence[Any],
+    test_source: Sequence[Any],
+    *,
+    steps: int,
+    encoder_norm: str = "none",
+    use_image_pair: bool = True,
+    flow_source: str = "gt",
+    flow_scale: float = 10.0,
+    batch_size: int = 16,
+    learning_rate: float = 1e-3,
+    warmup_steps: int = 50,
+    seed: int = 0,
+    encoder_channels: Sequence[int] = (16, 32, 64, 128, 256),
+    hidden: Sequence[int] = (256, 256),
+) -> dict[str, dict[str, float]]:
+    """How fast can the global encoder learn the relative pose when told it? A capacity
+    check, not a depth model: the global module's encoder (its inputs as in
+    `gld.model.GlobalLocal`) and a `PoseMLP` head trained on the L1 error of [10 x the
+    rotation vector, the translation direction], Adam with warm-up and cosine decay.
+
+    Returns:
+      {"encoder": {...}, "mean_pose": {...}}: mean rotation and translation-direction
+      errors (degrees) on the test pairs of the trained encoder and of the test pairs'
+      mean pose.
+    """
+    from gld import input_pipeline, layers
+    from gld.global_encoder import GlobalEncoder
+
+    encoder = GlobalEncoder(channels=tuple(encoder_channels), norm=encoder_norm)
+    head = PoseMLP(hidden=tuple(hidden))
+    scale = model_lib.POSE_ROTATION_SCALE
+
+    def inputs(batch):
+        flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
+        images = [batch["image1"], batch["image2"]] if use_image_pair else []
+        return jnp.concatenate([*map(jnp.asarray, images), flow], axis=-1)
+
+    def targets(batch):
+        rotation = rotation_vector(np.asarray(batch["rotation"])) * scale
+        return jnp.asarray(np.concatenate([rotation, batch["translation"]], -1), jnp.float32)
+
+    def predict(params, x):
+        return head.apply(params["head"], encoder.apply(params["encoder"], x))
+
+    stream = iter(
+        input_pipeline.train_dataset(
+            train_source, batch_size=batch_size, seed=seed, gt_pixels=1, flow_source=flow_source
+        )
+    )
+    first = next(stream)
+    key_encoder, key_head = jax.random.split(jax.random.key(seed))
+    encoder_params = encoder.init(key_encoder, inputs(first))
+    params = {
+        "encoder": encoder_params,
+        "head": head.init(key_head, encoder.apply(encoder_params, inputs(first))),
+    }
+    schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, warmup_steps, steps)
+    optimizer = optax.adam(schedule)
+    opt_state = optimizer.init(params)
+
+    @jax.jit
+    def step(params, opt_state, x, y):
+        grads = jax.grad(lambda p: jnp.mean(jnp.abs(predict(p, x) - y)))(params)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state
+
+    batch = first
+    for _ in range(steps):
+        params, opt_state = step(params, opt_state, inputs(batch), targets(batch))
+        batch = next(stream)
+    predicted, truth = [], []
+    forward = jax.jit(predict)
+    for batch in input_pipeline.eval_batches(
+        test_source, batch_size=batch_size, flow_source=flow_source
+    ):
+        rows = np.flatnonzero(np.asarray(batch["example_mask"], bool))
+        predicted.append(np.asarray(forward(params, inputs(batch)), np.float64)[rows])
+        truth.append(np.asarray(targets(batch), np.float64)[rows])
+    predicted, truth = np.concatenate(predicted), np.concatenate(truth)
+    predicted[:, :3] /= scale
+    truth[:, :3] /= scale
+    mean_pose = np.broadcast_to(truth.mean(0), truth.shape)
+    return {"encoder": _pose_errors(predicted, truth), "mean_pose": _pose_errors(mean_pose, truth)}

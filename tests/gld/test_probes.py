@@ -159,3 +159,31 @@ def test_collect_reads_every_pair_once(tiny_scenes):
     np.testing.assert_allclose(np.linalg.norm(collected["translation"], axis=-1), 1.0, atol=1e-5)
     np.testing.assert_allclose(collected["global_params"], collected["translation"], atol=1e-6)
     assert probes.depth_statistics(collected)["pair_scale_correlation"] == pytest.approx(1.0)
+
+
+def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_pose(
+    tiny_scenes,
+):
+    train, test = tiny_scenes.as_data_source("train"), tiny_scenes.as_data_source("test")
+    options = dict(steps=3, warmup_steps=1, batch_size=4, encoder_channels=(4, 8, 8, 8, 8))
+    errors = probes.train_encoder_on_pose(train, test, **options)
+    # The reference, by hand: every test pair scored against the pairs' mean pose.
+    examples = [input_pipeline.decode_example(test[i]) for i in range(len(test))]
+    rotation = np.stack([probes.rotation_vector(e["rotation"]) for e in examples])
+    translation = np.stack([e["translation"] / np.linalg.norm(e["translation"]) for e in examples])
+    mean_rotation = geometry.rotation_matrix(np.broadcast_to(rotation.mean(0), rotation.shape))
+    expected_rotation = geometry.rotation_error_degrees(
+        mean_rotation, geometry.rotation_matrix(rotation)
+    )
+    expected_translation = geometry.translation_error_degrees(
+        np.broadcast_to(translation.mean(0), translation.shape), translation
+    )
+    assert errors["mean_pose"]["rotation_deg"] == pytest.approx(expected_rotation.mean(), rel=1e-4)
+    assert errors["mean_pose"]["translation_deg"] == pytest.approx(
+        expected_translation.mean(), rel=1e-4
+    )
+    assert np.isfinite(list(errors["encoder"].values())).all()
+    # The options reach the encoder: another normalisation, another prediction.
+    other = probes.train_encoder_on_pose(train, test, encoder_norm="instance", **options)
+    assert other["encoder"] != errors["encoder"]
+    assert other["mean_pose"] == errors["mean_pose"]
