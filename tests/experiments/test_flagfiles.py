@@ -128,3 +128,33 @@ def test_the_demo_flagfile_is_what_the_trainer_does_without_flags(train_flags):
             assert train_flags[name].value == train_flags[name].default, line
     finally:
         train_flags.unparse_flags()
+
+
+def test_a_relaunch_takes_the_workdirs_architecture_for_options_no_flag_gives(
+    train_flags, tmp_path
+):
+    import json
+
+    from experiments import common
+    from experiments import train as train_launcher
+
+    architecture = {"model": "global_local", "encoder_norm": "none", "use_image_pair": True}
+    (tmp_path / "config.json").write_text(json.dumps({"architecture": architecture}))
+    for given, encoder_norm in (([], "none"), (["--encoder_norm=instance"], "instance")):
+        try:
+            train_flags(["train", f"--workdir={tmp_path}", *given])
+            options = common.model_options("global_local")
+            options = train_launcher._with_stored_architecture(options)
+        finally:
+            train_flags.unparse_flags()
+        assert options["encoder_norm"] == encoder_norm  # a flag given wins
+        assert options["use_image_pair"] is True  # the trainer's default is False
+        # An option the stored config predates reads as its run was trained.
+        assert options["flow_scale"] == model_lib.FIELDS_ADDED_LATER["global_local"]["flow_scale"]
+    # A new workdir takes the trainer's defaults.
+    try:
+        train_flags(["train", f"--workdir={tmp_path / 'new'}"])
+        options = train_launcher._with_stored_architecture(common.model_options("global_local"))
+    finally:
+        train_flags.unparse_flags()
+    assert (options["encoder_norm"], options["use_image_pair"]) == ("instance", False)

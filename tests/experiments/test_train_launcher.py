@@ -154,7 +154,8 @@ def test_an_epipolar_term_asked_of_a_model_without_a_pose_stops_the_trainer(
     assert not workdir.exists()
 
 
-def test_a_relaunch_keeps_the_workdirs_architecture_where_no_flag_gives_it(
+@pytest.mark.slow  # four launches in subprocesses: ~30 s of CPU
+def test_a_relaunch_keeps_the_workdirs_architecture_and_the_probe_reads_its_g(
     tiny_scenes_dir, tmp_path
 ):
     workdir = tmp_path / "run"
@@ -174,12 +175,8 @@ def test_a_relaunch_keeps_the_workdirs_architecture_where_no_flag_gives_it(
     assert other.returncode != 0
     assert "encoder_norm: 'none' in the workdir vs 'instance' now" in other.stderr
 
-
-def test_the_probe_reads_g_as_a_pose_for_a_run_with_the_epipolar_term(tiny_scenes_dir, tmp_path):
-    workdir = tmp_path / "run"
-    train = ["experiments.train", f"--workdir={workdir}", "--steps=3", "--eval_every=0"]
-    trained = _launch([*train, "--nofinal_eval", *TINY_FLAGS], tiny_scenes_dir)
-    assert trained.returncode == 0, trained.stderr[-3000:]
+    # The probe reads g as a pose for this run (trained with the epipolar term), even
+    # without the MLP probe.
     probed = _launch(
         ["experiments.probe", f"--workdir={workdir}", "--nopose_probe"], tiny_scenes_dir
     )
@@ -189,7 +186,6 @@ def test_the_probe_reads_g_as_a_pose_for_a_run_with_the_epipolar_term(tiny_scene
     errors = report["pose_probe"]["global_params_read_as_pose"]
     assert 0 <= errors["translation_deg"] <= 90 and errors["rotation_deg"] >= 0
     assert "global_params_read_as_pose: rotation" in probed.stdout
-    assert -1 <= report["depth"]["pair_scale_correlation"] <= 1
 
 
 def test_a_multi_process_run_whose_peers_never_join_says_what_to_check(tmp_path):

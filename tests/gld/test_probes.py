@@ -165,8 +165,9 @@ def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_p
     tiny_scenes,
 ):
     train, test = tiny_scenes.as_data_source("train"), tiny_scenes.as_data_source("test")
-    options = dict(steps=3, warmup_steps=1, batch_size=4, encoder_channels=(4, 8, 8, 8, 8))
-    errors = probes.train_encoder_on_pose(train, test, **options)
+    errors = probes.train_encoder_on_pose(
+        train, test, steps=3, warmup_steps=1, batch_size=4, encoder_channels=(4, 8, 8, 8, 8)
+    )
     # The reference, by hand: every test pair scored against the pairs' mean pose.
     examples = [input_pipeline.decode_example(test[i]) for i in range(len(test))]
     rotation = np.stack([probes.rotation_vector(e["rotation"]) for e in examples])
@@ -183,7 +184,3 @@ def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_p
         expected_translation.mean(), rel=1e-4
     )
     assert np.isfinite(list(errors["encoder"].values())).all()
-    # The options reach the encoder: another normalisation, another prediction.
-    other = probes.train_encoder_on_pose(train, test, encoder_norm="instance", **options)
-    assert other["encoder"] != errors["encoder"]
-    assert other["mean_pose"] == errors["mean_pose"]
