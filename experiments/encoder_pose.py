@@ -19,6 +19,7 @@ from absl import app, flags
 
 from experiments import common
 from gld.config import FLOW_SOURCES
+from gld.global_encoder import ENCODER_NORMS
 
 FLAGS = flags.FLAGS
 
@@ -27,7 +28,7 @@ flags.DEFINE_integer("batch_size", 16, "Training batch size.", lower_bound=1)
 flags.DEFINE_float("learning_rate", 1e-3, "Peak Adam rate.", lower_bound=0)
 flags.DEFINE_integer("warmup_steps", 50, "Linear warm-up steps.", lower_bound=0)
 flags.DEFINE_integer("seed", 0, "Seed of initialisation and data order.", lower_bound=0)
-flags.DEFINE_enum("encoder_norm", "none", ["none", "instance"], "Normalisation in the encoder.")
+flags.DEFINE_enum("encoder_norm", "none", list(ENCODER_NORMS), "Normalisation in the encoder.")
 flags.DEFINE_bool("use_image_pair", True, "Feed the image pair besides the flow.")
 flags.DEFINE_float("flow_scale", 10.0, "Factor on the normalised flow.", lower_bound=0)
 flags.DEFINE_string("out", None, "JSON file for the errors (default: not written).")

@@ -37,6 +37,16 @@ def input_keys(model) -> tuple[str, ...]:
     return MODEL_INPUTS + tuple(getattr(model, "extra_inputs", ()))
 
 
+def global_module_inputs(
+    image1: jax.Array, image2: jax.Array, normalised_flow: jax.Array, use_image_pair: bool
+) -> jax.Array:
+    """What the global module sees: the image pair and the (normalised, scaled) flow
+    stacked on the channels, or the flow alone without the image pair."""
+    if not use_image_pair:
+        return normalised_flow
+    return jnp.concatenate([image1, image2, normalised_flow], axis=-1)
+
+
 def with_input_keys(model, keys: tuple[str, ...]) -> tuple[str, ...]:
     """`keys` (what a step reads) followed by the model's inputs it does not hold yet."""
     return keys + tuple(key for key in input_keys(model) if key not in keys)

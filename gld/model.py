@@ -176,10 +176,8 @@ class GlobalLocal(nn.Module):
             )
         if self.use_flow:
             local_inputs = flow if self.local_flow_units == "pixels" else normalised_flow
-            global_inputs = (
-                jnp.concatenate([image_pair, normalised_flow], axis=-1)
-                if self.use_image_pair
-                else normalised_flow
+            global_inputs = layers.global_module_inputs(
+                image1, image2, normalised_flow, self.use_image_pair
             )
         else:
             local_inputs = image_pair

@@ -340,8 +340,8 @@ def train_encoder_on_pose(
 
     def inputs(batch):
         flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
-        images = [batch["image1"], batch["image2"]] if use_image_pair else []
-        return jnp.concatenate([*map(jnp.asarray, images), flow], axis=-1)
+        image1, image2 = jnp.asarray(batch["image1"]), jnp.asarray(batch["image2"])
+        return layers.global_module_inputs(image1, image2, flow, use_image_pair)
 
     def targets(batch):
         rotation = rotation_vector(np.asarray(batch["rotation"])) * scale
