@@ -262,7 +262,8 @@ class SfMFlow:
 
     Correspondences are the pixels of a regular grid (at most `max_correspondences`)
     and their flow targets inside image 2. The essential matrix comes from
-    `cv2.findEssentialMat` (RANSAC) on normalised camera coordinates, so the two views
+    `cv2.findEssentialMat` (USAC_ACCURATE: RANSAC with local optimisation and a final
+    refinement on all inliers) on normalised camera coordinates, so the two views
     may have different intrinsics; `cv2.recoverPose` picks R, t by cheirality. t has
     unit norm, which is exactly the evaluation scale (the true ||t|| = 1), so the depth
     is directly comparable with the ground truth.
@@ -278,7 +279,7 @@ class SfMFlow:
     def __init__(
         self,
         *,
-        ransac_threshold_pixels: float = 1.0,
+        ransac_threshold_pixels: float = 0.5,
         confidence: float = 0.999,
         max_correspondences: int = 5000,
         min_inliers: int = 20,
@@ -355,7 +356,7 @@ class SfMFlow:
             points1,
             points2,
             identity,
-            method=cv2.RANSAC,
+            method=cv2.USAC_ACCURATE,
             prob=self.confidence,
             threshold=self.ransac_threshold_pixels / mean_focal,
         )

@@ -111,6 +111,25 @@ def test_sfm_on_exact_flow_recovers_pose_and_depth():
     assert np.median(relative_error) < 1e-2, np.median(relative_error)
 
 
+def test_sfm_pose_is_refined_on_every_inlier_of_noisy_flow_with_outliers():
+    # A minimal-sample RANSAC model carries the noise of its five correspondences; the
+    # estimate must be refined on all inliers (and ignore the gross outliers).
+    batch = _scene_batch(seed=5, batch_size=4)
+    rng = np.random.default_rng(0)
+    flow = batch["flow"] + rng.normal(0.0, 0.1, batch["flow"].shape)
+    outliers = rng.random(flow.shape[:3]) < 0.1
+    flow[outliers] += rng.uniform(-8.0, 8.0, (outliers.sum(), 2))
+    batch["flow"] = flow.astype(np.float32)
+    outputs = classical.SfMFlow(fallback_inv_depth=0.1).predict(batch)
+    assert not outputs["failed"].any()
+    rotation_error = geometry.rotation_error_degrees(outputs["rotation"], batch["rotation"])
+    assert np.all(rotation_error < 0.15), rotation_error
+    translation_error = geometry.translation_error_degrees(
+        outputs["translation"], batch["translation"]
+    )
+    assert np.all(translation_error < 1.5), translation_error
+
+
 def test_sfm_failure_is_flagged_and_predicted_not_dropped():
     batch = _scene_batch(seed=5)
     batch["flow"][1] = 0.0  # no parallax: the pose is undetermined
