@@ -91,11 +91,7 @@ class TrainConfig:
         for field in flag_fields():
             value = getattr(self, field.name)
             check_option(field, value)
-        if self.lr_schedule == "cosine" and not self.warmup_steps < self.steps:
-            raise ValueError(
-                f"warmup_steps ({self.warmup_steps}) must be below steps ({self.steps}) for "
-                "the cosine schedule"
-            )
+        check_schedule(self.lr_schedule, self.warmup_steps, self.steps)
         for name in ("height", "width"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -140,6 +136,14 @@ def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
 def flag_fields() -> list[dataclasses.Field]:
     """The TrainConfig fields that are command-line options."""
     return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]
+
+
+def check_schedule(lr_schedule: str, warmup_steps: int, steps: int) -> None:
+    """Raises ValueError when the cosine schedule's warm-up does not end before the run."""
+    if lr_schedule == "cosine" and not warmup_steps < steps:
+        raise ValueError(
+            f"warmup_steps ({warmup_steps}) must be below steps ({steps}) for the cosine schedule"
+        )
 
 
 def check_option(field: dataclasses.Field, value: Any) -> None:

@@ -41,7 +41,7 @@ from jax.sharding import Mesh
 from gld import evaluation, input_pipeline, sharding
 from gld import train as train_lib
 from gld import workdir as workdir_lib
-from gld.config import LR_SCHEDULES, check_option, option
+from gld.config import LR_SCHEDULES, check_option, check_schedule, option
 from gld.flow_net import FlowNet, check_architecture, check_image_pair, init_params, parameter_count
 from gld.state import TrainState, make_optimizer
 
@@ -117,11 +117,7 @@ class FlowTrainConfig:
         """Raises ValueError naming the first option out of range; returns self."""
         for field in flag_fields():
             check_option(field, getattr(self, field.name))
-        if self.lr_schedule == "cosine" and self.warmup_steps >= self.steps:
-            raise ValueError(
-                f"warmup_steps ({self.warmup_steps}) must be below steps ({self.steps}) for "
-                "the cosine schedule"
-            )
+        check_schedule(self.lr_schedule, self.warmup_steps, self.steps)
         check_architecture(**self.architecture())
         levels = len(self.architecture()["feature_channels"])
         if self.height and self.width and (self.height % 2**levels or self.width % 2**levels):
