@@ -42,7 +42,29 @@ def option(
 
 
 @dataclasses.dataclass
-class TrainConfig:
+class LoopOptions:
+    """The options every trainer has (`TrainConfig`, `gld.flow_training.FlowTrainConfig`):
+    logging, periodic evaluation, checkpoints, input workers, and the data's name and
+    resolution (set by the launcher)."""
+
+    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.", at_least=1)
+    eval_every: int = option(
+        1000, "Steps between evaluations on the test split (0: off).", at_least=0
+    )
+    checkpoint_every: int = option(250, "Steps between checkpoints.", at_least=1)
+    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.", at_least=1)
+    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.", at_least=1)
+    eval_examples: int = option(
+        0, "Periodic evaluation on the first N test pairs; 0 = all.", at_least=0
+    )
+    worker_count: int = option(0, "grain worker processes for the input pipeline.", at_least=0)
+    dataset: str = ""
+    height: int = 0
+    width: int = 0
+
+
+@dataclasses.dataclass
+class TrainConfig(LoopOptions):
     """A training run, as plain values."""
 
     model: str = option("global_local", "Learned model.", tuple(model_lib.MODELS))
@@ -70,20 +92,6 @@ class TrainConfig:
     flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
     augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
     seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.", at_least=0)
-    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.", at_least=1)
-    eval_every: int = option(
-        1000, "Steps between evaluations on the test split (0: off).", at_least=0
-    )
-    checkpoint_every: int = option(250, "Steps between checkpoints.", at_least=1)
-    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.", at_least=1)
-    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.", at_least=1)
-    eval_examples: int = option(
-        0, "Periodic evaluation on the first N test pairs; 0 = all.", at_least=0
-    )
-    worker_count: int = option(0, "grain worker processes for the input pipeline.", at_least=0)
-    dataset: str = ""
-    height: int = 0
-    width: int = 0
 
     def validate(self) -> TrainConfig:
         """Raises ValueError naming the first option whose value cannot give a sound run

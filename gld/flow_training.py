@@ -41,7 +41,7 @@ from jax.sharding import Mesh
 from gld import evaluation, input_pipeline, sharding
 from gld import train as train_lib
 from gld import workdir as workdir_lib
-from gld.config import LR_SCHEDULES, check_option, check_schedule, option
+from gld.config import LR_SCHEDULES, LoopOptions, check_option, check_schedule, option
 from gld.flow_net import FlowNet, check_architecture, check_image_pair, init_params, parameter_count
 from gld.state import TrainState, make_optimizer
 
@@ -62,7 +62,7 @@ _ROBUST_EXPONENT = 0.4
 
 
 @dataclasses.dataclass
-class FlowTrainConfig:
+class FlowTrainConfig(LoopOptions):
     """A flow-network training run, as plain values. Fields with help are flags of
     `experiments.train_flow`; `model_config` holds `FlowNet`'s arguments."""
 
@@ -82,18 +82,7 @@ class FlowTrainConfig:
     )
     augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
     seed: int = option(0, "Seed of initialisation, data order and augmentation.", at_least=0)
-    log_every: int = option(50, "Steps between metrics.jsonl / TensorBoard records.", at_least=1)
-    eval_every: int = option(1000, "Steps between test-split EPE evaluations (0: off).", at_least=0)
     checkpoint_every: int = option(500, "Steps between checkpoints.", at_least=1)
-    keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.", at_least=1)
-    eval_batch_size: int = option(16, "Batch size of evaluations.", at_least=1)
-    eval_examples: int = option(
-        0, "Periodic evaluation on the first N test pairs; 0 = all.", at_least=0
-    )
-    worker_count: int = option(0, "grain worker processes for the input pipeline.", at_least=0)
-    dataset: str = ""
-    height: int = 0
-    width: int = 0
 
     def architecture(self) -> dict[str, Any]:
         """Every `FlowNet` argument, defaults filled in, as JSON values."""
