@@ -53,7 +53,9 @@ class LoopOptions:
     )
     checkpoint_every: int = option(250, "Steps between checkpoints.", at_least=1)
     keep_checkpoints: int = option(2, "Checkpoints kept in the workdir.", at_least=1)
-    eval_batch_size: int = option(16, "Batch size of the periodic evaluation.", at_least=1)
+    eval_batch_size: int = option(
+        16, "Batch size of the periodic and final evaluations.", at_least=1
+    )
     eval_examples: int = option(
         0, "Periodic evaluation on the first N test pairs; 0 = all.", at_least=0
     )
