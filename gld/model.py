@@ -17,6 +17,7 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from gld import baselines, geometry, layers
 from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
@@ -71,6 +72,48 @@ def pose_parameters(rotation: jax.Array, translation: jax.Array) -> jax.Array:
     return jnp.concatenate([POSE_ROTATION_SCALE * vector_part, direction], axis=-1)
 
 
+# Fixed mixing of a pose into the directions of its given error (`perturbed_pose`).
+_PERTURBATION_MIX = np.random.default_rng(0).normal(0.0, 100.0, (12, 6)).astype(np.float32)
+
+
+def perturbed_pose(
+    rotation: jax.Array,
+    translation: jax.Array,
+    rotation_degrees: float,
+    translation_degrees: float,
+) -> tuple[jax.Array, jax.Array]:
+    """The relative pose off by exactly the given angles, for studying how accurate a
+    pose the model needs (`GlobalLocal.pose_rotation_error`).
+
+    The rotation is composed with a rotation of `rotation_degrees` about an axis, and the
+    translation turned by `translation_degrees` about an axis perpendicular to it (its
+    norm kept). Both axes are a fixed pseudo-random function of the pose itself (spread
+    over all directions): a pair's given pose is off in the same way at every step and
+    at test time; an augmented (rotated or mirrored) copy of it has its own error.
+
+    Args:
+      rotation: [B, 3, 3]; translation: [B, 3] (X2 = R X1 + t).
+      rotation_degrees, translation_degrees: the errors, >= 0.
+
+    Returns:
+      (rotation [B, 3, 3], translation [B, 3]).
+    """
+    batch_size = rotation.shape[0]
+    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
+    direction = translation / jnp.maximum(norm, 1e-12)
+    features = jnp.concatenate([rotation.reshape(batch_size, 9), direction], axis=-1)
+    directions = jnp.sin(features @ jnp.asarray(_PERTURBATION_MIX, features.dtype))
+
+    def unit(vectors):
+        return vectors / jnp.maximum(jnp.linalg.norm(vectors, axis=-1, keepdims=True), 1e-12)
+
+    rotation_axis = unit(directions[:, :3])
+    turn_axis = unit(jnp.cross(direction, directions[:, 3:]))
+    error = geometry.rotation_matrix(math.radians(rotation_degrees) * rotation_axis)
+    turn = geometry.rotation_matrix(math.radians(translation_degrees) * turn_axis)
+    return error @ rotation, jnp.einsum("bij,bj->bi", turn, translation)
+
+
 class GlobalLocal(nn.Module):
     """The paper's global-local network.
 
@@ -97,6 +140,9 @@ class GlobalLocal(nn.Module):
         g = `pose_parameters(rotation, translation)`, which the call then needs as
         keyword arguments (the contract's "rotation" and "translation"), and the
         global encoder is not built. Needs global_dim 6.
+      pose_rotation_error, pose_translation_error: with global_source="pose", the given
+        pose is off by these angles in degrees (`perturbed_pose`): how accurate a pose
+        the model needs. 0 (the default) gives the true pose.
       encoder_norm: "instance" standardises each hidden channel of the global encoder
         over the image, per example, before its activation; "none" (the paper's) does
         not (`GlobalEncoder`).
@@ -122,6 +168,8 @@ class GlobalLocal(nn.Module):
     local_flow_units: str = "normalised"
     flow_scale: float = 10.0
     global_source: str = "encoder"
+    pose_rotation_error: float = 0.0
+    pose_translation_error: float = 0.0
     encoder_norm: str = "none"
     global_norm: str = "none"
     modulation_scale: float = MODULATION_SCALE
@@ -211,6 +259,10 @@ class GlobalLocal(nn.Module):
                 raise ValueError(
                     f"rotation {rotation.shape} and translation {translation.shape} must "
                     f"have the batch size of the flow ({batch_size})"
+                )
+            if self.pose_rotation_error or self.pose_translation_error:
+                rotation, translation = perturbed_pose(
+                    rotation, translation, self.pose_rotation_error, self.pose_translation_error
                 )
             global_params = pose_parameters(rotation, translation).astype(flow.dtype)
         elif self.use_global_module:
@@ -304,6 +356,9 @@ ARCHITECTURE_FLAGS = {
     "local_flow_units": "Units of the local network's flow.",
     "flow_scale": "Factor on the normalised flow fed to both modules.",
     "global_source": "Where g comes from: the global encoder, or the true relative pose.",
+    "pose_rotation_error": "With global_source=pose: the given rotation's error (degrees).",
+    "pose_translation_error": "With global_source=pose: the given translation direction's "
+    "error (degrees).",
     "encoder_norm": "Normalisation inside the global encoder.",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
@@ -336,6 +391,8 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "modulation_scale": 0.2,
         "global_source": "encoder",
         "encoder_norm": "none",
+        "pose_rotation_error": 0.0,
+        "pose_translation_error": 0.0,
     },
 }
 
@@ -370,6 +427,8 @@ ARCHITECTURE_MINIMA: dict[str, float] = {
     "bank_channels": 1,
     "kernel_size": 1,
     "modulation_scale": 0,
+    "pose_rotation_error": 0,
+    "pose_translation_error": 0,
 }
 
 
@@ -391,6 +450,18 @@ def check_config(name: str, config: dict) -> None:
             raise ValueError(f"{option} must be at least {minimum}{each}, got {values[option]!r}")
     if not (values["flow_scale"] > 0 and math.isfinite(values["flow_scale"])):
         raise ValueError(f"flow_scale must be positive and finite, got {values['flow_scale']}")
+    for option in ("pose_rotation_error", "pose_translation_error"):
+        if not values[option] <= 180:
+            raise ValueError(
+                f"{option} must be an angle of at most 180 degrees, got {values[option]}"
+            )
+        if values[option] and not (
+            values["use_global_module"] and values["global_source"] == "pose"
+        ):
+            raise ValueError(
+                f"{option} is the error of a given pose: it needs global_source pose (and the "
+                "global module)"
+            )
     if values["global_source"] == "pose" and values["global_dim"] != 6:
         raise ValueError(
             f'global_source="pose" gives 6 global parameters; global_dim is {values["global_dim"]}'

@@ -280,6 +280,69 @@ def test_global_params_read_as_a_pose_invert_the_given_pose_parameters():
     assert "global_pose" not in small.init_with_output(jax.random.key(0), image1, image2, flow)[0]
 
 
+def test_a_perturbed_pose_is_off_by_exactly_the_given_angles_the_same_way_each_time():
+    from gld import geometry, probes
+
+    rng = np.random.default_rng(3)
+    rotation = jnp.asarray(geometry.rotation_matrix(rng.normal(0, 0.05, (64, 3))), jnp.float32)
+    translation = jnp.asarray(rng.normal(0, 1, (64, 3)) * 2.5, jnp.float32)
+    off_rotation, off_translation = model_lib.perturbed_pose(rotation, translation, 0.5, 6.0)
+    rotation_error = geometry.rotation_error_degrees(
+        np.asarray(off_rotation, np.float64), np.asarray(rotation, np.float64)
+    )
+    np.testing.assert_allclose(rotation_error, 0.5, atol=0.02)
+    translation_error = geometry.translation_error_degrees(
+        np.asarray(off_translation, np.float64), np.asarray(translation, np.float64)
+    )
+    np.testing.assert_allclose(translation_error, 6.0, atol=0.02)
+    np.testing.assert_allclose(
+        np.linalg.norm(off_translation, axis=-1), np.linalg.norm(translation, axis=-1), rtol=1e-5
+    )
+    # The same pose is always off the same way; different poses in different directions.
+    again, _ = model_lib.perturbed_pose(rotation, translation, 0.5, 6.0)
+    np.testing.assert_array_equal(again, off_rotation)
+    relative = np.asarray(off_rotation @ jnp.swapaxes(rotation, 1, 2), np.float64)
+    axes = probes.rotation_vector(relative)
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    assert np.all(np.abs(axes.mean(axis=0)) < 0.3), axes.mean(axis=0)
+    unchanged = model_lib.perturbed_pose(rotation, translation, 0.0, 0.0)
+    np.testing.assert_allclose(unchanged[0], rotation, atol=1e-6)
+    np.testing.assert_allclose(unchanged[1], translation, atol=1e-6)
+
+
+def test_a_model_given_a_perturbed_pose_reads_it_and_refuses_it_without_a_given_pose():
+    from gld import geometry, state
+
+    image1, image2, flow = _inputs(batch=2)
+    rotation = jnp.asarray(geometry.rotation_matrix(np.array([[0.0, 0.1, 0.0]] * 2)), jnp.float32)
+    translation = jnp.asarray([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], jnp.float32)
+    model = model_lib.GlobalLocal(
+        global_source="pose", pose_rotation_error=2.0, pose_translation_error=10.0
+    )
+    variables = state.init_variables(model, 24, 32, seed=0)
+    outputs = model.apply(
+        variables, image1, image2, flow, rotation=rotation, translation=translation
+    )
+    expected = model_lib.pose_parameters(
+        *model_lib.perturbed_pose(rotation, translation, 2.0, 10.0)
+    )
+    np.testing.assert_allclose(outputs["global_params"], expected, atol=1e-6)
+    assert not np.allclose(
+        outputs["global_params"], model_lib.pose_parameters(rotation, translation)
+    )
+    model_lib.check_config("global_local", {"global_source": "pose", "pose_rotation_error": 0.5})
+    with pytest.raises(ValueError, match="pose_rotation_error is the error of a given pose"):
+        model_lib.check_config("global_local", {"pose_rotation_error": 0.5})
+    with pytest.raises(ValueError, match="pose_translation_error must be at least 0"):
+        model_lib.check_config(
+            "global_local", {"global_source": "pose", "pose_translation_error": -1.0}
+        )
+    with pytest.raises(ValueError, match="at most 180"):
+        model_lib.check_config(
+            "global_local", {"global_source": "pose", "pose_rotation_error": 200}
+        )
+
+
 def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnormalised():
     image1, image2, flow = _inputs()
     variables = model_lib.GlobalLocal(encoder_norm="instance").init(
