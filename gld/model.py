@@ -72,7 +72,8 @@ def pose_parameters(rotation: jax.Array, translation: jax.Array) -> jax.Array:
     return jnp.concatenate([POSE_ROTATION_SCALE * vector_part, direction], axis=-1)
 
 
-# Fixed mixing of a pose into the directions of its given error (`perturbed_pose`).
+# Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
+# test pins its entries, so that a numpy release that changed the stream is noticed).
 _PERTURBATION_MIX = np.random.default_rng(0).normal(0.0, 100.0, (12, 6)).astype(np.float32)
 
 
@@ -87,22 +88,30 @@ def perturbed_pose(
 
     The rotation is composed with a rotation of `rotation_degrees` about an axis, and the
     translation turned by `translation_degrees` about an axis perpendicular to it (its
-    norm kept). Both axes are a fixed pseudo-random function of the pose itself (spread
-    over all directions): a pair's given pose is off in the same way at every step and
-    at test time; an augmented (rotated or mirrored) copy of it has its own error.
+    norm kept). Both axes are a fixed pseudo-random function of each pair's own pose,
+    spread over the directions (the turn's over those perpendicular to t), whatever else
+    is in the batch: a pair's given pose is off in the same way at every step and at
+    test time; an augmented (rotated or mirrored) copy of it has its own error. Computed
+    in float32 at full matmul precision (the directions move by under a degree between
+    platforms; the angles are exact on all).
 
     Args:
       rotation: [B, 3, 3]; translation: [B, 3] (X2 = R X1 + t).
-      rotation_degrees, translation_degrees: the errors, >= 0.
+      rotation_degrees, translation_degrees: the errors in degrees, 0 to 180
+        (`check_config` refuses others in a model's config).
 
     Returns:
-      (rotation [B, 3, 3], translation [B, 3]).
+      (rotation [B, 3, 3], translation [B, 3]) in the inputs' dtype.
     """
+    dtype = rotation.dtype
+    rotation = rotation.astype(jnp.float32)
+    translation = translation.astype(jnp.float32)
     batch_size = rotation.shape[0]
     norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
     direction = translation / jnp.maximum(norm, 1e-12)
     features = jnp.concatenate([rotation.reshape(batch_size, 9), direction], axis=-1)
-    directions = jnp.sin(features @ jnp.asarray(_PERTURBATION_MIX, features.dtype))
+    mixed = jnp.matmul(features, _PERTURBATION_MIX, precision=jax.lax.Precision.HIGHEST)
+    directions = jnp.sin(mixed)
 
     def unit(vectors):
         return vectors / jnp.maximum(jnp.linalg.norm(vectors, axis=-1, keepdims=True), 1e-12)
@@ -111,7 +120,9 @@ def perturbed_pose(
     turn_axis = unit(jnp.cross(direction, directions[:, 3:]))
     error = geometry.rotation_matrix(math.radians(rotation_degrees) * rotation_axis)
     turn = geometry.rotation_matrix(math.radians(translation_degrees) * turn_axis)
-    return error @ rotation, jnp.einsum("bij,bj->bi", turn, translation)
+    rotation = jnp.matmul(error, rotation, precision=jax.lax.Precision.HIGHEST)
+    translation = jnp.einsum("bij,bj->bi", turn, translation, precision=jax.lax.Precision.HIGHEST)
+    return rotation.astype(dtype), translation.astype(dtype)
 
 
 class GlobalLocal(nn.Module):
@@ -356,9 +367,10 @@ ARCHITECTURE_FLAGS = {
     "local_flow_units": "Units of the local network's flow.",
     "flow_scale": "Factor on the normalised flow fed to both modules.",
     "global_source": "Where g comes from: the global encoder, or the true relative pose.",
-    "pose_rotation_error": "With global_source=pose: the given rotation's error (degrees).",
+    "pose_rotation_error": "With global_source=pose: the given rotation's error, degrees "
+    "(0-180; fixed per pair and augmented copy).",
     "pose_translation_error": "With global_source=pose: the given translation direction's "
-    "error (degrees).",
+    "error, degrees (0-180; fixed per pair and augmented copy).",
     "encoder_norm": "Normalisation inside the global encoder.",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
