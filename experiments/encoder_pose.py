@@ -39,12 +39,12 @@ common.define_data_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld import probes
+    from gld import config, probes
 
-    if FLAGS.warmup_steps >= FLAGS.steps:
-        raise app.UsageError(
-            f"--warmup_steps ({FLAGS.warmup_steps}) must be below --steps ({FLAGS.steps})"
-        )
+    try:
+        config.check_schedule("cosine", FLAGS.warmup_steps, FLAGS.steps)
+    except ValueError as error:
+        raise app.UsageError(str(error)) from None
     builder = common.prepare_dataset()
     errors = probes.train_encoder_on_pose(
         common.data_source(builder, "train"),

@@ -149,10 +149,11 @@ def flag_fields() -> list[dataclasses.Field]:
 
 
 def check_schedule(lr_schedule: str, warmup_steps: int, steps: int) -> None:
-    """Raises ValueError when the cosine schedule's warm-up does not end before the run."""
-    if lr_schedule == "cosine" and not warmup_steps < steps:
+    """Raises ValueError when the cosine schedule's warm-up does not end before the run
+    (`gld.state.learning_rate_schedule` builds the schedule)."""
+    if lr_schedule == "cosine" and not 0 <= warmup_steps < steps:
         raise ValueError(
-            f"warmup_steps ({warmup_steps}) must be below steps ({steps}) for the cosine schedule"
+            f"warmup_steps ({warmup_steps}) must be in [0, steps ({steps})) for the cosine schedule"
         )
 
 

@@ -417,7 +417,10 @@ def _shard_indices(num_examples: int, process_index: int, process_count: int) ->
 def _enable_grain_workers() -> None:
     """grain 0.2 reads its absl flags in worker start-up; give it their defaults.
 
-    A launcher that parsed flags (absl.app.run) is unaffected.
+    grain keeps its configuration only in absl flags, so this is the one place the
+    library touches them: without it a worker of a program that never parsed flags dies
+    with UnparsedFlagAccessError (--grain_enable_multiprocess_worker_profiling). A
+    launcher that parsed flags (absl.app.run) is unaffected.
     """
     from absl import flags
 

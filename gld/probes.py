@@ -20,6 +20,7 @@ Two instruments:
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -324,23 +325,27 @@ def train_encoder_on_pose(
     """How fast can the global encoder learn the relative pose when told it? A capacity
     check, not a depth model: the global module's encoder (its inputs as in
     `gld.model.GlobalLocal`) and a `PoseMLP` head trained on the L1 error of [10 x the
-    rotation vector, the translation direction], Adam with warm-up and cosine decay.
+    rotation vector, the translation direction], Adam with warm-up and cosine decay
+    (`gld.state.make_optimizer`, as the trainers).
 
     Returns:
       {"encoder": {...}, "mean_pose": {...}}: mean rotation and translation-direction
       errors (degrees) on the test pairs of the trained encoder and of the test pairs'
       mean pose.
     """
-    from gld import input_pipeline, layers
+    from gld import input_pipeline, layers, state
     from gld.global_encoder import GlobalEncoder
 
     encoder = GlobalEncoder(channels=tuple(encoder_channels), norm=encoder_norm)
     head = PoseMLP(hidden=tuple(hidden))
     scale = model_lib.POSE_ROTATION_SCALE
 
+    # What the encoder and the targets read; the pipeline drops the rest before augmenting.
+    keys = ("flow", "rotation", "translation") + (("image1", "image2") if use_image_pair else ())
+
     def inputs(batch):
         flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
-        image1, image2 = jnp.asarray(batch["image1"]), jnp.asarray(batch["image2"])
+        image1, image2 = batch.get("image1"), batch.get("image2")  # absent without the pair
         return layers.global_module_inputs(image1, image2, flow, use_image_pair)
 
     def targets(batch):
@@ -352,7 +357,12 @@ def train_encoder_on_pose(
 
     stream = iter(
         input_pipeline.train_dataset(
-            train_source, batch_size=batch_size, seed=seed, gt_pixels=1, flow_source=flow_source
+            train_source,
+            batch_size=batch_size,
+            seed=seed,
+            gt_pixels=1,
+            flow_source=flow_source,
+            keys=keys,
         )
     )
     first = next(stream)
@@ -362,8 +372,9 @@ def train_encoder_on_pose(
         "encoder": encoder_params,
         "head": head.init(key_head, encoder.apply(encoder_params, inputs(first))),
     }
-    schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, warmup_steps, steps)
-    optimizer = optax.adam(schedule)
+    optimizer = state.make_optimizer(
+        learning_rate, "cosine", steps=steps, warmup_steps=warmup_steps
+    )
     opt_state = optimizer.init(params)
 
     @jax.jit
@@ -372,14 +383,12 @@ def train_encoder_on_pose(
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state
 
-    batch = first
-    for _ in range(steps):
+    for batch in itertools.islice(itertools.chain([first], stream), steps):
         params, opt_state = step(params, opt_state, inputs(batch), targets(batch))
-        batch = next(stream)
     predicted, truth = [], []
     forward = jax.jit(predict)
     for batch in input_pipeline.eval_batches(
-        test_source, batch_size=batch_size, flow_source=flow_source
+        test_source, batch_size=batch_size, flow_source=flow_source, keys=keys
     ):
         rows = np.flatnonzero(np.asarray(batch["example_mask"], bool))
         predicted.append(np.asarray(forward(params, inputs(batch)), np.float64)[rows])

@@ -83,11 +83,7 @@ def learning_rate_schedule(
     if schedule == "constant":
         return optax.constant_schedule(learning_rate)
     if schedule == "cosine":
-        if not 0 <= warmup_steps < steps:
-            raise ValueError(
-                f"warmup_steps ({warmup_steps}) must be in [0, steps ({steps})) for the "
-                "cosine schedule: lower --warmup_steps or use --lr_schedule=constant"
-            )
+        config_lib.check_schedule(schedule, warmup_steps, steps)
         return optax.warmup_cosine_decay_schedule(
             init_value=0.0,
             peak_value=learning_rate,
