@@ -67,9 +67,12 @@ def pose_parameters(rotation: jax.Array, translation: jax.Array) -> jax.Array:
         ],
         axis=-1,
     )
-    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
-    direction = translation / jnp.maximum(norm, 1e-12)
-    return jnp.concatenate([POSE_ROTATION_SCALE * vector_part, direction], axis=-1)
+    return jnp.concatenate([POSE_ROTATION_SCALE * vector_part, _unit(translation)], axis=-1)
+
+
+def _unit(vectors: jax.Array) -> jax.Array:
+    """Vectors [..., 3] scaled to norm 1 (zero stays zero)."""
+    return vectors / jnp.maximum(jnp.linalg.norm(vectors, axis=-1, keepdims=True), 1e-12)
 
 
 # Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
@@ -107,17 +110,12 @@ def perturbed_pose(
     rotation = rotation.astype(jnp.float32)
     translation = translation.astype(jnp.float32)
     batch_size = rotation.shape[0]
-    norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
-    direction = translation / jnp.maximum(norm, 1e-12)
+    direction = _unit(translation)
     features = jnp.concatenate([rotation.reshape(batch_size, 9), direction], axis=-1)
     mixed = jnp.matmul(features, _PERTURBATION_MIX, precision=jax.lax.Precision.HIGHEST)
     directions = jnp.sin(mixed)
-
-    def unit(vectors):
-        return vectors / jnp.maximum(jnp.linalg.norm(vectors, axis=-1, keepdims=True), 1e-12)
-
-    rotation_axis = unit(directions[:, :3])
-    turn_axis = unit(jnp.cross(direction, directions[:, 3:]))
+    rotation_axis = _unit(directions[:, :3])
+    turn_axis = _unit(jnp.cross(direction, directions[:, 3:]))
     error = geometry.rotation_matrix(math.radians(rotation_degrees) * rotation_axis)
     turn = geometry.rotation_matrix(math.radians(translation_degrees) * turn_axis)
     rotation = jnp.matmul(error, rotation, precision=jax.lax.Precision.HIGHEST)
