@@ -1,9 +1,13 @@
-"""Tests of gld/probes.py: pair statistics, rotation vectors, the pose probe, collect."""
+"""Tests of gld/probes.py: pair statistics, rotation vectors, the pose probes, collect."""
 
+import itertools
+
+import jax
 import numpy as np
 import pytest
+from conftest import random_variables
 
-from gld import geometry, input_pipeline, probes
+from gld import geometry, input_pipeline, layers, probes
 from gld import model as model_lib
 
 
@@ -184,3 +188,194 @@ def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_p
         expected_translation.mean(), rel=1e-4
     )
     assert np.isfinite(list(errors["encoder"].values())).all()
+
+
+# A global-local model whose encoder differs from the probe's defaults in every option
+# that could be dropped on the way (strides, kernel size, flow alone, flow scale).
+_TRAINED_ENCODER = dict(
+    encoder_channels=(4, 8, 8, 8, 8),
+    encoder_strides=(2, 2, 2, 1, 1),
+    kernel_size=5,
+    use_image_pair=False,
+    flow_scale=4.0,
+)
+# Tiny and short: each fit is about a second on CPU.
+_PROBE_TRAINING = dict(
+    steps=4, warmup_steps=1, batch_size=4, hidden=(16, 16), statistics_batches=2, seed=0
+)
+
+
+@pytest.fixture(scope="module")
+def global_local():
+    """A GlobalLocal with `_TRAINED_ENCODER` and random (numpy-drawn) variables."""
+    model = model_lib.make_model("global_local", **_TRAINED_ENCODER)
+    return model, random_variables(model, 48, 64, seed=1)
+
+
+@pytest.fixture(scope="module")
+def pretrained(global_local):
+    return probes.pretrained_global_encoder(*global_local)
+
+
+@pytest.fixture(scope="module")
+def splits(tiny_scenes):
+    return tiny_scenes.as_data_source("train"), tiny_scenes.as_data_source("test")
+
+
+@pytest.fixture(scope="module")
+def pretrained_mlp_fit(splits, pretrained):
+    """The MLP on the frozen pretrained encoder."""
+    return probes.fit_pose_probe(*splits, train_encoder=False, **pretrained, **_PROBE_TRAINING)
+
+
+@pytest.fixture(scope="module")
+def pretrained_full_fit(splits, pretrained):
+    """The pretrained encoder trained with the MLP."""
+    return probes.fit_pose_probe(*splits, train_encoder=True, **pretrained, **_PROBE_TRAINING)
+
+
+@pytest.fixture(scope="module")
+def settings(splits, pretrained):
+    return probes.pose_probe_settings(*splits, pretrained=pretrained, **_PROBE_TRAINING)
+
+
+def _leaves(tree):
+    return [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(tree)]
+
+
+def _test_poses(test_source):
+    """The test pairs' true pose in split order: (ids, rotation vectors, unit translations)."""
+    examples = [input_pipeline.decode_example(test_source[i]) for i in range(len(test_source))]
+    rotation = np.stack([probes.rotation_vector(e["rotation"]) for e in examples])
+    translation = np.stack([e["translation"] / np.linalg.norm(e["translation"]) for e in examples])
+    return [e["id"] for e in examples], rotation, translation
+
+
+def test_pretrained_global_encoder_refuses_models_without_a_global_encoder(global_local):
+    _, variables = global_local
+    for options in (
+        dict(use_global_module=False),
+        dict(global_source="pose"),
+        dict(use_flow=False),
+    ):
+        with pytest.raises(ValueError, match="global encoder|flow"):
+            probes.pretrained_global_encoder(model_lib.GlobalLocal(**options), variables)
+    with pytest.raises(ValueError, match="GlobalLocal"):
+        probes.pretrained_global_encoder(model_lib.make_model("dispnet"), variables)
+    with pytest.raises(ValueError, match="global_encoder"):
+        probes.pretrained_global_encoder(model_lib.GlobalLocal(), {"params": {}})
+
+
+def test_the_frozen_encoder_is_the_models_and_stays_bit_identical(
+    pretrained_mlp_fit, pretrained, global_local, splits
+):
+    encoder_after = _leaves(pretrained_mlp_fit["params"]["encoder"])
+    for after, before in zip(encoder_after, _leaves(pretrained["encoder_params"]), strict=True):
+        np.testing.assert_array_equal(after, before)
+    # The MLP did train: it starts from PoseMLP's initialisation with the seed's second key.
+    head_init = probes.PoseMLP(hidden=(16, 16)).init(
+        jax.random.split(jax.random.key(0))[1], np.zeros((1, 6), np.float32)
+    )["params"]
+    changed = [
+        not np.array_equal(after, before)
+        for after, before in zip(
+            _leaves(pretrained_mlp_fit["params"]["head"]), _leaves(head_init), strict=True
+        )
+    ]
+    assert all(changed)
+    # The round trip: the probe's encoder, fed by the probe, gives the model's own g.
+    # The standardisation's statistics are those of the model's g over the first two
+    # training batches.
+    model, variables = global_local
+
+    @jax.jit
+    def global_params(batch):
+        return layers.apply_model(model, variables, batch)["global_params"]
+
+    keys = ("image1", "image2", "flow")
+    batches = iter(
+        input_pipeline.train_dataset(
+            splits[0], batch_size=4, seed=0, gt_pixels=1, flow_source="gt", keys=keys
+        )
+    )
+    model_global_params = np.concatenate(
+        [
+            np.asarray(global_params({key: batch[key] for key in keys}), np.float64)
+            for batch in itertools.islice(batches, 2)
+        ]
+    )
+    statistics = pretrained_mlp_fit["global_params_statistics"]
+    assert model_global_params.shape == (8, 6)
+    np.testing.assert_allclose(
+        statistics["mean"], model_global_params.mean(0), rtol=1e-4, atol=1e-7
+    )
+    np.testing.assert_allclose(statistics["std"], model_global_params.std(0), rtol=1e-3)
+
+
+def test_the_trained_encoder_changes(pretrained_full_fit, pretrained):
+    for after, before in zip(
+        _leaves(pretrained_full_fit["params"]["encoder"]),
+        _leaves(pretrained["encoder_params"]),
+        strict=True,
+    ):
+        assert not np.array_equal(after, before)
+
+
+def test_encoder_params_must_fit_the_encoder(splits, pretrained):
+    with pytest.raises(ValueError, match="do not fit"):
+        probes.fit_pose_probe(
+            *splits, **{**pretrained, "encoder_channels": (4, 8, 8, 8, 16)}, **_PROBE_TRAINING
+        )
+
+
+def test_each_setting_predicts_a_rotation_and_a_unit_translation_per_test_pair_in_order(
+    settings, splits
+):
+    ids, _, _ = _test_poses(splits[1])
+    assert set(settings["predicted"]) == set(probes.POSE_PROBE_SETTINGS)
+    for poses in settings["predicted"].values():
+        assert poses["rotation"].shape == (16, 3, 3) and poses["rotation"].dtype == np.float64
+        assert poses["translation"].shape == (16, 3) and poses["translation"].dtype == np.float64
+        assert poses["ids"].tolist() == ids
+        rotation = poses["rotation"]
+        np.testing.assert_allclose(
+            rotation @ rotation.transpose(0, 2, 1),
+            np.broadcast_to(np.eye(3), rotation.shape),
+            atol=1e-9,
+        )
+        np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(poses["translation"], axis=-1), 1.0, atol=1e-12)
+
+
+def test_the_settings_errors_are_those_of_their_poses_and_match_single_fits(
+    settings, splits, pretrained_mlp_fit, pretrained_full_fit
+):
+    assert set(settings) == {*probes.POSE_PROBE_SETTINGS, "mean_pose", "predicted"}
+    _, rotation, translation = _test_poses(splits[1])
+    truth = np.concatenate([rotation, translation], -1)
+    for setting in probes.POSE_PROBE_SETTINGS:
+        poses = settings["predicted"][setting]
+        predicted = np.concatenate(
+            [probes.rotation_vector(poses["rotation"]), poses["translation"]], -1
+        )
+        recomputed = probes._pose_errors(predicted, truth)
+        for name in ("rotation_deg", "translation_deg"):
+            assert settings[setting][name] == pytest.approx(recomputed[name], rel=1e-6)
+    mean_pose = probes._pose_errors(np.broadcast_to(truth.mean(0), truth.shape), truth)
+    for name in ("rotation_deg", "translation_deg"):
+        assert settings["mean_pose"][name] == pytest.approx(mean_pose[name], rel=1e-4)
+    # The settings run as single fits with the same options do: same data, seed, steps.
+    for setting, fit in (
+        ("pretrained_mlp", pretrained_mlp_fit),
+        ("pretrained_full", pretrained_full_fit),
+    ):
+        assert settings[setting] == pytest.approx(fit["probe"], rel=1e-5)
+        np.testing.assert_allclose(
+            settings["predicted"][setting]["rotation"], fit["predicted"]["rotation"], atol=1e-6
+        )
+    # Starting from the model's encoder or a random one makes a difference.
+    assert not np.allclose(
+        settings["predicted"]["scratch_mlp"]["translation"],
+        settings["predicted"]["pretrained_mlp"]["translation"],
+        atol=1e-3,
+    )
