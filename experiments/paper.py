@@ -1,0 +1,109 @@
+r"""The paper's experimental section on the embedded benchmark, one command:
+
+    python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, ~4 h on 2 cores
+    python -m experiments.paper --suite=paper        # gld_scenes/full, 256x192, 94K steps (GPU)
+    python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
+    python -m experiments.paper --suite=cpu --report_only
+
+Trains and evaluates every run of the suite (`gld.paper_suite`) in <workdir>/runs/, then
+the analyses (pose probe, triangulation with the probe's pose, flow-error curves,
+qualitative predictions, generated filters), and writes the report (every table with the
+paper's numbers beside ours, the targets checked, the figures as PNG) to <report_dir>.
+Each finished task leaves a result in <workdir>/results/ and is reused; an unfinished
+training run resumes from its last checkpoint, so a killed suite, re-run with the same
+command, continues where it stopped. Before each task the suite prints which it is and
+the ETA of the rest; each training run shows its own progress bar.
+
+Multi-process (the paper suite on several hosts): the same command on every host with
+`--num_processes=N --process_id=i --coordinator_address=host0:port`; process 0 writes
+the results and the report.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+from absl import app, flags
+
+from experiments import common
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_enum("suite", "cpu", ["cpu", "paper", "tiny"], "Which scale to run (gld.paper_suite).")
+flags.DEFINE_string("workdir", None, "Runs and results (default: runs/paper_<suite>).")
+flags.DEFINE_string(
+    "report_dir", None, "Where the report goes (default: report/ for cpu, report/<suite>/ else)."
+)
+flags.DEFINE_list("only", None, "Run only these tasks (names or prefixes: train/, classical).")
+flags.DEFINE_bool("report_only", False, "Write the report from the finished results only.")
+flags.DEFINE_bool("progress", True, "Progress bars of the training runs.")
+flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
+flags.DEFINE_string("manual_dir", None, "Unused by gld_scenes; kept for the data flags.")
+common.define_distributed_flags()
+
+
+def _commit() -> str:
+    """The repository's commit, with "+changes" when the tree differs from it."""
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+    return commit + ("+changes" if dirty else "")
+
+
+def main(argv):
+    del argv
+    common.initialise()
+    import jax
+
+    from gld import paper_report, paper_runner, paper_suite
+
+    scale = paper_suite.SUITES[FLAGS.suite]
+    workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")
+    report_dir = Path(
+        FLAGS.report_dir or ("report" if scale.name == "cpu" else f"report/{scale.name}")
+    )
+
+    def data(dataset: str) -> paper_runner.Data:
+        builder = common.prepare_dataset(dataset)
+        height, width = common.dataset_resolution(builder)
+        return paper_runner.Data(
+            name=builder.info.full_name,
+            train=common.data_source(builder, "train"),
+            test=common.data_source(builder, "test"),
+            height=height,
+            width=width,
+        )
+
+    runner = paper_runner.SuiteRunner(scale, workdir, data, progress=FLAGS.progress)
+    try:
+        runner.selected(FLAGS.only)
+    except ValueError as error:
+        raise app.UsageError(f"--only: {error}") from None
+    if FLAGS.report_only:
+        results = runner.finished()
+    else:
+        results = runner.run(FLAGS.only)
+    if jax.process_index() == 0:
+        path = paper_report.write_report(
+            scale,
+            results,
+            workdir,
+            report_dir,
+            commit=_commit(),
+            command=f"python -m experiments.paper --suite={scale.name}",
+        )
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,648 @@
+"""The report of a suite (`gld.paper_runner`): every table of the paper's experimental
+section with our numbers beside the paper's, the orderings it claims checked, and the
+figures as PNG.
+
+    <report_dir>/README.md     the tables, targets, budgets, protocol, commit
+    <report_dir>/*.png         density, flow errors, over-fitting, qualitative grid, filters
+
+The paper's numbers are its Scenes11 column (the synthetic benchmark closest to
+`gld_scenes`); a run or analysis not finished yet appears as "not run yet".
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gld import paper_suite
+from gld.paper_suite import Scale
+
+# The paper's Scenes11 numbers (Abs-Inv, Abs-Rel, S-RMSE), by our row.
+PAPER_MAIN = {
+    "global_local_1px": (0.031, 0.43, 0.61),
+    "small_encdec_1px": (0.046, 0.66, 0.83),
+    "eigen_1px": (0.045, 0.57, 0.77),
+    "dispnet_1px": (0.038, 0.51, 0.70),
+    "fcrn_1px": (0.041, 0.52, 0.74),
+}
+PAPER_ABLATIONS = {  # Table "Ablation study" (its full model: 0.033)
+    "global_local_1px": (0.033, 0.43, 0.61),
+    "global_local_image_pair": None,  # the paper's full model has the image pair
+    "global_local_no_coordconv": (0.038, 0.52, 0.71),
+    "global_local_no_global_module": (0.041, 0.55, 0.73),
+    "global_local_no_flow": (0.052, 0.73, 0.81),
+}
+PAPER_ABLATION_NO_IMAGE_PAIR = (0.033, 0.45, 0.62)
+# Figure "gt_density", Scenes11: Abs-Inv at 1, 4, 16, 64 pixels and dense.
+PAPER_DENSITY = {
+    "global_local": (0.031, 0.028, 0.027, 0.027, 0.023),
+    "dispnet": (0.038, 0.038, 0.033, 0.031, 0.023),
+}
+PAPER_GIVEN = {  # Table "given_pose", Scenes11
+    "triangulation_predicted_pose": (0.061, 0.48, 0.65),
+    "triangulation_gt_pose": (0.020, 0.25, 0.48),
+    "global_local_gt_flow": (0.015, 0.24, 0.46),
+    "global_local_gt_pose": (0.021, 0.28, 0.54),
+    "global_local_1px": (0.033, 0.43, 0.61),
+}
+PAPER_VARYING = {"global_local": 0.034, "dispnet": 0.039}  # Table "change_intrs", Scenes11
+PAPER_POSE = {  # Table "pose_experiments", Scenes11: rotation, translation (degrees)
+    "scratch_mlp": (1.3, 74.4),
+    "pretrained_mlp": (0.9, 26.7),
+    "scratch_full": (0.7, 10.3),
+    "pretrained_full": (0.7, 9.2),
+}
+POSE_LABELS = {
+    "scratch_mlp": "Scratch-MLP (random encoder, MLP trained)",
+    "pretrained_mlp": "Pretrained-MLP (the trained model's encoder, MLP trained)",
+    "scratch_full": "Scratch-Full (random encoder, all trained)",
+    "pretrained_full": "Pretrained-Full (the trained model's encoder, all trained)",
+    "mean_pose": "the training pairs' mean pose",
+}
+CLASSICAL_LABELS = {
+    "dataset_mean": "dataset mean",
+    "oracle_pair_median": "per-pair oracle constant (sees the truth)",
+    "triangulation_gt_pose": "triangulation, true pose",
+    "sfm_flow": "essential-matrix SfM on the flow",
+    "triangulation_predicted_pose": "triangulation, pose of the Pretrained-Full probe",
+}
+METRICS = ("abs_inv", "abs_rel", "s_rmse")
+NOT_RUN = "not run yet"
+
+
+def _metric(result: dict | None, name: str = "abs_inv") -> float | None:
+    if result is None:
+        return None
+    return result["metrics"][name]["mean"]
+
+
+def _cells(result: dict | None, reference: float | None) -> list[str]:
+    if result is None:
+        return [NOT_RUN, "", "", ""]
+    summary = result["metrics"]
+    cells = [f"{summary['abs_inv']['mean']:.4f} ± {summary['abs_inv']['std']:.4f}"]
+    cells += [f"{summary[name]['mean']:.3f}" for name in METRICS[1:]]
+    cells.append(f"{summary['abs_inv']['mean'] / reference:.2f}" if reference else "")
+    return cells
+
+
+def _paper(numbers: Sequence[float] | None) -> str:
+    return " / ".join(f"{n:g}" for n in numbers) if numbers else "—"
+
+
+def _row(cells: Sequence[Any]) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |\n"
+
+
+def _verdict(holds: bool | None) -> str:
+    return {True: "**holds**", False: "**does not hold**", None: "not measured yet"}[holds]
+
+
+class Report:
+    """Collects the sections of a suite's report from its results.
+
+    Args:
+      scale: the suite.
+      results: task name -> result (`SuiteRunner.run`).
+      workdir: the suite's workdir (for the arrays and figures of its results).
+    """
+
+    def __init__(self, scale: Scale, results: dict[str, dict], workdir: str | Path):
+        self.scale = scale
+        self.results = results
+        self.workdir = Path(workdir)
+        self.runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+        self.targets: list[tuple[str, bool | None, str]] = []
+
+    def run(self, name: str) -> dict | None:
+        return self.results.get(f"train/{name}")
+
+    def classical(self, name: str, varying: bool = False) -> dict | None:
+        dataset = self.scale.varying_dataset if varying else self.scale.dataset
+        result = self.results.get(f"classical/{dataset.split('/')[-1]}")
+        return None if result is None else result["methods"].get(name)
+
+    def mean_reference(self, varying: bool = False) -> float | None:
+        return _metric(self.classical("dataset_mean", varying))
+
+    def _label(self, name: str) -> str:
+        if name in self.runs:
+            run = self.runs[name]
+            steps = paper_suite.run_steps(self.scale, run)
+            return (
+                f"{run.label} ({steps:,} steps)"
+                if run.model in paper_suite.LARGE_MODELS
+                else run.label
+            )
+        return CLASSICAL_LABELS.get(name, name)
+
+    def _table(self, rows: Sequence[tuple[str, dict | None, Any]], varying: bool = False) -> str:
+        reference = self.mean_reference(varying)
+        text = "| method | Abs-Inv | Abs-Rel | S-RMSE | x mean | paper (Scenes11) |\n"
+        text += "|---|---|---|---|---|---|\n"
+        for name, result, paper in rows:
+            text += _row([self._label(name), *_cells(result, reference), _paper(paper)])
+        return text
+
+    def _target(self, name: str, holds: bool | None, detail: str) -> str:
+        self.targets.append((name, holds, detail))
+        return f"Target — {name}: {_verdict(holds)}. {detail}\n\n"
+
+    # -- sections ---------------------------------------------------------------------
+
+    def main_table(self) -> str:
+        rows = [(n, self.run(n), PAPER_MAIN[n]) for n in PAPER_MAIN]
+        rows += [(n, self.classical(n), None) for n in paper_runner_classical()]
+        text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows) + "\n"
+        ours = _metric(self.run("global_local_1px"))
+        gaps = {}
+        for name in ("small_encdec_1px", "eigen_1px", "dispnet_1px", "fcrn_1px"):
+            theirs = _metric(self.run(name))
+            if ours is not None and theirs is not None:
+                gaps[self.runs[name].label] = 1 - ours / theirs
+        holds = None if len(gaps) < 4 or ours is None else all(g >= 0.15 for g in gaps.values())
+        detail = "global-local's Abs-Inv below each learned baseline's: " + (
+            ", ".join(f"{name} {gap:.0%}" for name, gap in gaps.items()) or "—"
+        )
+        text += self._target(
+            "global-local at least 15% below every learned baseline (paper: 20-53%)",
+            holds,
+            detail + ".",
+        )
+        return text
+
+    def ablations(self) -> str:
+        rows = [(n, self.run(n), PAPER_ABLATIONS[n]) for n in PAPER_ABLATIONS]
+        rows.append(("global_local_no_epipolar", self.run("global_local_no_epipolar"), None))
+        text = "## 2. Ablations\n\n" + self._table(rows)
+        text += (
+            "\nThe full model here is the main job's: its global encoder sees the flow alone "
+            '(the paper\'s "- Image Pair" row, '
+            f"{_paper(PAPER_ABLATION_NO_IMAGE_PAIR)}), so the image pair is the ablation "
+            "added back. The rows without a global module or without flow also drop the "
+            'epipolar term (it needs g and reads the flow); "- epipolar term" shows what '
+            "that alone costs.\n\n"
+        )
+        full = _metric(self.run("global_local_1px"))
+        worse = {}
+        for name in (
+            "global_local_no_coordconv",
+            "global_local_no_global_module",
+            "global_local_no_flow",
+        ):
+            value = _metric(self.run(name))
+            if value is not None and full is not None:
+                worse[self.runs[name].label] = value / full - 1
+        pair = _metric(self.run("global_local_image_pair"))
+        if pair is not None and full is not None:
+            worse["- image pair (the main model against + image pair)"] = full / pair - 1
+        holds = None if len(worse) < 4 else all(v > 0 for v in worse.values())
+        text += self._target(
+            "each ablation worse than the full model",
+            holds,
+            "Abs-Inv change of each ablation against the full model: "
+            + (", ".join(f"{k} {v:+.1%}" for k, v in worse.items()) or "—")
+            + ".",
+        )
+        return text
+
+    def density(self, figure_dir: Path) -> str:
+        models = {
+            "global_local": "global-local",
+            "small_encdec": "Small Enc-Dec",
+            "dispnet": "DispNet",
+        }
+        text = "## 3. Supervision density\n\n| method | " + " | ".join(
+            paper_suite.density_name(d) for d in paper_suite.DENSITIES
+        )
+        text += " | paper (Scenes11) |\n|---|" + "---|" * (len(paper_suite.DENSITIES) + 1) + "\n"
+        values: dict[str, list[float | None]] = {}
+        for model, label in models.items():
+            values[model] = [
+                _metric(self.run(f"{model}_{paper_suite.density_name(d)}"))
+                for d in paper_suite.DENSITIES
+            ]
+            cells = [
+                NOT_RUN
+                if v is None
+                else f"{v:.4f}"
+                if f"{model}_{paper_suite.density_name(d)}" in self.runs
+                else "not in this suite"
+                for v, d in zip(values[model], paper_suite.DENSITIES, strict=True)
+            ]
+            if model in paper_suite.LARGE_MODELS:
+                label += f" ({self.scale.large_steps:,} steps)"
+            text += _row([label, *cells, _paper(PAPER_DENSITY.get(model))])
+        text += "\nAbs-Inv; columns: supervised pixels per image, and dense labels.\n\n"
+        if any(v is not None for series in values.values() for v in series):
+            path = figure_dir / "density.png"
+            _draw_density(values, models, path)
+            text += f"![Abs-Inv against supervision density]({path.name})\n\n"
+        ours, baseline = values["global_local"], values["small_encdec"]
+        holds = None
+        detail = "—"
+        if None not in (ours[0], ours[-1], baseline[0], baseline[-1]):
+            ours_loss, baseline_loss = ours[0] / ours[-1] - 1, baseline[0] / baseline[-1] - 1
+            holds = ours_loss <= 0.15 and baseline_loss >= 0.25
+            detail = (
+                f"global-local's one-pixel error is {ours_loss:+.0%} against its dense error; "
+                f"Small Enc-Dec's {baseline_loss:+.0%}"
+            )
+        text += self._target(
+            "global-local within 15% of its dense error, Small Enc-Dec at least 25% worse",
+            holds,
+            detail + ".",
+        )
+        return text
+
+    def given_flow_and_pose(self) -> str:
+        rows = [
+            (
+                "triangulation_predicted_pose",
+                self.results.get("triangulation_predicted_pose"),
+                PAPER_GIVEN["triangulation_predicted_pose"],
+            ),
+            (
+                "triangulation_gt_pose",
+                self.classical("triangulation_gt_pose"),
+                PAPER_GIVEN["triangulation_gt_pose"],
+            ),
+        ]
+        rows += [
+            (n, self.run(n), PAPER_GIVEN[n])
+            for n in ("global_local_gt_flow", "global_local_gt_pose", "global_local_1px")
+        ]
+        text = "## 4. Given flow, given pose\n\n" + self._table(rows)
+        return text + (
+            "\nThe true pose enters the model as its global parameters: g = (10 x the "
+            "rotation's vector part, the unit translation) replaces the global encoder's "
+            "output (`--global_source=pose`, `gld.model.pose_parameters`); the local network "
+            "and the hypernetwork are trained as usual. Triangulation with the predicted pose "
+            "uses the pose the Pretrained-Full probe (section 6) predicts for each test pair.\n\n"
+        )
+
+    def varying_intrinsics(self) -> str:
+        text = "## 5. Varying intrinsics (±20% between views)\n\n"
+        text += "| method | fixed intrinsics | varying | change | paper, varying (Scenes11) |\n"
+        text += "|---|---|---|---|---|\n"
+        changes = {}
+        for model, label in (
+            ("global_local", "global-local"),
+            ("small_encdec", "Small Enc-Dec"),
+            ("eigen", "Eigen"),
+            ("dispnet", "DispNet"),
+        ):
+            if f"{model}_varying" not in self.runs:
+                continue
+            fixed = _metric(self.run(f"{model}_1px"))
+            varying = _metric(self.run(f"{model}_varying"))
+            change = None if None in (fixed, varying) else varying / fixed - 1
+            changes[model] = change
+            text += _row(
+                [
+                    label,
+                    NOT_RUN if fixed is None else f"{fixed:.4f}",
+                    NOT_RUN if varying is None else f"{varying:.4f}",
+                    "" if change is None else f"{change:+.1%}",
+                    PAPER_VARYING.get(model, "—"),
+                ]
+            )
+        for name in ("dataset_mean", "oracle_pair_median", "sfm_flow"):
+            fixed, varying = _metric(self.classical(name)), _metric(self.classical(name, True))
+            text += _row(
+                [
+                    CLASSICAL_LABELS[name],
+                    NOT_RUN if fixed is None else f"{fixed:.4f}",
+                    NOT_RUN if varying is None else f"{varying:.4f}",
+                    "" if None in (fixed, varying) else f"{varying / fixed - 1:+.1%}",
+                    "—",
+                ]
+            )
+        text += (
+            "\nAbs-Inv, one pixel per image; each model trained and tested on "
+            f"`{self.scale.varying_dataset}`. The paper: about +5% for its model.\n\n"
+        )
+        change = changes.get("global_local")
+        return text + self._target(
+            "varying intrinsics cost global-local at most 10%",
+            None if change is None else change <= 0.10,
+            "—" if change is None else f"{change:+.1%}.",
+        )
+
+    def pose_probe(self) -> str:
+        text = "## 6. Pose from the global parameters (Sec. 4.4)\n\n"
+        result = self.results.get("pose_probe")
+        text += "| probe | rotation (deg) | translation direction (deg) | paper (Scenes11) |\n"
+        text += "|---|---|---|---|\n"
+        errors = {} if result is None else result["errors"]
+        for setting, label in POSE_LABELS.items():
+            error = errors.get(setting)
+            cells = (
+                [NOT_RUN, ""]
+                if error is None
+                else [f"{error['rotation_deg']:.2f}", f"{error['translation_deg']:.1f}"]
+            )
+            text += _row([label, *cells, _paper(PAPER_POSE.get(setting))])
+        text += (
+            f"\nA two-hidden-layer MLP (256 units) on the six global parameters, "
+            f"{self.scale.probe_steps:,} steps per setting on the training pairs; mean errors "
+            "on the test pairs (`gld.probes`).\n\n"
+        )
+        holds, detail = None, "—"
+        if {"scratch_mlp", "pretrained_mlp"} <= errors.keys():
+            scratch, pretrained = errors["scratch_mlp"], errors["pretrained_mlp"]
+            holds = (
+                pretrained["rotation_deg"] < scratch["rotation_deg"]
+                and pretrained["translation_deg"] < scratch["translation_deg"]
+            )
+            detail = (
+                f"MLP only: rotation {pretrained['rotation_deg']:.2f} against "
+                f"{scratch['rotation_deg']:.2f} deg, translation "
+                f"{pretrained['translation_deg']:.1f} against {scratch['translation_deg']:.1f} deg"
+            )
+            if {"scratch_full", "pretrained_full"} <= errors.keys():
+                scratch, pretrained = errors["scratch_full"], errors["pretrained_full"]
+                detail += (
+                    f"; full fine-tuning: {pretrained['rotation_deg']:.2f} / "
+                    f"{pretrained['translation_deg']:.1f} against {scratch['rotation_deg']:.2f} "
+                    f"/ {scratch['translation_deg']:.1f}"
+                )
+        return text + self._target(
+            "the pretrained encoder's probe beats the scratch one", holds, detail + "."
+        )
+
+    def flow_error(self, figure_dir: Path) -> str:
+        text = "## 7. Robustness to flow errors\n\n"
+        result = self.results.get("flow_error")
+        if result is None:
+            return text + NOT_RUN + ".\n\n"
+        from gld import flow_error
+
+        path = figure_dir / "flow_error.png"
+        flow_error.draw_flow_error_curves(
+            result["curves"], path, title="per-pixel Abs-Inv against normalised flow error"
+        )
+        text += f"![per-pixel depth error against flow error]({path.name})\n\n"
+        curves = result["curves"]
+        names = list(curves)
+        text += "| normalised flow error | pixels | " + " | ".join(names) + " |\n"
+        text += "|---|---|" + "---|" * len(names) + "\n"
+        first = curves[names[0]]
+        for index, count in enumerate(first["count"]):
+            if not count:
+                continue
+            low, high = first["edges"][index], first["edges"][index + 1]
+            cells = [
+                f"{curves[n]['mean'][index]:.4f} ± {curves[n]['std'][index]:.4f}" for n in names
+            ]
+            text += _row([f"[{low:.2g}, {high:.2g})", f"{count:,}", *cells])
+        text += (
+            "\nPer-pixel Abs-Inv (mean ± std over the pixels of each bin) against the "
+            "end-point error of the input flow, normalised by the image width and height "
+            "(`gld.flow_error`); every test pixel with valid depth and true flow. The "
+            "predicted pose is the Pretrained-Full probe's (section 6).\n\n"
+        )
+        return text
+
+    def overfitting(self, figure_dir: Path) -> str:
+        text = "## 8. Loss on training points against held-out pixels\n\n"
+        curves = {
+            name: self.run(name)["curves"]
+            for name in ("global_local_1px", "dispnet_1px", "fcrn_1px")
+            if self.run(name) is not None
+        }
+        if not curves:
+            return text + NOT_RUN + ".\n\n"
+        path = figure_dir / "overfitting.png"
+        _draw_overfitting(curves, {n: self._label(n) for n in curves}, path)
+        text += f"![training points against held-out pixels]({path.name})\n\n"
+        text += "| run | training points, last | test, last |\n|---|---|---|\n"
+        for name, curve in curves.items():
+            train = np.mean([v for _, v in curve["train"][-5:]]) if curve["train"] else None
+            test = curve["test"][-1][1] if curve["test"] else None
+            text += _row(
+                [
+                    self._label(name),
+                    "—" if train is None else f"{train:.4f}",
+                    "—" if test is None else f"{test:.4f}",
+                ]
+            )
+        return text + (
+            "\nSolid: the L1 inverse-depth loss on the supervised pixels of the training "
+            "batches (logged during training; the last five records averaged in the table); "
+            "dashed: Abs-Inv over every pixel of the test pairs (the same quantity on "
+            "held-out pixels), evaluated during training.\n\n"
+        )
+
+    def qualitative(self, figure_dir: Path) -> str:
+        text = "## 9. Qualitative results and generated filters\n\n"
+        path = self.workdir / "results" / "qualitative.npz"
+        if self.results.get("qualitative") is None or not path.exists():
+            text += f"Predictions: {NOT_RUN}.\n\n"
+        else:
+            out = figure_dir / "qualitative.png"
+            _draw_qualitative(path, {n: self._label(n) for n in self.runs}, out)
+            text += (
+                f"![image, truth and predictions on test pairs]({out.name})\n\n"
+                "Inverse depth, one colour scale for the whole grid.\n\n"
+            )
+        filters = self.results.get("filters")
+        if filters is None:
+            return text + f"Filters: {NOT_RUN}.\n\n"
+        for name in filters["figures"]:
+            shutil.copyfile(self.workdir / "results" / "figures" / name, figure_dir / name)
+            text += f"![generated filters]({name})\n"
+        correlation = filters["similarity_correlation"]
+        return text + (
+            "\nThe filter banks the global-local model generates for three test pairs: the "
+            "first, the one whose motion is most similar to it, and the least similar. "
+            f"Across {filters['pairs']} test pairs the similarity of the generated filters "
+            "and of the camera motions correlate: "
+            + ", ".join(f"{k} {v:.2f}" for k, v in correlation.items())
+            + ".\n\n"
+        )
+
+    def budgets(self) -> str:
+        text = "## Runs and budgets\n\n"
+        text += (
+            "| run | model | dataset | steps | batch | peak rate | supervised px | flow | "
+            "parameters | train time |\n|---|---|---|---|---|---|---|---|---|---|\n"
+        )
+        for name, run in self.runs.items():
+            result = self.run(name)
+            if result is None:
+                steps = paper_suite.run_steps(self.scale, run)
+                text += _row([name, run.model, "", f"{steps:,}", "", "", "", "", "", NOT_RUN])
+                continue
+            config = result["config"]
+            seconds = result.get("train_seconds")
+            text += _row(
+                [
+                    name,
+                    run.model,
+                    config["dataset"],
+                    f"{config['steps']:,}",
+                    config["batch_size"],
+                    f"{config['learning_rate']:g}",
+                    paper_suite.density_name(config["gt_pixels"]),
+                    config["flow_source"],
+                    f"{result['parameters']:,}",
+                    "—" if seconds is None else f"{seconds / 60:.1f} min",
+                ]
+            )
+        return text + "\n"
+
+
+def paper_runner_classical() -> tuple[str, ...]:
+    from gld import paper_runner
+
+    return paper_runner.CLASSICAL
+
+
+def write_report(
+    scale: Scale,
+    results: dict[str, dict],
+    workdir: str | Path,
+    report_dir: str | Path,
+    *,
+    commit: str = "",
+    command: str = "",
+) -> Path:
+    """Writes <report_dir>/README.md and its figures; returns the README's path."""
+    from gld import metrics
+
+    report_dir = Path(report_dir)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    report = Report(scale, results, workdir)
+    main = report.run("global_local_1px") or next(
+        (r for k, r in results.items() if k.startswith("train/")), None
+    )
+    height = main["config"]["height"] if main else 0
+    width = main["config"]["width"] if main else 0
+    count = main["metrics"]["abs_inv"]["count"] if main else 0
+    stamp = metrics.protocol_stamp(
+        height,
+        width,
+        count,
+        extra=(
+            f"{scale.steps:,} steps at batch {scale.batch_size} for every learned model but "
+            f"DispNet and FCRN ({scale.large_steps:,}); Adam, peak rate "
+            f"{scale.learning_rate:g}, warm-up then cosine decay; seed 0"
+        ),
+    )
+    sections = [
+        report.main_table(),
+        report.ablations(),
+        report.density(report_dir),
+        report.given_flow_and_pose(),
+        report.varying_intrinsics(),
+        report.pose_probe(),
+        report.flow_error(report_dir),
+        report.overfitting(report_dir),
+        report.qualitative(report_dir),
+    ]
+    finished = sum(1 for k in results if k.startswith("train/"))
+    head = (
+        f"# The paper's experiments on `{scale.dataset}` — suite `{scale.name}`\n\n"
+        f"Made by `{command or 'python -m experiments.paper --suite=' + scale.name}`"
+        f"{f' at commit {commit}' if commit else ''}; {finished} of {len(report.runs)} "
+        f"training runs finished. The suite takes {scale.hours}.\n\n"
+        f"{stamp[0].upper()}{stamp[1:]}\n\n"
+        "Every learned model gets the same input pipeline, loss (sparse L1 on inverse "
+        "depth + edge-aware smoothness; the global-local runs add the main job's epipolar "
+        "term), optimiser, learning rate, schedule and budget, except DispNet and FCRN, "
+        f"whose budget is {scale.large_steps:,} steps here: the largest this suite's "
+        'machine affords. "x mean" is Abs-Inv as a multiple of the dataset mean\'s. The '
+        "paper's numbers are its Scenes11 column (256x192, 94,000 steps).\n\n"
+    )
+    summary = "## Targets\n\n| target | verdict | numbers |\n|---|---|---|\n"
+    for name, holds, detail in report.targets:
+        summary += _row([name, _verdict(holds), detail])
+    text = head + summary + "\n" + "".join(sections) + report.budgets()
+    path = report_dir / "README.md"
+    temporary = report_dir / ".README.md.tmp"
+    temporary.write_text(text)
+    temporary.replace(path)
+    return path
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _draw_density(values: dict[str, list], labels: dict[str, str], path: Path) -> None:
+    plt = _plt()
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    positions = np.arange(len(paper_suite.DENSITIES))
+    width = 0.8 / len(values)
+    for index, (model, series) in enumerate(values.items()):
+        heights = [np.nan if v is None else v for v in series]
+        axis.bar(
+            positions + (index - (len(values) - 1) / 2) * width, heights, width, label=labels[model]
+        )
+    axis.set_xticks(positions, [paper_suite.density_name(d) for d in paper_suite.DENSITIES])
+    axis.set_xlabel("supervised pixels per image")
+    axis.set_ylabel("Abs-Inv")
+    axis.legend()
+    axis.grid(axis="y", alpha=0.3)
+    figure.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(figure)
+
+
+def _draw_overfitting(curves: dict[str, dict], labels: dict[str, str], path: Path) -> None:
+    plt = _plt()
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    for index, (name, curve) in enumerate(curves.items()):
+        colour = f"C{index}"
+        if curve["train"]:
+            steps, values = np.asarray(curve["train"]).T
+            axis.plot(steps, values, color=colour, label=f"{labels[name]}: training points")
+        if curve["test"]:
+            steps, values = np.asarray(curve["test"]).T
+            axis.plot(steps, values, "--o", color=colour, label=f"{labels[name]}: test pixels")
+    axis.set_xlabel("training step")
+    axis.set_ylabel("L1 inverse depth")
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(figure)
+
+
+def _draw_qualitative(npz_path: Path, labels: dict[str, str], path: Path) -> None:
+    from gld import paper_runner
+
+    plt = _plt()
+    with np.load(npz_path) as arrays:
+        arrays = dict(arrays)
+    truth = np.where(
+        arrays["depth_valid"], 1 / np.where(arrays["depth_valid"], arrays["depth"], 1), np.nan
+    )
+    limit = float(np.nanpercentile(truth, 99))
+    columns = [("image 1", None), ("truth", truth)]
+    columns += [(labels.get(n, n), arrays[n]) for n in paper_runner.QUALITATIVE_RUNS if n in arrays]
+    rows = len(arrays["ids"])
+    figure, axes = plt.subplots(
+        rows, len(columns), figsize=(2.6 * len(columns), 2.0 * rows), squeeze=False
+    )
+    for row in range(rows):
+        for column, (title, maps) in enumerate(columns):
+            axis = axes[row, column]
+            if maps is None:
+                axis.imshow(np.clip(arrays["image1"][row] + 0.5, 0, 1))
+            else:
+                shown = axis.imshow(maps[row], cmap="magma", vmin=0, vmax=limit)
+            if row == 0:
+                axis.set_title(title, fontsize=8)
+            axis.set_axis_off()
+    figure.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.02, label="inverse depth")
+    figure.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(figure)

@@ -1,0 +1,283 @@
+"""The paper's experimental section as one list of runs: what each suite trains and scores.
+
+A suite (`SUITES`) is a scale — dataset, resolution, budget — and `suite_runs` gives its
+training runs: the main table's models at one pixel per image, the ablations, the
+supervision densities, the given flow and given pose, and the varying intrinsics. Every
+learned model of a suite gets the same pipeline, loss, optimiser, learning rate,
+schedule and budget, except the two large baselines (DispNet, FCRN), whose budget
+(`Scale.large_steps`) is the largest the suite's machine affords; the report says so.
+
+The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): the
+epipolar term at 0.1 and a global encoder with instance normalisation that sees the flow
+alone. Two ablations therefore read differently from the paper's: "+ image pair" adds
+the image pair the main recipe leaves out, and the runs without a global module or
+without flow drop the epipolar term too (it needs g, and it reads the flow); the run
+"- epipolar term" measures what that alone costs.
+
+`run_config` turns a run into its `gld.config.TrainConfig`; `gld.paper_runner` trains,
+reuses and scores them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+# The main job's recipe for the global-local model (experiments/flags/demo.flags).
+MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False}
+MAIN_EPIPOLAR_WEIGHT = 0.1
+
+DENSITIES = (1, 4, 16, 64, 0)  # supervised pixels per image; 0 = dense
+LARGE_MODELS = ("dispnet", "fcrn")
+
+
+@dataclasses.dataclass(frozen=True)
+class Scale:
+    """A suite's data and budget.
+
+    Attributes:
+      name: the suite's name (`--suite`).
+      dataset, varying_dataset: TFDS names of the benchmark and of its varying-intrinsics
+        config.
+      steps: training steps of every learned model but the large ones.
+      large_steps: training steps of DispNet and FCRN.
+      batch_size, learning_rate: Adam's batch and peak rate (cosine decay to 1%).
+      warmup_fraction: linear warm-up, as a fraction of a run's steps.
+      curve_evaluations: test evaluations over training of the runs of the over-fitting
+        figure (the main global-local run and the large baselines).
+      curve_examples: test pairs of those evaluations (0 = all).
+      probe_steps: training steps of each pose-probe setting.
+      large_densities: the supervision densities DispNet is trained at.
+      global_local: extra options of every global-local run (e.g. a smaller encoder).
+      baseline_options: extra options of every baseline run.
+      figure_pairs: test pairs of the qualitative grid.
+      hours: what the suite takes on the machine it was sized for, for the report.
+    """
+
+    name: str
+    dataset: str
+    varying_dataset: str
+    steps: int
+    large_steps: int
+    batch_size: int = 16
+    learning_rate: float = 1e-3
+    warmup_fraction: float = 0.05
+    curve_evaluations: int = 8
+    curve_examples: int = 0
+    probe_steps: int = 2000
+    large_densities: tuple[int, ...] = DENSITIES
+    global_local: dict[str, Any] = dataclasses.field(default_factory=dict)
+    baseline_options: dict[str, Any] = dataclasses.field(default_factory=dict)
+    figure_pairs: int = 4
+    hours: str = ""
+
+
+SUITES: dict[str, Scale] = {
+    # Sized for the 2-core CPU machine at 128x96 (step times: experiments.benchmark).
+    "cpu": Scale(
+        name="cpu",
+        dataset="gld_scenes/small",
+        varying_dataset="gld_scenes/small_varying",
+        steps=2000,
+        large_steps=150,
+        large_densities=(1, 0),
+        hours="about 4 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
+    ),
+    # The paper's scale: 256x192 and its 94K steps for every model, on a GPU or hosts.
+    "paper": Scale(
+        name="paper",
+        dataset="gld_scenes/full",
+        varying_dataset="gld_scenes/full_varying",
+        steps=94_000,
+        large_steps=94_000,
+        learning_rate=3e-4,
+        warmup_fraction=0.01,
+        curve_evaluations=20,
+        curve_examples=200,
+        probe_steps=20_000,
+        hours="days on a CPU; about a day on one GPU",
+    ),
+    # A few steps on the tiny benchmark: the suite's machinery, not its numbers.
+    "tiny": Scale(
+        name="tiny",
+        dataset="gld_scenes/tiny",
+        varying_dataset="gld_scenes/tiny_varying",
+        steps=4,
+        large_steps=2,
+        batch_size=4,
+        curve_evaluations=2,
+        probe_steps=4,
+        large_densities=(1, 0),
+        global_local={"encoder_channels": [4, 8, 8, 8, 8]},
+        figure_pairs=2,
+        hours="about a minute",
+    ),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One training run of a suite.
+
+    Attributes:
+      name: its workdir's name under <suite workdir>/runs/, and its key in the report.
+      model: a name of `gld.model.MODELS`.
+      label: how tables name it.
+      varying: trained and tested on the varying-intrinsics dataset.
+      options: TrainConfig fields it sets beyond the suite's (gt_pixels, flow_source, ...).
+      model_config: the model's constructor options.
+      curve: evaluated over training (the over-fitting figure).
+    """
+
+    name: str
+    model: str
+    label: str
+    varying: bool = False
+    options: dict[str, Any] = dataclasses.field(default_factory=dict)
+    model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    curve: bool = False
+
+
+def density_name(gt_pixels: int) -> str:
+    """ "1px", "4px", ... or "dense" (gt_pixels 0)."""
+    return "dense" if gt_pixels == 0 else f"{gt_pixels}px"
+
+
+def _global_local(name: str, label: str, *, epipolar: bool = True, **kwargs) -> Run:
+    model_config = {**MAIN_RECIPE, **kwargs.pop("model_config", {})}
+    options = {"epipolar_weight": MAIN_EPIPOLAR_WEIGHT if epipolar else 0.0}
+    options.update(kwargs.pop("options", {}))
+    return Run(name, "global_local", label, options=options, model_config=model_config, **kwargs)
+
+
+BASELINE_LABELS = {
+    "small_encdec": "Small Enc-Dec",
+    "eigen": "Eigen",
+    "dispnet": "DispNet",
+    "fcrn": "FCRN",
+}
+
+
+def suite_runs(scale: Scale) -> list[Run]:
+    """Every training run of a suite, in the order they are made: the global-local model
+    and the smaller baselines first, DispNet and FCRN last."""
+    runs = [_global_local("global_local_1px", "global-local", curve=True)]
+    runs += [
+        Run("small_encdec_1px", "small_encdec", "Small Enc-Dec"),
+        Run("eigen_1px", "eigen", "Eigen"),
+    ]
+    runs += [
+        _global_local(
+            "global_local_image_pair",
+            "+ image pair (the paper's global module input)",
+            model_config={"use_image_pair": True},
+        ),
+        _global_local(
+            "global_local_no_coordconv", "- CoordConv", model_config={"use_coordinates": False}
+        ),
+        _global_local(
+            "global_local_no_global_module",
+            "- global module (static filters; no epipolar term)",
+            epipolar=False,
+            model_config={"use_global_module": False},
+        ),
+        _global_local(
+            "global_local_no_flow",
+            "- flow (the image pair instead; no epipolar term)",
+            epipolar=False,
+            model_config={"use_flow": False},
+        ),
+        _global_local("global_local_no_epipolar", "- epipolar term", epipolar=False),
+    ]
+    for gt_pixels in DENSITIES[1:]:
+        suffix = density_name(gt_pixels)
+        runs.append(
+            _global_local(
+                f"global_local_{suffix}",
+                f"global-local, {suffix}",
+                options={"gt_pixels": gt_pixels},
+            )
+        )
+        runs.append(
+            Run(
+                f"small_encdec_{suffix}",
+                "small_encdec",
+                f"Small Enc-Dec, {suffix}",
+                options={"gt_pixels": gt_pixels},
+            )
+        )
+    runs += [
+        _global_local(
+            "global_local_gt_flow", "global-local, true flow", options={"flow_source": "gt"}
+        ),
+        _global_local(
+            "global_local_gt_pose",
+            "global-local, true pose given (Ours-GT Pose)",
+            epipolar=False,
+            model_config={"global_source": "pose"},
+        ),
+    ]
+    runs += [
+        _global_local("global_local_varying", "global-local", varying=True),
+        Run("small_encdec_varying", "small_encdec", "Small Enc-Dec", varying=True),
+        Run("eigen_varying", "eigen", "Eigen", varying=True),
+    ]
+    # The large baselines last: on a CPU they take the longest for one row each.
+    runs += [
+        Run("dispnet_1px", "dispnet", "DispNet", curve=True),
+        Run("fcrn_1px", "fcrn", "FCRN", curve=True),
+    ]
+    for gt_pixels in scale.large_densities:
+        if gt_pixels != 1:
+            suffix = density_name(gt_pixels)
+            runs.append(
+                Run(
+                    f"dispnet_{suffix}",
+                    "dispnet",
+                    f"DispNet, {suffix}",
+                    options={"gt_pixels": gt_pixels},
+                )
+            )
+    if scale.large_densities == DENSITIES:  # the paper's scale: DispNet too
+        runs.append(Run("dispnet_varying", "dispnet", "DispNet", varying=True))
+    return runs
+
+
+def run_steps(scale: Scale, run: Run) -> int:
+    """A run's training steps: the suite's, or the large models' budget."""
+    return scale.large_steps if run.model in LARGE_MODELS else scale.steps
+
+
+def warmup_steps(scale: Scale, steps: int) -> int:
+    """The linear warm-up of a run of `steps` (at least one step, and fewer than `steps`)."""
+    return max(1, round(steps * scale.warmup_fraction)) if steps > 1 else 0
+
+
+def run_config(scale: Scale, run: Run, *, height: int, width: int):
+    """The run's `gld.config.TrainConfig` (validated)."""
+    from gld import config
+
+    steps = run_steps(scale, run)
+    model_config = dict(run.model_config)
+    model_config.update(scale.global_local if run.model == "global_local" else {})
+    options = {
+        "model": run.model,
+        "model_config": model_config,
+        "dataset": scale.varying_dataset if run.varying else scale.dataset,
+        "height": height,
+        "width": width,
+        "steps": steps,
+        "batch_size": scale.batch_size,
+        "learning_rate": scale.learning_rate,
+        "lr_schedule": "cosine",
+        "warmup_steps": warmup_steps(scale, steps),
+        "gt_pixels": 1,
+        "checkpoint_every": max(1, min(250, steps // 4)),
+        "eval_every": max(1, steps // scale.curve_evaluations) if run.curve else 0,
+        "eval_examples": scale.curve_examples,
+        "seed": 0,
+    }
+    if run.model != "global_local":
+        options.update(scale.baseline_options)
+    options.update(run.options)
+    return config.TrainConfig(**options).validate()

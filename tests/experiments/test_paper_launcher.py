@@ -1,0 +1,131 @@
+"""`python -m experiments.paper` on the tiny benchmark: runs, analyses and report; a
+finished task is reused; a killed suite continues where it stopped."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import REPO_ROOT
+
+ENV = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+
+
+def _command(data_dir, workdir, report_dir, only):
+    return [
+        sys.executable,
+        "-m",
+        "experiments.paper",
+        "--suite=tiny",
+        f"--data_dir={data_dir}",
+        f"--workdir={workdir}",
+        f"--report_dir={report_dir}",
+        f"--only={only}",
+        "--noprogress",
+    ]
+
+
+def _run(*args):
+    result = subprocess.run(
+        _command(*args), capture_output=True, text=True, env=ENV, cwd=REPO_ROOT, timeout=900
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return result.stdout
+
+
+ANALYSES = "pose_probe,triangulation_predicted_pose,flow_error,filters"
+
+
+def test_suite_trains_analyses_and_reports_then_reuses(tiny_scenes_dir, tmp_path):
+    workdir, report_dir = tmp_path / "suite", tmp_path / "report"
+    only = f"train/global_local_1px,train/small_encdec_1px,classical/tiny,{ANALYSES}"
+    first = _run(tiny_scenes_dir, workdir, report_dir, only)
+    assert "global_local_1px: 4 steps of global_local" in first
+    assert "[1/8] train/global_local_1px — suite ETA" in first
+
+    results = workdir / "results"
+    trained = json.loads((results / "train__global_local_1px.json").read_text())
+    assert trained["config"]["steps"] == 4 and trained["metrics"]["abs_inv"]["count"] == 16
+    # Evaluated during training for the over-fitting figure.
+    assert [step for step, _ in trained["curves"]["test"]] == [2, 4]
+    probe = json.loads((results / "pose_probe.json").read_text())["errors"]
+    assert {"scratch_mlp", "pretrained_mlp", "scratch_full", "pretrained_full"} <= set(probe)
+    curves = json.loads((results / "flow_error.json").read_text())["curves"]
+    assert set(curves) == {"global_local", "triangulation_gt_pose", "triangulation_predicted_pose"}
+    assert sum(curves["global_local"]["count"]) == sum(curves["triangulation_gt_pose"]["count"])
+
+    readme = (report_dir / "README.md").read_text()
+    assert "2 of 24 training runs finished" in readme
+    assert f"{trained['metrics']['abs_inv']['mean']:.4f} ±" in readme
+    assert "| Eigen | not run yet |" in readme
+    for figure in ("flow_error.png", "overfitting.png", "density.png"):
+        assert (report_dir / figure).exists(), figure
+
+    again = _run(tiny_scenes_dir, workdir, report_dir, only)
+    assert "steps of" not in again
+    assert "train/global_local_1px: done (reused" in again
+    assert json.loads((results / "train__global_local_1px.json").read_text()) == trained
+
+
+def test_killed_suite_continues_where_it_stopped(tiny_scenes_dir, tmp_path):
+    workdir, report_dir = tmp_path / "suite", tmp_path / "report"
+    only = "train/global_local_1px,train/global_local_no_coordconv"
+    process = subprocess.Popen(
+        _command(tiny_scenes_dir, workdir, report_dir, only),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+        cwd=REPO_ROOT,
+        start_new_session=True,
+    )
+    first_result = workdir / "results" / "train__global_local_1px.json"
+    deadline = time.monotonic() + 600
+    while not first_result.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    assert first_result.exists()
+    stamp = first_result.stat().st_mtime_ns
+
+    resumed = _run(tiny_scenes_dir, workdir, report_dir, only)
+    assert "train/global_local_1px: done (reused" in resumed
+    assert "global_local_1px: 4 steps" not in resumed
+    assert first_result.stat().st_mtime_ns == stamp
+    second = json.loads((workdir / "results" / "train__global_local_no_coordconv.json").read_text())
+    assert second["config"]["model_config"]["use_coordinates"] is False
+    assert second["metrics"]["abs_inv"]["count"] == 16
+
+
+def test_unknown_task_is_a_usage_error(tiny_scenes_dir, tmp_path):
+    result = subprocess.run(
+        _command(tiny_scenes_dir, tmp_path / "w", tmp_path / "r", "train/nonsense"),
+        capture_output=True,
+        text=True,
+        env=ENV,
+        cwd=REPO_ROOT,
+        timeout=300,
+    )
+    assert result.returncode != 0
+    assert "--only: unknown suite tasks ['train/nonsense']" in result.stderr
+    assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.slow
+def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
+    """Every run and analysis of the suite, DispNet and FCRN included."""
+    result = subprocess.run(
+        [*_command(tiny_scenes_dir, tmp_path / "w", tmp_path / "r", "train")[:-2], "--noprogress"],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        cwd=REPO_ROOT,
+        timeout=3000,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    readme = (tmp_path / "r" / "README.md").read_text()
+    assert "24 of 24 training runs finished" in readme
+    assert "not run yet" not in readme
+    assert (tmp_path / "r" / "qualitative.png").exists()

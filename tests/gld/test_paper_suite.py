@@ -1,0 +1,88 @@
+"""The suites' runs: one recipe and budget for every learned model, the ablations'
+switches, the densities, and configs that validate."""
+
+import pytest
+
+from gld import paper_suite
+from gld.paper_suite import SUITES
+
+
+@pytest.mark.parametrize("suite", sorted(SUITES))
+def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
+    scale = SUITES[suite]
+    runs = paper_suite.suite_runs(scale)
+    assert len({run.name for run in runs}) == len(runs)
+    for run in runs:
+        config = paper_suite.run_config(scale, run, height=48, width=64)
+        large = run.model in paper_suite.LARGE_MODELS
+        assert config.steps == (scale.large_steps if large else scale.steps), run.name
+        # The same optimiser, rate, schedule, batch and seed for every learned model.
+        assert (config.learning_rate, config.lr_schedule, config.batch_size, config.seed) == (
+            scale.learning_rate,
+            "cosine",
+            scale.batch_size,
+            0,
+        )
+        assert config.warmup_steps == max(1, round(config.steps * scale.warmup_fraction))
+        assert config.dataset == (scale.varying_dataset if run.varying else scale.dataset)
+        if run.model != "global_local":
+            assert config.epipolar_weight == 0 and config.model_config == {}
+
+
+def test_the_ablations_change_one_switch_of_the_main_recipe():
+    scale = SUITES["cpu"]
+    configs = {
+        run.name: paper_suite.run_config(scale, run, height=96, width=128)
+        for run in paper_suite.suite_runs(scale)
+        if run.model == "global_local"
+    }
+    main = configs["global_local_1px"]
+    assert main.model_config == {"encoder_norm": "instance", "use_image_pair": False}
+    assert main.epipolar_weight == 0.1 and main.gt_pixels == 1 and main.flow_source == "estimated"
+    # The over-fitting figure needs the main run's test curve.
+    assert main.eval_every == 2000 // scale.curve_evaluations
+
+    def differences(name):
+        config = configs[name]
+        changed = {k: v for k, v in config.model_config.items() if main.model_config.get(k) != v}
+        for option in ("epipolar_weight", "gt_pixels", "flow_source", "dataset"):
+            if getattr(config, option) != getattr(main, option):
+                changed[option] = getattr(config, option)
+        return changed
+
+    assert differences("global_local_image_pair") == {"use_image_pair": True}
+    assert differences("global_local_no_coordconv") == {"use_coordinates": False}
+    assert differences("global_local_no_global_module") == {
+        "use_global_module": False,
+        "epipolar_weight": 0.0,
+    }
+    assert differences("global_local_no_flow") == {"use_flow": False, "epipolar_weight": 0.0}
+    assert differences("global_local_no_epipolar") == {"epipolar_weight": 0.0}
+    assert differences("global_local_gt_flow") == {"flow_source": "gt"}
+    assert differences("global_local_gt_pose") == {"global_source": "pose", "epipolar_weight": 0.0}
+    assert differences("global_local_varying") == {"dataset": "gld_scenes/small_varying"}
+    for gt_pixels in (4, 16, 64, 0):
+        name = f"global_local_{paper_suite.density_name(gt_pixels)}"
+        assert differences(name) == {"gt_pixels": gt_pixels}
+
+
+def test_densities_and_the_large_models_budget():
+    cpu = {run.name: run for run in paper_suite.suite_runs(SUITES["cpu"])}
+    paper = {run.name: run for run in paper_suite.suite_runs(SUITES["paper"])}
+    for model in ("global_local", "small_encdec"):
+        for suffix in ("1px", "4px", "16px", "64px", "dense"):
+            assert f"{model}_{suffix}" in cpu and f"{model}_{suffix}" in paper
+    # DispNet: every density at the paper's scale, one pixel and dense on the CPU.
+    assert {n for n in cpu if n.startswith("dispnet")} == {"dispnet_1px", "dispnet_dense"}
+    assert {n for n in paper if n.startswith("dispnet")} == {
+        "dispnet_1px",
+        "dispnet_4px",
+        "dispnet_16px",
+        "dispnet_64px",
+        "dispnet_dense",
+        "dispnet_varying",
+    }
+    assert paper_suite.density_name(0) == "dense" and paper_suite.density_name(16) == "16px"
+    # The paper's scale gives every model the same budget; the CPU one cannot.
+    assert SUITES["paper"].large_steps == SUITES["paper"].steps == 94_000
+    assert SUITES["cpu"].large_steps < SUITES["cpu"].steps
