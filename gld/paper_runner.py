@@ -220,16 +220,16 @@ class SuiteRunner:
         return tasks
 
     def selected(self, only: Sequence[str] | None = None) -> list[Task]:
-        """The tasks named in `only` (a task name or a prefix such as "train/"), or all;
-        ValueError naming any name that matches no task."""
+        """The tasks named in `only` (a task's name, or a group: "train", "classical"),
+        or all; ValueError naming any name that matches no task."""
         tasks = self.tasks()
         if not only:
             return tasks
         names = [task.name for task in tasks]
-        unknown = [n for n in only if not any(t == n or t.startswith(n) for t in names)]
+        unknown = [n for n in only if not any(_matches(t, n) for t in names)]
         if unknown:
             raise ValueError(f"unknown suite tasks {unknown}; valid: {names}")
-        return [t for t in tasks if any(t.name == n or t.name.startswith(n) for n in only)]
+        return [t for t in tasks if any(_matches(t.name, n) for n in only)]
 
     def finished(self) -> dict[str, dict[str, Any]]:
         """The results of every finished task, by task name."""
@@ -470,6 +470,11 @@ class SuiteRunner:
 
 # The qualitative grid's columns (besides image and truth), in order.
 QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
+
+
+def _matches(task: str, name: str) -> bool:
+    """Whether `name` selects `task`: its whole name, or a leading group of it."""
+    return task == name or task.startswith(name.rstrip("/") + "/")
 
 
 def _train_seconds(run_dir: Path) -> float | None:

@@ -39,15 +39,37 @@ def _run(*args):
 ANALYSES = "pose_probe,triangulation_predicted_pose,flow_error,filters"
 
 
-def test_suite_trains_analyses_and_reports_then_reuses(tiny_scenes_dir, tmp_path):
+def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_path):
     workdir, report_dir = tmp_path / "suite", tmp_path / "report"
-    only = f"train/global_local_1px,train/small_encdec_1px,classical/tiny,{ANALYSES}"
-    first = _run(tiny_scenes_dir, workdir, report_dir, only)
-    assert "global_local_1px: 4 steps of global_local" in first
-    assert "[1/8] train/global_local_1px — suite ETA" in first
-
     results = workdir / "results"
-    trained = json.loads((results / "train__global_local_1px.json").read_text())
+    only = f"train/global_local_1px,train/small_encdec_1px,classical/tiny,{ANALYSES}"
+    # Killed (the whole process group) once its first task has finished.
+    process = subprocess.Popen(
+        _command(tiny_scenes_dir, workdir, report_dir, only),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=ENV,
+        cwd=REPO_ROOT,
+        start_new_session=True,
+    )
+    first_result = results / "train__global_local_1px.json"
+    deadline = time.monotonic() + 600
+    while not first_result.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    assert first_result.exists()
+    assert not (report_dir / "README.md").exists()
+    stamp = first_result.stat().st_mtime_ns
+
+    resumed = _run(tiny_scenes_dir, workdir, report_dir, only)
+    assert "train/global_local_1px: done (reused" in resumed
+    assert "global_local_1px: 4 steps" not in resumed
+    assert first_result.stat().st_mtime_ns == stamp
+    assert "small_encdec_1px: 4 steps of small_encdec" in resumed
+    assert "train/small_encdec_1px — suite ETA" in resumed
+
+    trained = json.loads(first_result.read_text())
     assert trained["config"]["steps"] == 4 and trained["metrics"]["abs_inv"]["count"] == 16
     # Evaluated during training for the over-fitting figure.
     assert [step for step, _ in trained["curves"]["test"]] == [2, 4]
@@ -65,38 +87,10 @@ def test_suite_trains_analyses_and_reports_then_reuses(tiny_scenes_dir, tmp_path
         assert (report_dir / figure).exists(), figure
 
     again = _run(tiny_scenes_dir, workdir, report_dir, only)
-    assert "steps of" not in again
-    assert "train/global_local_1px: done (reused" in again
-    assert json.loads((results / "train__global_local_1px.json").read_text()) == trained
-
-
-def test_killed_suite_continues_where_it_stopped(tiny_scenes_dir, tmp_path):
-    workdir, report_dir = tmp_path / "suite", tmp_path / "report"
-    only = "train/global_local_1px,train/global_local_no_coordconv"
-    process = subprocess.Popen(
-        _command(tiny_scenes_dir, workdir, report_dir, only),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=ENV,
-        cwd=REPO_ROOT,
-        start_new_session=True,
-    )
-    first_result = workdir / "results" / "train__global_local_1px.json"
-    deadline = time.monotonic() + 600
-    while not first_result.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.2)
-    os.killpg(process.pid, signal.SIGKILL)
-    process.wait()
-    assert first_result.exists()
-    stamp = first_result.stat().st_mtime_ns
-
-    resumed = _run(tiny_scenes_dir, workdir, report_dir, only)
-    assert "train/global_local_1px: done (reused" in resumed
-    assert "global_local_1px: 4 steps" not in resumed
-    assert first_result.stat().st_mtime_ns == stamp
-    second = json.loads((workdir / "results" / "train__global_local_no_coordconv.json").read_text())
-    assert second["config"]["model_config"]["use_coordinates"] is False
-    assert second["metrics"]["abs_inv"]["count"] == 16
+    assert "steps of" not in again and "suite ETA" not in again
+    for task in only.split(","):
+        assert f"{task}: done (reused" in again
+    assert json.loads(first_result.read_text()) == trained
 
 
 def test_unknown_task_is_a_usage_error(tiny_scenes_dir, tmp_path):

@@ -1,0 +1,69 @@
+"""The suite runner's bookkeeping: which tasks a selection names, when a result is reused,
+and what it reads from a run's metrics log."""
+
+import json
+
+import pytest
+
+from gld import paper_runner
+from gld.paper_suite import SUITES
+
+
+def _runner(tmp_path):
+    def no_data(dataset):
+        raise AssertionError(f"{dataset} must not be loaded to list or select tasks")
+
+    return paper_runner.SuiteRunner(SUITES["cpu"], tmp_path, no_data, print_fn=lambda _: None)
+
+
+def test_selection_by_name_and_group(tmp_path):
+    runner = _runner(tmp_path)
+    names = [task.name for task in runner.tasks()]
+    assert len([n for n in names if n.startswith("train/")]) == 24
+    assert names[-5:] == [
+        "pose_probe",
+        "triangulation_predicted_pose",
+        "flow_error",
+        "qualitative",
+        "filters",
+    ]
+
+    def selected(*only):
+        return [task.name for task in runner.selected(list(only))]
+
+    assert selected("classical") == ["classical/small", "classical/small_varying"]
+    assert selected("classical/small") == ["classical/small"]
+    assert selected("train/") == selected("train") == [n for n in names if n.startswith("train/")]
+    assert selected("train/global_local_1px") == ["train/global_local_1px"]
+    with pytest.raises(ValueError, match=r"unknown suite tasks \['train/global'\]"):
+        runner.selected(["train/global"])
+
+
+def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
+    runner = _runner(tmp_path)
+    task = next(t for t in runner.tasks() if t.name == "filters")
+    assert not runner._done(task)
+    path = paper_runner.result_path(tmp_path, task.name)
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"identity": task.identity}))
+    assert runner._done(task)
+    path.write_text(json.dumps({"identity": {**task.identity, "model": "another"}}))
+    assert not runner._done(task)
+    assert set(runner.finished()) == {"filters"}
+
+
+def test_curves_and_training_time_from_the_metrics_log(tmp_path):
+    lines = [
+        {"step": 50, "split": "train", "depth_l1": 0.05, "steps_per_sec": 5.0},
+        {"step": 100, "split": "train", "depth_l1": 0.04, "steps_per_sec": 2.5},
+        {"step": 100, "split": "test", "abs_inv": 0.03, "abs_rel": 0.4, "s_rmse": 0.3},
+        {"step": 150, "split": "train", "loss": 1.0},  # a self-supervised run's record
+    ]
+    (tmp_path / "metrics.jsonl").write_text("\n".join(json.dumps(line) for line in lines))
+    assert paper_runner._curves(tmp_path) == {
+        "train": [[50, 0.05], [100, 0.04]],
+        "test": [[100, 0.03]],
+    }
+    assert paper_runner._train_seconds(tmp_path) == pytest.approx(50 / 5.0 + 50 / 2.5)
+    assert paper_runner._duration(59 * 60) == "59 min"
+    assert paper_runner._duration(61 * 60 + 40) == "1 h 02 min"
