@@ -59,14 +59,6 @@ def _finished_step(workdir: Path) -> int | None:
     return step
 
 
-def _summarise(per_example: dict[str, Any]) -> tuple[dict[str, dict], int]:
-    from gld import metrics
-
-    per_example = dict(per_example)
-    mask = per_example.pop("example_mask").astype(bool)
-    return metrics.summarise(per_example, mask), int(mask.sum())
-
-
 def run_comparison(
     *,
     workdir: str | Path,
@@ -151,7 +143,7 @@ def run_comparison(
             flow_source=flow_source,
             max_examples=max_examples,
         )
-        results[name], num_examples = _summarise(per_example)
+        results[name], num_examples = evaluation.summarise_examples(per_example)
         runs[name] = {
             "workdir": str(run_dir),
             "parameters": model_lib.parameter_counts(variables["params"])["total"],
@@ -171,7 +163,7 @@ def run_comparison(
             flow_source=flow_source,
             max_examples=max_examples,
         )
-        results[name], num_examples = _summarise(per_example)
+        results[name], num_examples = evaluation.summarise_examples(per_example)
         runs[name] = {"parameters": 0, "steps": 0, "eval_seconds": time.perf_counter() - started}
         if "failed" in results[name]:
             failed = results[name]["failed"]

@@ -50,11 +50,10 @@ def main(argv):
             all_processes=False,
         )
     )
-    inspected = inspect_lib.filter_banks(variables, batch, model=model)
-    rotation, translation = inspect_lib.rotation_translation_of(batch)
-    filter_sim = inspect_lib.filter_similarity(inspected["kernels"], inspected["biases"])
-    motion_sim = inspect_lib.motion_similarity(rotation, translation)
-    correlation = inspect_lib.similarity_correlation(filter_sim, motion_sim)
+    inspected = inspect_lib.inspect_pairs(variables, batch, model)
+    rotation, translation = inspected["rotation"], inspected["translation"]
+    filter_sim, motion_sim = inspected["filter_similarity"], inspected["motion_similarity"]
+    correlation = inspected["correlation"]
 
     out_dir = Path(FLAGS.workdir) / "filters"
     out_dir.mkdir(parents=True, exist_ok=True)

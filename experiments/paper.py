@@ -89,20 +89,22 @@ def main(argv):
         runner.selected(FLAGS.only)
     except ValueError as error:
         raise app.UsageError(f"--only: {error}") from None
-    if FLAGS.report_only:
-        results = runner.finished()
-    else:
-        results = runner.run(FLAGS.only)
+    commit = _commit()
+    failures = [] if FLAGS.report_only else runner.run(FLAGS.only, commit=commit)
     if jax.process_index() == 0:
         path = paper_report.write_report(
             scale,
-            results,
+            runner.finished(),
             workdir,
             report_dir,
-            commit=_commit(),
+            commit=commit,
             command=f"python -m experiments.paper --suite={scale.name}",
         )
         print(f"wrote {path}")
+    if failures:
+        raise SystemExit(
+            "failed tasks (the others finished; re-run to retry):\n" + "\n".join(failures)
+        )
 
 
 if __name__ == "__main__":

@@ -300,6 +300,14 @@ def evaluate_predictor(
     return evaluate_batches(batches, score, all_processes=False)
 
 
+def summarise_examples(per_example: dict[str, np.ndarray]) -> tuple[dict[str, dict], int]:
+    """(`metrics.summarise` of the real examples, their number) of an evaluation's
+    per-example values (with "example_mask")."""
+    per_example = dict(per_example)
+    mask = np.asarray(per_example.pop("example_mask"), bool)
+    return metrics.summarise(per_example, mask), int(mask.sum())
+
+
 def fit_classical(name: str, train_source, flow_source: str = "estimated"):
     """A classical baseline by name, fitted on the training split when it needs to be."""
     from gld.baselines import classical

@@ -97,6 +97,29 @@ def similarity_correlation(filter_sim: np.ndarray, motion_sim: np.ndarray) -> di
     }
 
 
+def inspect_pairs(variables: dict, batch: dict[str, np.ndarray], model: nn.Module) -> dict:
+    """The filter banks a model generates for a batch of pairs, and how their similarity
+    follows the similarity of the pairs' camera motions.
+
+    Returns:
+      {"global_params", "kernels", "biases"} of `filter_banks`, "rotation" [B, 3, 3] and
+      "translation" [B, 3] (`rotation_translation_of`), "filter_similarity" and
+      "motion_similarity" [B, B], and "correlation" (`similarity_correlation`).
+    """
+    inspected = dict(filter_banks(variables, batch, model=model))
+    rotation, translation = rotation_translation_of(batch)
+    filter_sim = filter_similarity(inspected["kernels"], inspected["biases"])
+    motion_sim = motion_similarity(rotation, translation)
+    inspected.update(
+        rotation=rotation,
+        translation=translation,
+        filter_similarity=filter_sim,
+        motion_similarity=motion_sim,
+        correlation=similarity_correlation(filter_sim, motion_sim),
+    )
+    return inspected
+
+
 def draw_filter_banks(
     kernels: Sequence[np.ndarray], example: int, path: str | Path, title: str = ""
 ) -> Path:

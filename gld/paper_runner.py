@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -34,10 +35,31 @@ from gld.paper_suite import Run, Scale
 CLASSICAL = ("dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow")
 CLASSICAL_VARYING = ("dataset_mean", "oracle_pair_median", "sfm_flow")
 
-# Seconds per training step at 128x96, batch 16, on the 2-core CPU machine
-# (`python -m experiments.benchmark --height=96 --width=128 --models=...`), for the ETA.
-STEP_SECONDS = {"global_local": 0.2, "small_encdec": 0.4, "eigen": 0.46, "dispnet": 5.7}
+# Seconds per training step at 128x96, batch 16, on the 2-core CPU machine (the cpu
+# suite's runs, evaluations included; `experiments.benchmark` times the bare steps), and
+# of a pose-probe step: for the ETA only.
+STEP_SECONDS = {
+    "global_local": 0.27,
+    "small_encdec": 0.45,
+    "eigen": 0.5,
+    "dispnet": 6.0,
+    "fcrn": 5.0,
+    "pose_probe": 0.1,
+}
 DEFAULT_STEP_SECONDS = 5.0
+
+MAIN_RUN = "global_local_1px"
+# The pose probe reads the encoders of the main run, whose epipolar term trains g to be
+# the camera motion, and of the run without that term (g learned from depth alone:
+# the paper's setting).
+PROBED_RUNS = (MAIN_RUN, "global_local_no_epipolar")
+# Triangulation with a predicted pose uses the main run's encoder, fine-tuned on the pose.
+PREDICTED_POSE = (MAIN_RUN, "pretrained_full")
+FILTER_PAIRS = 16
+
+
+def step_seconds(model: str) -> float:
+    return STEP_SECONDS.get(model, DEFAULT_STEP_SECONDS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,17 +95,36 @@ def read_result(workdir: str | Path, task: str) -> dict[str, Any] | None:
 
 
 def _write_json(path: Path, content: dict[str, Any]) -> None:
+    from gld import workdir as workdir_lib
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(json.dumps(content, indent=1, default=_plain) + "\n")
-    os.replace(temporary, path)
+    workdir_lib.write_atomically(path, json.dumps(content, indent=1, default=_plain) + "\n")
 
 
 def _write_npz(path: Path, **arrays: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez(temporary, **arrays)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
+    with os.fdopen(handle, "wb") as stream:
+        np.savez(stream, **arrays)
     os.replace(temporary, path)
+
+
+def _config_identity(config) -> dict[str, Any]:
+    """A training run's identity: its whole configuration but the resolution, which the
+    dataset fixes."""
+    values = dataclasses.asdict(config)
+    values.pop("height"), values.pop("width")
+    return values
+
+
+def _same_identity(result: dict[str, Any], task: Task) -> bool:
+    return result.get("identity") == json.loads(json.dumps(task.identity, default=_plain))
+
+
+def _checkpointed_step(run_dir: Path) -> int:
+    """The newest checkpoint's step of a run directory (0 without one)."""
+    steps = [int(p.name) for p in (run_dir / "checkpoints").glob("*") if p.name.isdigit()]
+    return max(steps, default=0)
 
 
 def _plain(value: Any) -> Any:
@@ -95,11 +136,11 @@ def _plain(value: Any) -> Any:
 
 
 def _summary(per_example: dict[str, np.ndarray]) -> tuple[dict[str, dict], np.ndarray]:
-    from gld import metrics
+    """The evaluation's summary and each real example's Abs-Inv."""
+    from gld import evaluation
 
-    per_example = dict(per_example)
-    mask = per_example.pop("example_mask").astype(bool)
-    return metrics.summarise(per_example, mask), np.asarray(per_example["abs_inv"])[mask]
+    summary, _ = evaluation.summarise_examples(per_example)
+    return summary, np.asarray(per_example["abs_inv"])[np.asarray(per_example["example_mask"])]
 
 
 def _curves(run_dir: Path) -> dict[str, list[list[float]]]:
@@ -160,63 +201,68 @@ class SuiteRunner:
     # -- tasks --------------------------------------------------------------------------
 
     def tasks(self) -> list[Task]:
-        """Every task of the suite, in order."""
-        tasks = []
+        """Every task of the suite, in order. A task's identity is what its result depends
+        on: a training run's whole configuration; an analysis's options and the
+        identities of the results it reads."""
+        tasks: list[Task] = []
+        identities: dict[str, dict[str, Any]] = {}
+
+        def add(name, run, identity, seconds, needs=()):
+            identity = {**identity, "inputs": {need: identities[need] for need in needs}}
+            identities[name] = identity
+            tasks.append(Task(name, run, identity, seconds, tuple(needs)))
+
         for run in self.runs.values():
-            steps = paper_suite.run_steps(self.scale, run)
-            seconds = steps * STEP_SECONDS.get(run.model, DEFAULT_STEP_SECONDS) + 30
-            tasks.append(
-                Task(
-                    f"train/{run.name}",
-                    lambda run=run: self._train(run),
-                    {"run": dataclasses.asdict(run), "scale": self.scale.name, "steps": steps},
-                    seconds,
-                )
+            add(
+                f"train/{run.name}",
+                lambda run=run: self._train(run),
+                _config_identity(paper_suite.run_config(self.scale, run, height=0, width=0)),
+                paper_suite.run_steps(self.scale, run) * step_seconds(run.model) + 30,
             )
         for dataset, methods in (
             (self.scale.dataset, CLASSICAL),
             (self.scale.varying_dataset, CLASSICAL_VARYING),
         ):
-            tasks.append(
-                Task(
-                    f"classical/{dataset.split('/')[-1]}",
-                    lambda dataset=dataset, methods=methods: self._classical(dataset, methods),
-                    {"dataset": dataset, "methods": list(methods)},
-                    60,
-                )
+            add(
+                f"classical/{dataset.split('/')[-1]}",
+                lambda dataset=dataset, methods=methods: self._classical(dataset, methods),
+                {"dataset": dataset, "methods": list(methods)},
+                60,
             )
-        main = "global_local_1px"
-        tasks += [
-            Task(
-                "pose_probe",
-                self._pose_probe,
-                {"steps": self.scale.probe_steps, "encoder_of": main},
-                4 * self.scale.probe_steps * 0.1 + 60,
-                needs=(f"train/{main}",),
-            ),
-            Task(
-                "triangulation_predicted_pose",
-                self._triangulation_predicted_pose,
-                {"pose_of": "pretrained_full"},
-                30,
-                needs=("pose_probe",),
-            ),
-            Task(
-                "flow_error",
-                self._flow_error,
-                {"model": main, "pose_of": "pretrained_full"},
-                60,
-                needs=(f"train/{main}", "pose_probe"),
-            ),
-            Task(
-                "qualitative",
-                self._qualitative,
-                {"pairs": self.scale.figure_pairs},
-                60,
-                needs=tuple(f"train/{name}" for name in QUALITATIVE_RUNS),
-            ),
-            Task("filters", self._filters, {"model": main}, 20, needs=(f"train/{main}",)),
-        ]
+        probe = {
+            "steps": self.scale.probe_steps,
+            "batch_size": self.scale.batch_size,
+            "learning_rate": self.scale.learning_rate,
+        }
+        add(
+            "pose_probe",
+            self._pose_probe,
+            probe,
+            (4 + 2) * self.scale.probe_steps * step_seconds("pose_probe") + 60,
+            needs=[f"train/{name}" for name in PROBED_RUNS],
+        )
+        add(
+            "triangulation_predicted_pose",
+            self._triangulation_predicted_pose,
+            {"pose_of": PREDICTED_POSE},
+            30,
+            needs=["pose_probe"],
+        )
+        add(
+            "flow_error",
+            self._flow_error,
+            {"pose_of": PREDICTED_POSE},
+            60,
+            needs=[f"train/{MAIN_RUN}", "pose_probe"],
+        )
+        add(
+            "qualitative",
+            self._qualitative,
+            {"pairs": self.scale.figure_pairs},
+            60,
+            needs=[f"train/{name}" for name in QUALITATIVE_RUNS],
+        )
+        add("filters", self._filters, {"pairs": FILTER_PAIRS}, 20, needs=[f"train/{MAIN_RUN}"])
         return tasks
 
     def selected(self, only: Sequence[str] | None = None) -> list[Task]:
@@ -232,51 +278,81 @@ class SuiteRunner:
         return [t for t in tasks if any(_matches(t.name, n) for n in only)]
 
     def finished(self) -> dict[str, dict[str, Any]]:
-        """The results of every finished task, by task name."""
+        """The results of every finished task made with the suite's present definition."""
         results = {}
         for task in self.tasks():
             result = read_result(self.workdir, task.name)
-            if result is not None:
+            if result is not None and _same_identity(result, task):
                 results[task.name] = result
         return results
 
-    def run(self, only: Sequence[str] | None = None) -> dict[str, dict[str, Any]]:
-        """Runs every task not done yet (those named in `only`, if given; see `selected`);
-        returns the results of every finished task."""
+    def run(self, only: Sequence[str] | None = None, *, commit: str = "") -> list[str]:
+        """Runs every task not done yet (those named in `only`, if given; see
+        `selected`). A task that fails is reported and the suite goes on.
+
+        Training runs are collective (every process of a multi-process launch trains
+        them); the classical baselines and analyses run in process 0, which alone
+        writes results. Process 0 decides which tasks are pending.
+
+        Returns:
+          "<task>: <error>" for every task that failed.
+        """
         import jax
 
         tasks = self.selected(only)
-        pending = [task for task in tasks if not self._done(task)]
-        for task in tasks:
-            if task not in pending:
+        done = [self._done(task) for task in tasks]
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            done = [bool(d) for d in multihost_utils.broadcast_one_to_all(np.asarray(done))]
+        pending = [task for task, finished in zip(tasks, done, strict=True) if not finished]
+        for task, finished in zip(tasks, done, strict=True):
+            if finished:
                 self.print(f"{task.name}: done (reused {result_path(self.workdir, task.name)})")
-        spent, estimated = 0.0, 0.0
+        estimates = {task.name: self._remaining_seconds(task) for task in pending}
+        spent, estimated, failures = 0.0, 0.0, []
         for index, task in enumerate(pending):
-            remaining = sum(t.seconds for t in pending[index:])
-            pace = spent / estimated if estimated else 1.0
-            self.print(
-                f"[{index + 1}/{len(pending)}] {task.name} — suite ETA "
-                f"{_duration(remaining * pace)}"
-            )
-            missing = [need for need in task.needs if read_result(self.workdir, need) is None]
+            pace = spent / estimated if estimated > 600 else 1.0
+            remaining = sum(estimates[t.name] for t in pending[index:])
+            eta = _duration(remaining * pace)
+            self.print(f"[{index + 1}/{len(pending)}] {task.name} — suite ETA {eta}")
+            collective = task.name.startswith("train/")
+            if not collective and jax.process_index() != 0:
+                continue
+            missing = [need for need in task.needs if not self._done_name(need)]
             if missing:
                 self.print(f"{task.name}: skipped, needs {missing} first")
                 continue
             started = time.perf_counter()
-            result = task.run()
+            try:
+                result = task.run()
+            except Exception as error:  # noqa: BLE001 - one failed task must not stop the rest
+                failures.append(f"{task.name}: {type(error).__name__}: {error}")
+                self.print(f"{task.name}: FAILED ({failures[-1]}); going on with the others")
+                continue
             seconds = time.perf_counter() - started
-            result.update(task=task.name, identity=task.identity, seconds=seconds)
+            result.update(task=task.name, identity=task.identity, seconds=seconds, commit=commit)
             if jax.process_index() == 0:
                 _write_json(result_path(self.workdir, task.name), result)
             spent += seconds
-            estimated += task.seconds
-        return self.finished()
+            estimated += estimates[task.name]
+        return failures
 
     def _done(self, task: Task) -> bool:
         result = read_result(self.workdir, task.name)
-        return result is not None and result.get("identity") == json.loads(
-            json.dumps(task.identity, default=_plain)
-        )
+        return result is not None and _same_identity(result, task)
+
+    def _done_name(self, name: str) -> bool:
+        return any(task.name == name and self._done(task) for task in self.tasks())
+
+    def _remaining_seconds(self, task: Task) -> float:
+        """The task's estimated seconds, less the steps its run has checkpointed."""
+        if not task.name.startswith("train/"):
+            return task.seconds
+        run = self.runs[task.name.removeprefix("train/")]
+        steps = paper_suite.run_steps(self.scale, run)
+        left = max(0, steps - _checkpointed_step(self.run_dir(run.name)))
+        return left * step_seconds(run.model) + 30
 
     def _train(self, run: Run) -> dict[str, Any]:
         from gld import evaluation, train
@@ -286,6 +362,7 @@ class SuiteRunner:
         config = self._config(run)
         data = self.data(config.dataset)
         run_dir = self.run_dir(run.name)
+        self._supersede_other_configuration(run_dir, config)
         self.print(f"{run.name}: {config.steps} steps of {run.model} in {run_dir}")
         train.train_and_evaluate(
             config,
@@ -317,6 +394,21 @@ class SuiteRunner:
             "train_seconds": _train_seconds(run_dir),
         }
 
+    def _supersede_other_configuration(self, run_dir: Path, config) -> None:
+        """Moves a run directory trained with another configuration aside (never deleted),
+        so that the run starts afresh instead of resuming another one's checkpoints."""
+        from gld import workdir as workdir_lib
+
+        try:
+            changes = workdir_lib.check_run_config(run_dir, config)
+        except ValueError as error:
+            changes = {"architecture, dataset or resolution": str(error)}
+        if not changes:
+            return
+        aside = run_dir.with_name(f"{run_dir.name}.superseded-{time.strftime('%Y%m%d-%H%M%S')}")
+        self.print(f"{run_dir} was trained with other options {sorted(changes)}: moved to {aside}")
+        run_dir.rename(aside)
+
     def _classical(self, dataset: str, methods: Sequence[str]) -> dict[str, Any]:
         from gld import evaluation
 
@@ -331,36 +423,45 @@ class SuiteRunner:
         return {"dataset": data.name, "methods": results}
 
     def _pose_probe(self) -> dict[str, Any]:
+        """The four settings on the main run's encoder; the pretrained two on the encoder
+        of the run without the epipolar term (the scratch ones are the same there)."""
         from gld import probes
         from gld import workdir as workdir_lib
 
-        model, variables, config = workdir_lib.load_trained(self.run_dir("global_local_1px"))
-        data = self.data(config.dataset)
-        pretrained = probes.pretrained_global_encoder(model, variables)
-        settings = probes.pose_probe_settings(
-            data.train,
-            data.test,
-            pretrained=pretrained,
-            steps=self.scale.probe_steps,
-            batch_size=self.scale.batch_size,
-            learning_rate=self.scale.learning_rate,
-            warmup_steps=paper_suite.warmup_steps(self.scale, self.scale.probe_steps),
-            flow_source=config.flow_source,
-            seed=0,
-        )
-        poses = settings.pop("predicted")
-        arrays = {}
-        for setting, predicted in poses.items():
-            arrays[f"{setting}/ids"] = np.asarray(predicted["ids"], str)
-            arrays[f"{setting}/rotation"] = predicted["rotation"]
-            arrays[f"{setting}/translation"] = predicted["translation"]
+        errors, arrays = {}, {}
+        for index, name in enumerate(PROBED_RUNS):
+            model, variables, config = workdir_lib.load_trained(self.run_dir(name))
+            data = self.data(config.dataset)
+            settings = probes.pose_probe_settings(
+                data.train,
+                data.test,
+                pretrained=probes.pretrained_global_encoder(model, variables),
+                steps=self.scale.probe_steps,
+                batch_size=self.scale.batch_size,
+                learning_rate=self.scale.learning_rate,
+                warmup_steps=paper_suite.warmup_steps(self.scale, self.scale.probe_steps),
+                flow_source=config.flow_source,
+                seed=0,
+                settings=(
+                    tuple(probes.POSE_PROBE_SETTINGS)
+                    if index == 0
+                    else ("pretrained_mlp", "pretrained_full")
+                ),
+            )
+            for setting, predicted in settings.pop("predicted").items():
+                arrays[f"{name}/{setting}/ids"] = np.asarray(predicted["ids"], str)
+                arrays[f"{name}/{setting}/rotation"] = predicted["rotation"]
+                arrays[f"{name}/{setting}/translation"] = predicted["translation"]
+            errors[name] = settings
         _write_npz(self.workdir / "results" / "pose_probe_poses.npz", **arrays)
-        return {"errors": settings}
+        return {"errors": errors}
 
-    def _predicted_poses(self, setting: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    def _predicted_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Test pair id -> (rotation, translation) the probe of `PREDICTED_POSE` predicts."""
+        key = "/".join(PREDICTED_POSE)
         with np.load(self.workdir / "results" / "pose_probe_poses.npz") as poses:
-            ids = poses[f"{setting}/ids"]
-            rotation, translation = poses[f"{setting}/rotation"], poses[f"{setting}/translation"]
+            ids = poses[f"{key}/ids"]
+            rotation, translation = poses[f"{key}/rotation"], poses[f"{key}/translation"]
         return {str(i): (rotation[k], translation[k]) for k, i in enumerate(ids)}
 
     def _with_predicted_pose(self, batch: dict, poses) -> dict:
@@ -375,22 +476,22 @@ class SuiteRunner:
         from gld.baselines import classical
 
         data = self.data(self.scale.dataset)
-        poses = self._predicted_poses("pretrained_full")
+        poses = self._predicted_poses()
         triangulation = classical.TriangulationGtPose()
         per_example, _ = evaluation.evaluate_predictor(
             lambda batch: triangulation.predict(self._with_predicted_pose(batch, poses)),
             data.test,
         )
         summary, abs_inv = _summary(per_example)
-        return {"metrics": summary, "abs_inv_per_example": abs_inv, "pose_of": "pretrained_full"}
+        return {"metrics": summary, "abs_inv_per_example": abs_inv, "pose_of": list(PREDICTED_POSE)}
 
     def _flow_error(self) -> dict[str, Any]:
         from gld import flow_error
         from gld import workdir as workdir_lib
 
-        model, variables, config = workdir_lib.load_trained(self.run_dir("global_local_1px"))
+        model, variables, config = workdir_lib.load_trained(self.run_dir(MAIN_RUN))
         data = self.data(config.dataset)
-        poses = self._predicted_poses("pretrained_full")
+        poses = self._predicted_poses()
 
         def predicted_pose(batch):
             posed = self._with_predicted_pose(batch, poses)
@@ -440,23 +541,23 @@ class SuiteRunner:
         from gld import filter_inspection as inspect_lib
         from gld import workdir as workdir_lib
 
-        model, variables, config = workdir_lib.load_trained(self.run_dir("global_local_1px"))
+        model, variables, config = workdir_lib.load_trained(self.run_dir(MAIN_RUN))
         data = self.data(config.dataset)
-        count = min(16, len(data.test))
+        count = min(FILTER_PAIRS, len(data.test))
         batch = next(
             evaluation.split_batches(
-                data.test, batch_size=count, max_examples=count, all_processes=False
+                data.test,
+                batch_size=count,
+                flow_source=config.flow_source,
+                max_examples=count,
+                all_processes=False,
             )
         )
-        inspected = inspect_lib.filter_banks(variables, batch, model=model)
-        rotation, translation = inspect_lib.rotation_translation_of(batch)
-        filter_sim = inspect_lib.filter_similarity(inspected["kernels"], inspected["biases"])
-        motion_sim = inspect_lib.motion_similarity(rotation, translation)
-        correlation = inspect_lib.similarity_correlation(filter_sim, motion_sim)
+        inspected = inspect_lib.inspect_pairs(variables, batch, model)
         figures = self.workdir / "results" / "figures"
         figures.mkdir(parents=True, exist_ok=True)
-        # The most and the least similar motions among the pairs, to compare their banks.
-        order = np.argsort(motion_sim[0, 1:])
+        # The first pair, the pair whose motion is most like it and the least like it.
+        order = np.argsort(inspected["motion_similarity"][0, 1:])
         shown = [0, 1 + int(order[-1]), 1 + int(order[0])] if count > 2 else list(range(count))
         paths = []
         for example in shown:
@@ -465,7 +566,7 @@ class SuiteRunner:
                 inspected["kernels"], example, path, title=f"test pair {batch['id'][example]}"
             )
             paths.append(path.name)
-        return {"similarity_correlation": correlation, "figures": paths, "pairs": count}
+        return {"correlation": inspected["correlation"], "figures": paths, "pairs": count}
 
 
 # The qualitative grid's columns (besides image and truth), in order.

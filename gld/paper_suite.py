@@ -49,7 +49,6 @@ class Scale:
       probe_steps: training steps of each pose-probe setting.
       large_densities: the supervision densities DispNet is trained at.
       global_local: extra options of every global-local run (e.g. a smaller encoder).
-      baseline_options: extra options of every baseline run.
       figure_pairs: test pairs of the qualitative grid.
       hours: what the suite takes on the machine it was sized for, for the report.
     """
@@ -67,7 +66,6 @@ class Scale:
     probe_steps: int = 2000
     large_densities: tuple[int, ...] = DENSITIES
     global_local: dict[str, Any] = dataclasses.field(default_factory=dict)
-    baseline_options: dict[str, Any] = dataclasses.field(default_factory=dict)
     figure_pairs: int = 4
     hours: str = ""
 
@@ -258,8 +256,9 @@ def run_config(scale: Scale, run: Run, *, height: int, width: int):
     from gld import config
 
     steps = run_steps(scale, run)
-    model_config = dict(run.model_config)
-    model_config.update(scale.global_local if run.model == "global_local" else {})
+    # A run's own options (an ablation's switch) win over the suite's.
+    model_config = {**(scale.global_local if run.model == "global_local" else {})}
+    model_config.update(run.model_config)
     options = {
         "model": run.model,
         "model_config": model_config,
@@ -277,7 +276,5 @@ def run_config(scale: Scale, run: Run, *, height: int, width: int):
         "eval_examples": scale.curve_examples,
         "seed": 0,
     }
-    if run.model != "global_local":
-        options.update(scale.baseline_options)
     options.update(run.options)
     return config.TrainConfig(**options).validate()

@@ -662,10 +662,12 @@ def pose_probe_settings(
     warmup_steps: int = 50,
     seed: int = 0,
     hidden: Sequence[int] = (256, 256),
+    settings: Sequence[str] = tuple(POSE_PROBE_SETTINGS),
 ) -> dict[str, Any]:
     """The paper's pose table (Sec. 4.4) for one trained model: `fit_pose_probe` in the
-    four settings of `POSE_PROBE_SETTINGS`, the encoder random ("scratch") or the
-    model's ("pretrained"), frozen ("mlp") or trained with the MLP ("full").
+    four settings of `POSE_PROBE_SETTINGS` (or those named in `settings`), the encoder
+    random ("scratch") or the model's ("pretrained"), frozen ("mlp") or trained with the
+    MLP ("full").
 
     Every setting has the same encoder architecture and inputs, MLP initialisation,
     training batches in the same order, steps, optimiser and standardisation of g (see
@@ -676,15 +678,19 @@ def pose_probe_settings(
       pretrained: `pretrained_global_encoder(model, variables)` of the trained model.
       steps, statistics_batches, flow_source, batch_size, learning_rate, warmup_steps,
         seed, hidden: as in `fit_pose_probe`.
+      settings: the settings to run (e.g. the pretrained ones only, for a second model).
 
     Returns:
-      {"scratch_mlp", "pretrained_mlp", "scratch_full", "pretrained_full": each
+      {each setting of `settings` ("scratch_mlp", "pretrained_mlp", ...):
          {"rotation_deg", "translation_deg"}, mean errors (degrees) on the test pairs,
        "mean_pose": {"rotation_deg", "translation_deg"} of the test pairs' mean pose,
        "predicted": {setting: {"ids": [N] str, "rotation": [N, 3, 3] float64,
          "translation": [N, 3] float64}}, each setting's predicted poses
          (`fit_pose_probe`'s "predicted")}.
     """
+    unknown = sorted(set(settings) - set(POSE_PROBE_SETTINGS))
+    if unknown or not settings:
+        raise ValueError(f"settings must be among {list(POSE_PROBE_SETTINGS)}, got {settings}")
     missing = [name for name in (*ENCODER_OPTIONS, "encoder_params") if name not in pretrained]
     if missing:
         raise ValueError(
@@ -706,7 +712,8 @@ def pose_probe_settings(
     )
     results: dict[str, Any] = {}
     predicted = {}
-    for setting, (from_pretrained, train_encoder) in POSE_PROBE_SETTINGS.items():
+    for setting in settings:
+        from_pretrained, train_encoder = POSE_PROBE_SETTINGS[setting]
         fitted = fit(pretrained["encoder_params"] if from_pretrained else None, train_encoder)
         results[setting] = fitted["probe"]
         predicted[setting] = fitted["predicted"]

@@ -56,7 +56,10 @@ def _verdicts(readme: str) -> dict[str, str]:
     return verdicts
 
 
-MAIN = "global-local at least 15% below every learned baseline (paper: 20-53%)"
+MAIN = (
+    "global-local at least 15% below every learned baseline with the same budget "
+    "(the paper's Scenes11: 18-33%)"
+)
 ABLATIONS = "each ablation worse than the full model"
 DENSITY = "global-local within 15% of its dense error, Small Enc-Dec at least 25% worse"
 VARYING = "varying intrinsics cost global-local at most 10%"
@@ -81,11 +84,16 @@ def test_main_table_target_needs_every_baseline_15_percent_worse(
     assert _verdicts(readme)[MAIN] == verdict
     gap = 1 - 0.030 / closest_baseline
     assert f"Eigen {gap:.0%}" in readme
+    # DispNet and FCRN, trained 150 of 2,000 steps on the CPU, are listed, not counted.
+    values["dispnet_1px"] = 0.031
+    readme = _write(tmp_path, _results(values))
+    assert _verdicts(readme)[MAIN] == verdict
+    assert "at their shorter budget (not counted in the verdict): DispNet 3%, FCRN 33%" in readme
     # Our number beside the paper's, and the ratio to the dataset mean (0.040).
     assert "| global-local | 0.0300 ± 0.0100 | 0.400 | 0.350 | 0.75 | 0.031 / 0.43 / 0.61 |" in (
         readme
     )
-    assert "| DispNet (150 steps) | 0.0450 ± 0.0150 |" in readme
+    assert "| DispNet (150 steps) | 0.0310 ± 0.0103 |" in readme
 
 
 def test_targets_not_measured_until_their_runs_finish(tmp_path):
@@ -112,6 +120,18 @@ def test_ablation_density_and_varying_targets(tmp_path):
     readme = _write(tmp_path, _results(values))
     verdicts = _verdicts(readme)
     assert verdicts[ABLATIONS] == "**holds**"
+    # The main run has no image pair: beside it the paper's "- Image Pair" row; the run
+    # with the pair added back sits beside the paper's full model.
+    assert "| global-local | 0.0300 ± 0.0100 | 0.400 | 0.350 | 0.75 | 0.033 / 0.45 / 0.62 |" in (
+        readme
+    )
+    pair_row = "| + image pair (the paper's global module input) | 0.0290 ± 0.0097 | 0.400 | 0.350 "
+    assert pair_row + f"| {0.029 / 0.040:.2f} | 0.033 / 0.43 / 0.61 |" in readme
+    # DispNet is trained at one pixel and dense only in the CPU suite.
+    density = readme.split("## 3.")[1].split("## 4.")[0]
+    assert (
+        "| DispNet (150 steps) | not run yet | not in this suite | not in this suite |" in density
+    )
     assert verdicts[DENSITY] == "**holds**"
     assert verdicts[VARYING] == "**holds**"
     assert "global-local's one-pixel error is +11% against its dense error" in readme
@@ -134,20 +154,29 @@ def test_pose_probe_table_and_target(tmp_path):
 
     probe = {
         "errors": {
-            "scratch_mlp": errors(3.0, 60.0),
-            "pretrained_mlp": errors(2.0, 30.0),
-            "scratch_full": errors(1.9, 25.0),
-            "pretrained_full": errors(1.8, 24.0),
-            "mean_pose": errors(3.6, 70.0),
+            "global_local_1px": {
+                "scratch_mlp": errors(3.0, 60.0),
+                "pretrained_mlp": errors(1.0, 10.0),
+                "scratch_full": errors(1.9, 25.0),
+                "pretrained_full": errors(1.8, 24.0),
+                "mean_pose": errors(3.6, 70.0),
+            },
+            "global_local_no_epipolar": {
+                "pretrained_mlp": errors(2.0, 30.0),
+                "pretrained_full": errors(1.85, 24.5),
+                "mean_pose": errors(3.6, 70.0),
+            },
         }
     }
     readme = _write(tmp_path, _results({}, pose_probe=probe))
+    # The verdict reads the encoder trained by the depth loss alone (the second column).
     assert _verdicts(readme)[POSE] == "**holds**"
-    assert (
-        "| Pretrained-MLP (the trained model's encoder, MLP trained) | 2.00 | 30.0 | 0.9 / 26.7 |"
-        in (readme)
-    )
-    probe["errors"]["pretrained_mlp"] = errors(2.0, 61.0)  # worse translation
+    assert "rotation 2.00 against 3.00 deg from scratch, translation 30.0 against 60.0" in readme
+    label = "Pretrained-MLP (the trained model's encoder, MLP trained)"
+    assert f"| {label} | 1.00 / 10.0 | 2.00 / 30.0 | 0.9 / 26.7 |" in readme
+    label = "Scratch-MLP (random encoder, MLP trained)"
+    assert f"| {label} | 3.00 / 60.0 | 3.00 / 60.0 | 1.3 / 74.4 |" in readme
+    probe["errors"]["global_local_no_epipolar"]["pretrained_mlp"] = errors(2.0, 61.0)
     assert _verdicts(_write(tmp_path, _results({}, pose_probe=probe)))[POSE] == (
         "**does not hold**"
     )

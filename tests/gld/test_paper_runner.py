@@ -47,9 +47,25 @@ def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"identity": task.identity}))
     assert runner._done(task)
-    path.write_text(json.dumps({"identity": {**task.identity, "model": "another"}}))
-    assert not runner._done(task)
     assert set(runner.finished()) == {"filters"}
+    path.write_text(json.dumps({"identity": {**task.identity, "pairs": 3}}))
+    assert not runner._done(task) and runner.finished() == {}
+
+
+def test_an_analysis_is_redone_when_a_run_it_reads_changes(tmp_path):
+    import dataclasses
+
+    def identities(scale):
+        runner = paper_runner.SuiteRunner(scale, tmp_path, None, print_fn=lambda _: None)
+        return {task.name: task.identity for task in runner.tasks()}
+
+    before = identities(SUITES["cpu"])
+    after = identities(dataclasses.replace(SUITES["cpu"], learning_rate=5e-4))
+    assert before["train/global_local_1px"]["learning_rate"] == 1e-3
+    for name in ("train/global_local_1px", "pose_probe", "flow_error", "filters", "qualitative"):
+        assert before[name] != after[name], name
+    # The references do not depend on any training run.
+    assert before["classical/small"] == after["classical/small"]
 
 
 def test_curves_and_training_time_from_the_metrics_log(tmp_path):

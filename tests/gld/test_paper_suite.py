@@ -86,3 +86,32 @@ def test_densities_and_the_large_models_budget():
     # The paper's scale gives every model the same budget; the CPU one cannot.
     assert SUITES["paper"].large_steps == SUITES["paper"].steps == 94_000
     assert SUITES["cpu"].large_steps < SUITES["cpu"].steps
+
+
+def test_learned_models_differ_only_where_the_suite_says():
+    """Against the main run's configuration, a baseline differs in the model, its options
+    and the epipolar term; every other option (loss weights, augmentation, flow,
+    schedule, checkpoints) is the same, at the same density and dataset."""
+    import dataclasses
+
+    scale = SUITES["cpu"]
+    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+
+    def config(name):
+        values = dataclasses.asdict(paper_suite.run_config(scale, runs[name], height=96, width=128))
+        return {k: v for k, v in values.items() if k not in ("eval_every", "eval_examples")}
+
+    main = config("global_local_1px")
+    for name in ("small_encdec_1px", "eigen_1px"):
+        differing = {k for k, v in config(name).items() if main[k] != v}
+        assert differing == {"model", "model_config", "epipolar_weight"}, name
+    # The large baselines also differ in their budget (and so warm-up and checkpoints).
+    differing = {k for k, v in config("dispnet_1px").items() if main[k] != v}
+    assert differing == {
+        "model",
+        "model_config",
+        "epipolar_weight",
+        "steps",
+        "warmup_steps",
+        "checkpoint_every",
+    }
