@@ -170,6 +170,7 @@ def test_flow_scale_multiplies_the_flow_both_modules_see():
     assert not np.allclose(a["global_params"], c["global_params"])
 
 
+@pytest.mark.slow  # global_norm="batch": an option no recipe uses
 def test_batch_normalised_global_params_vary_across_pairs_from_initialisation():
     image1, image2, flow = _inputs(batch=8)
     spread = {}
@@ -186,6 +187,7 @@ def test_batch_normalised_global_params_vary_across_pairs_from_initialisation():
     np.testing.assert_allclose(spread["batch"], 1.0, rtol=0.02)
 
 
+@pytest.mark.slow  # global_norm="batch": an option no recipe uses
 def test_batch_normalised_global_params_use_running_statistics_at_test_time():
     image1, image2, flow = _inputs(batch=4)
     model = model_lib.GlobalLocal(global_norm="batch")

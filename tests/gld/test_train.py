@@ -151,6 +151,7 @@ def test_changed_options_are_stored_only_by_a_launch_that_trains(
     assert _metrics_steps(run_dir) == [(step, "train") for step in range(1, 7)]
 
 
+@pytest.mark.slow  # learning is also checked by the true-flow test, in the default run
 def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
     source = tiny_scenes.as_data_source("train")
     batch = next(
