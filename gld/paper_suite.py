@@ -79,7 +79,7 @@ SUITES: dict[str, Scale] = {
         steps=2000,
         large_steps=150,
         large_densities=(1, 0),
-        hours="about 4 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
+        hours="about 4-5 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
     ),
     # The paper's scale: 256x192 and its 94K steps for every model, on a GPU or hosts.
     "paper": Scale(
