@@ -125,10 +125,9 @@ def draw_filter_banks(
 ) -> Path:
     """Draws one pair's filter banks as image grids (rows: output channels, columns: input
     channels, each cell a k x k filter), one panel per bank, on a shared colour scale."""
-    import matplotlib
+    from gld import reports
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = reports.pyplot()
 
     banks = [np.asarray(k[example]) for k in kernels]  # [k, k, C_in, C_out]
     limit = max(float(np.abs(b).max()) for b in banks) or 1.0
@@ -149,11 +148,7 @@ def draw_filter_banks(
     figure.colorbar(shown, ax=np.atleast_1d(axes).tolist(), fraction=0.02)
     if title:
         figure.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=80, bbox_inches="tight")
-    plt.close(figure)
-    return path
+    return reports.save_figure(figure, path, dpi=80)
 
 
 def rotation_translation_of(batch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ the image size. Here:
         source, batch_size=16)
     draw_flow_error_curves(curves, "flow_errors.png")
 
-A predictor is a `DepthPredictor`: a function of an example-contract batch returning
+A predictor is a `DepthMethod`: a function of an example-contract batch returning
 depth [B, H, W], with the contract keys it reads, so the pipeline decodes only those.
 Statistics are accumulated per bin as (sum, sum of squares, count) in a `FlowErrorBins`,
 so batches (and processes) add up exactly and the mean and std are taken once.
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import input_pipeline, layers
+from gld import input_pipeline, layers, metrics
 
 Batch = Mapping[str, Any]
 Array = Any  # np.ndarray | jax.Array
@@ -93,11 +93,9 @@ def per_pixel_abs_inv(
         raise ValueError(
             f"depth_pred {depth_pred.shape} and depth_true {depth_true.shape} must match"
         )
-    valid = jnp.asarray(valid, bool) & jnp.isfinite(depth_true) & (depth_true > 0)
-    usable = valid & jnp.isfinite(depth_pred) & (depth_pred > 0)
-    safe_true = jnp.where(usable, depth_true, 1.0)
-    # The floor keeps 1/d finite in float32 for positive predictions below it (as metrics).
-    safe_pred = jnp.where(usable, jnp.maximum(depth_pred, 1e-12), 1.0)
+    _, usable, safe_true, safe_pred = metrics.scored_pixels(
+        depth_pred, depth_true, jnp.asarray(valid, bool)
+    )
     error = jnp.abs(1.0 / safe_true - 1.0 / safe_pred)
     return jnp.where(usable, error, jnp.nan), usable
 
@@ -261,7 +259,7 @@ def summarise(bins: FlowErrorBins) -> dict[str, np.ndarray]:
 
 
 @dataclasses.dataclass(frozen=True)
-class DepthPredictor:
+class DepthMethod:
     """A depth method for `flow_error_curves`.
 
     Attributes:
@@ -304,29 +302,29 @@ def triangulated_depth(batch: Batch, rotation: Array, translation: Array) -> Arr
 def triangulation_predictor(
     pose: Callable[[Batch], tuple[Array, Array]] | None = None,
     pose_keys: Sequence[str] = (),
-) -> DepthPredictor:
+) -> DepthMethod:
     """Triangulation of the input flow (`triangulated_depth`) with the batch's true pose,
     or with `pose(batch) -> (rotation [B, 3, 3], translation [B, 3])` reading `pose_keys`
     (e.g. the pose a network predicts)."""
     if pose is None:
-        return DepthPredictor(
+        return DepthMethod(
             lambda batch: triangulated_depth(batch, batch["rotation"], batch["translation"]),
             TRIANGULATION_KEYS + POSE_KEYS,
         )
-    return DepthPredictor(
+    return DepthMethod(
         lambda batch: triangulated_depth(batch, *pose(batch)),
         TRIANGULATION_KEYS + tuple(pose_keys),
     )
 
 
-def model_predictor(model, variables: dict) -> DepthPredictor:
+def model_predictor(model, variables: dict) -> DepthMethod:
     """A depth model's (e.g. the global-local model's) "depth" output, jitted; it reads
     `gld.layers.input_keys(model)`."""
     apply = jax.jit(
         lambda variables, batch: layers.apply_model(model, variables, batch, train=False)["depth"]
     )
     keys = layers.input_keys(model)
-    return DepthPredictor(
+    return DepthMethod(
         lambda batch: apply(variables, {key: batch[key] for key in keys}), tuple(keys)
     )
 
@@ -351,7 +349,7 @@ def flow_error_curves(
     counted apart.
 
     Args:
-      predictors: name -> `DepthPredictor` (or any callable batch -> depth [B, H, W]
+      predictors: name -> `DepthMethod` (or any callable batch -> depth [B, H, W]
         with a `keys` attribute; without one it may read `ANALYSIS_KEYS` only).
       source: random-access records (e.g. `builder.as_data_source("test")`).
       batch_size: examples per batch.
@@ -430,10 +428,9 @@ def draw_flow_error_curves(
     Returns:
       the PNG's path.
     """
-    import matplotlib
+    from gld import reports
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = reports.pyplot()
 
     figure, axis = plt.subplots(figsize=(6, 4))
     for name, curve in curves.items():
@@ -453,8 +450,4 @@ def draw_flow_error_curves(
         axis.legend()
     if title:
         axis.set_title(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(figure)
-    return path
+    return reports.save_figure(figure, path)

@@ -48,11 +48,7 @@ def depth_metrics(
       out for their prediction. An example without a scored pixel gets NaN errors
       (`summarise` leaves them out of the means and says so in its counts).
     """
-    valid = valid & (depth_true > 0) & jnp.isfinite(depth_true)
-    scored = valid & jnp.isfinite(depth_pred) & (depth_pred > 0)
-    safe_true = jnp.where(scored, depth_true, 1.0)
-    # The floor keeps 1/d finite in float32 for positive predictions below it.
-    safe_pred = jnp.where(scored, jnp.maximum(depth_pred, 1e-12), 1.0)
+    valid, scored, safe_true, safe_pred = scored_pixels(depth_pred, depth_true, valid)
     weight = scored.astype(jnp.float32)
     count = jnp.sum(weight, axis=(1, 2))
     denominator = jnp.maximum(count, 1.0)
@@ -71,6 +67,24 @@ def depth_metrics(
     per_example["num_pixels"] = count
     per_example["excluded_pixels"] = jnp.sum(valid & ~scored, axis=(1, 2)).astype(jnp.float32)
     return per_example
+
+
+def scored_pixels(
+    depth_pred: jax.Array, depth_true: jax.Array, valid: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Which pixels a depth error is scored on, and the depths to score them with.
+
+    Returns:
+      (valid: `valid` where the truth is finite and > 0; scored: those of them whose
+      prediction is finite and > 0 (the others are excluded, and counted); safe_true,
+      safe_pred: the depths where scored and 1 elsewhere, the prediction floored at 1e-12
+      so that 1/d stays finite in float32).
+    """
+    valid = valid & (depth_true > 0) & jnp.isfinite(depth_true)
+    scored = valid & jnp.isfinite(depth_pred) & (depth_pred > 0)
+    safe_true = jnp.where(scored, depth_true, 1.0)
+    safe_pred = jnp.where(scored, jnp.maximum(depth_pred, 1e-12), 1.0)
+    return valid, scored, safe_true, safe_pred
 
 
 def resize_nearest(depth: jax.Array, height: int, width: int) -> jax.Array:

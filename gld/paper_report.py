@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from gld import paper_suite
+from gld import metrics, paper_runner, paper_suite, reports
+from gld import workdir as workdir_lib
 from gld.paper_suite import Scale
 
 # The paper's Scenes11 numbers (Abs-Inv, Abs-Rel, S-RMSE), by our row.
@@ -157,7 +158,7 @@ class Report:
 
     def main_table(self) -> str:
         rows = [(n, self.run(n), PAPER_MAIN[n]) for n in PAPER_MAIN]
-        rows += [(n, self.classical(n), None) for n in paper_runner_classical()]
+        rows += [(n, self.classical(n), None) for n in paper_runner.CLASSICAL]
         text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows) + "\n"
         ours = _metric(self.run("global_local_1px"))
         gaps, short = {}, {}
@@ -352,8 +353,6 @@ class Report:
         )
 
     def pose_probe(self) -> str:
-        from gld import paper_runner
-
         main, depth_only = paper_runner.PROBED_RUNS
         text = "## 6. Pose from the global parameters (Sec. 4.4)\n\n"
         result = self.results.get("pose_probe")
@@ -539,12 +538,6 @@ class Report:
         return text + "\n"
 
 
-def paper_runner_classical() -> tuple[str, ...]:
-    from gld import paper_runner
-
-    return paper_runner.CLASSICAL
-
-
 def write_report(
     scale: Scale,
     results: dict[str, dict],
@@ -555,9 +548,6 @@ def write_report(
     command: str = "",
 ) -> Path:
     """Writes <report_dir>/README.md and its figures; returns the README's path."""
-    from gld import metrics
-    from gld import workdir as workdir_lib
-
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
     report = Report(scale, results, workdir)
@@ -624,17 +614,8 @@ def write_report(
     return path
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _draw_density(values: dict[str, list], labels: dict[str, str], path: Path) -> None:
-    plt = _plt()
+    plt = reports.pyplot()
     figure, axis = plt.subplots(figsize=(6, 3.5))
     positions = np.arange(len(paper_suite.DENSITIES))
     width = 0.8 / len(values)
@@ -648,12 +629,11 @@ def _draw_density(values: dict[str, list], labels: dict[str, str], path: Path) -
     axis.set_ylabel("Abs-Inv")
     axis.legend()
     axis.grid(axis="y", alpha=0.3)
-    figure.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(figure)
+    reports.save_figure(figure, path)
 
 
 def _draw_overfitting(curves: dict[str, dict], labels: dict[str, str], path: Path) -> None:
-    plt = _plt()
+    plt = reports.pyplot()
     figure, axis = plt.subplots(figsize=(6, 3.5))
     for index, (name, curve) in enumerate(curves.items()):
         colour = f"C{index}"
@@ -667,14 +647,11 @@ def _draw_overfitting(curves: dict[str, dict], labels: dict[str, str], path: Pat
     axis.set_ylabel("L1 inverse depth")
     axis.legend(fontsize=7)
     axis.grid(alpha=0.3)
-    figure.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(figure)
+    reports.save_figure(figure, path)
 
 
 def _draw_qualitative(npz_path: Path, labels: dict[str, str], path: Path) -> None:
-    from gld import paper_runner
-
-    plt = _plt()
+    plt = reports.pyplot()
     with np.load(npz_path) as arrays:
         arrays = dict(arrays)
     truth = np.where(
@@ -698,5 +675,4 @@ def _draw_qualitative(npz_path: Path, labels: dict[str, str], path: Path) -> Non
                 axis.set_title(title, fontsize=8)
             axis.set_axis_off()
     figure.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.02, label="inverse depth")
-    figure.savefig(path, dpi=90, bbox_inches="tight")
-    plt.close(figure)
+    reports.save_figure(figure, path, dpi=90)

@@ -18,9 +18,8 @@ the report.
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
-import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -102,11 +101,12 @@ def _write_json(path: Path, content: dict[str, Any]) -> None:
 
 
 def _write_npz(path: Path, **arrays: np.ndarray) -> None:
+    from gld import workdir as workdir_lib
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
-    with os.fdopen(handle, "wb") as stream:
-        np.savez(stream, **arrays)
-    os.replace(temporary, path)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    workdir_lib.write_atomically(path, buffer.getvalue())
 
 
 def _config_identity(config) -> dict[str, Any]:
@@ -143,19 +143,25 @@ def _summary(per_example: dict[str, np.ndarray]) -> tuple[dict[str, dict], np.nd
     return summary, np.asarray(per_example["abs_inv"])[np.asarray(per_example["example_mask"])]
 
 
-def _curves(run_dir: Path) -> dict[str, list[list[float]]]:
-    """The training loss on the supervised pixels and the test Abs-Inv, by step."""
+def _training_log(run_dir: Path) -> tuple[dict[str, list[list[float]]], float | None]:
+    """From a run's metrics log: the training loss on the supervised pixels and the test
+    Abs-Inv by step, and the seconds of training (from the step rates, over every
+    launch; None without a log)."""
+    from gld import workdir as workdir_lib
+
+    records = workdir_lib.read_metrics(run_dir)
     curves: dict[str, list[list[float]]] = {"train": [], "test": []}
-    path = run_dir / "metrics.jsonl"
-    if not path.exists():
-        return curves
-    for line in path.read_text().splitlines():
-        record = json.loads(line)
-        if record.get("split") == "train" and "depth_l1" in record:
-            curves["train"].append([record["step"], record["depth_l1"]])
+    seconds, previous = 0.0, 0
+    for record in records:
+        if record.get("split") == "train":
+            if "depth_l1" in record:
+                curves["train"].append([record["step"], record["depth_l1"]])
+            if record.get("steps_per_sec"):
+                seconds += (record["step"] - previous) / record["steps_per_sec"]
+                previous = record["step"]
         elif record.get("split") == "test" and "abs_inv" in record:
             curves["test"].append([record["step"], record["abs_inv"]])
-    return curves
+    return curves, (seconds if records else None)
 
 
 class SuiteRunner:
@@ -300,6 +306,7 @@ class SuiteRunner:
         import jax
 
         tasks = self.selected(only)
+        by_name = {task.name: task for task in self.tasks()}
         done = [self._done(task) for task in tasks]
         if jax.process_count() > 1:
             from jax.experimental import multihost_utils
@@ -319,7 +326,7 @@ class SuiteRunner:
             collective = task.name.startswith("train/")
             if not collective and jax.process_index() != 0:
                 continue
-            missing = [need for need in task.needs if not self._done_name(need)]
+            missing = [need for need in task.needs if not self._done(by_name[need])]
             if missing:
                 self.print(f"{task.name}: skipped, needs {missing} first")
                 continue
@@ -341,9 +348,6 @@ class SuiteRunner:
     def _done(self, task: Task) -> bool:
         result = read_result(self.workdir, task.name)
         return result is not None and _same_identity(result, task)
-
-    def _done_name(self, name: str) -> bool:
-        return any(task.name == name and self._done(task) for task in self.tasks())
 
     def _remaining_seconds(self, task: Task) -> float:
         """The task's estimated seconds, less the steps its run has checkpointed."""
@@ -381,6 +385,7 @@ class SuiteRunner:
             flow_source=saved.flow_source,
         )
         summary, abs_inv = _summary(per_example)
+        curves, train_seconds = _training_log(run_dir)
         return {
             "run": run.name,
             "model": run.model,
@@ -390,8 +395,8 @@ class SuiteRunner:
             "parameters": model_lib.parameter_counts(variables["params"])["total"],
             "metrics": summary,
             "abs_inv_per_example": abs_inv,
-            "curves": _curves(run_dir),
-            "train_seconds": _train_seconds(run_dir),
+            "curves": curves,
+            "train_seconds": train_seconds,
         }
 
     def _supersede_other_configuration(self, run_dir: Path, config) -> None:
@@ -456,32 +461,35 @@ class SuiteRunner:
         _write_npz(self.workdir / "results" / "pose_probe_poses.npz", **arrays)
         return {"errors": errors}
 
-    def _predicted_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Test pair id -> (rotation, translation) the probe of `PREDICTED_POSE` predicts."""
+    def _predicted_pose(self) -> Callable[[dict], tuple[np.ndarray, np.ndarray]]:
+        """batch -> (rotation [B, 3, 3], translation [B, 3]) that the probe of
+        `PREDICTED_POSE` predicts for the batch's test pairs (by id)."""
         key = "/".join(PREDICTED_POSE)
         with np.load(self.workdir / "results" / "pose_probe_poses.npz") as poses:
-            ids = poses[f"{key}/ids"]
+            row = {str(i): k for k, i in enumerate(poses[f"{key}/ids"])}
             rotation, translation = poses[f"{key}/rotation"], poses[f"{key}/translation"]
-        return {str(i): (rotation[k], translation[k]) for k, i in enumerate(ids)}
 
-    def _with_predicted_pose(self, batch: dict, poses) -> dict:
-        batch = dict(batch)
-        ids = [str(i) for i in batch["id"]]
-        batch["rotation"] = np.stack([poses[i][0] for i in ids]).astype(np.float32)
-        batch["translation"] = np.stack([poses[i][1] for i in ids]).astype(np.float32)
-        return batch
+        def pose(batch):
+            rows = [row[str(i)] for i in batch["id"]]
+            return rotation[rows].astype(np.float32), translation[rows].astype(np.float32)
+
+        return pose
 
     def _triangulation_predicted_pose(self) -> dict[str, Any]:
         from gld import evaluation
         from gld.baselines import classical
 
         data = self.data(self.scale.dataset)
-        poses = self._predicted_poses()
+        pose = self._predicted_pose()
         triangulation = classical.TriangulationGtPose()
-        per_example, _ = evaluation.evaluate_predictor(
-            lambda batch: triangulation.predict(self._with_predicted_pose(batch, poses)),
-            data.test,
-        )
+
+        def predict(batch):
+            rotation, translation = pose(batch)
+            return triangulation.predict(
+                {**batch, "rotation": rotation, "translation": translation}
+            )
+
+        per_example, _ = evaluation.evaluate_predictor(predict, data.test)
         summary, abs_inv = _summary(per_example)
         return {"metrics": summary, "abs_inv_per_example": abs_inv, "pose_of": list(PREDICTED_POSE)}
 
@@ -491,16 +499,12 @@ class SuiteRunner:
 
         model, variables, config = workdir_lib.load_trained(self.run_dir(MAIN_RUN))
         data = self.data(config.dataset)
-        poses = self._predicted_poses()
-
-        def predicted_pose(batch):
-            posed = self._with_predicted_pose(batch, poses)
-            return posed["rotation"], posed["translation"]
-
         predictors = {
             "global_local": flow_error.model_predictor(model, variables),
             "triangulation_gt_pose": flow_error.triangulation_predictor(),
-            "triangulation_predicted_pose": flow_error.triangulation_predictor(predicted_pose),
+            "triangulation_predicted_pose": flow_error.triangulation_predictor(
+                self._predicted_pose()
+            ),
         }
         curves = flow_error.flow_error_curves(
             predictors, data.test, batch_size=self.scale.batch_size
@@ -508,9 +512,7 @@ class SuiteRunner:
         return {"curves": curves}
 
     def _qualitative(self) -> dict[str, Any]:
-        import jax
-
-        from gld import evaluation, layers
+        from gld import evaluation, flow_error
         from gld import workdir as workdir_lib
 
         data = self.data(self.scale.dataset)
@@ -528,11 +530,7 @@ class SuiteRunner:
         }
         for name in QUALITATIVE_RUNS:
             model, variables, _ = workdir_lib.load_trained(self.run_dir(name))
-            keys = layers.input_keys(model)
-            outputs = jax.jit(lambda b, m=model, v=variables: layers.apply_model(m, v, b))(
-                {k: batch[k] for k in keys}
-            )
-            arrays[name] = np.asarray(outputs["inv_depth"])
+            arrays[name] = 1.0 / np.asarray(flow_error.model_predictor(model, variables)(batch))
         _write_npz(self.workdir / "results" / "qualitative.npz", **arrays)
         return {"runs": list(QUALITATIVE_RUNS), "ids": arrays["ids"]}
 
@@ -576,20 +574,6 @@ QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
 def _matches(task: str, name: str) -> bool:
     """Whether `name` selects `task`: its whole name, or a leading group of it."""
     return task == name or task.startswith(name.rstrip("/") + "/")
-
-
-def _train_seconds(run_dir: Path) -> float | None:
-    """Seconds of training, from the metrics log's step rates (over every launch)."""
-    path = run_dir / "metrics.jsonl"
-    if not path.exists():
-        return None
-    seconds, previous = 0.0, 0
-    for line in path.read_text().splitlines():
-        record = json.loads(line)
-        if record.get("split") == "train" and record.get("steps_per_sec"):
-            seconds += (record["step"] - previous) / record["steps_per_sec"]
-            previous = record["step"]
-    return seconds
 
 
 def _duration(seconds: float) -> str:

@@ -405,24 +405,25 @@ def _pose_probe_fitter(
     test_source: Sequence[Any],
     *,
     steps: int,
-    standardise_global_params: bool,
-    statistics_batches: int,
-    encoder_channels: Sequence[int],
-    encoder_strides: Sequence[int],
-    global_dim: int,
-    kernel_size: int,
-    encoder_norm: str,
-    use_image_pair: bool,
-    flow_scale: float,
-    flow_source: str,
-    batch_size: int,
-    learning_rate: float,
-    warmup_steps: int,
-    seed: int,
-    hidden: Sequence[int],
+    standardise_global_params: bool = True,
+    statistics_batches: int = 8,
+    encoder_channels: Sequence[int] = (16, 32, 64, 128, 256),
+    encoder_strides: Sequence[int] = (2, 2, 2, 2, 1),
+    global_dim: int = 6,
+    kernel_size: int = 3,
+    encoder_norm: str = "none",
+    use_image_pair: bool = True,
+    flow_scale: float = 10.0,
+    flow_source: str = "gt",
+    batch_size: int = 16,
+    learning_rate: float = 1e-3,
+    warmup_steps: int = 50,
+    seed: int = 0,
+    hidden: Sequence[int] = (256, 256),
 ) -> Callable[[Any, bool], dict[str, Any]]:
-    """The training and scoring of `fit_pose_probe`, as fit(encoder_params,
-    train_encoder): runs with the same options reuse one compilation of each step."""
+    """The training and scoring of `fit_pose_probe` (its options and their defaults), as
+    fit(encoder_params, train_encoder): fits with the same options reuse one compilation
+    of each step."""
     from gld import input_pipeline, layers, state
     from gld.global_encoder import GlobalEncoder
 
@@ -558,21 +559,7 @@ def fit_pose_probe(
     steps: int,
     encoder_params: Any = None,
     train_encoder: bool = True,
-    standardise_global_params: bool = True,
-    statistics_batches: int = 8,
-    encoder_channels: Sequence[int] = (16, 32, 64, 128, 256),
-    encoder_strides: Sequence[int] = (2, 2, 2, 2, 1),
-    global_dim: int = 6,
-    kernel_size: int = 3,
-    encoder_norm: str = "none",
-    use_image_pair: bool = True,
-    flow_scale: float = 10.0,
-    flow_source: str = "gt",
-    batch_size: int = 16,
-    learning_rate: float = 1e-3,
-    warmup_steps: int = 50,
-    seed: int = 0,
-    hidden: Sequence[int] = (256, 256),
+    **options: Any,
 ) -> dict[str, Any]:
     """The paper's pose probe (Sec. 4.4): a `PoseMLP` on the global module's output g,
     trained to regress the relative pose, with the encoder trained or frozen.
@@ -600,6 +587,8 @@ def fit_pose_probe(
         "encoder_params"; their shapes must fit the encoder options); None draws them
         with `seed`.
       train_encoder: False freezes the encoder: only the MLP's parameters are updated.
+      **options: keyword options, with the defaults of `_pose_probe_fitter` (the
+        paper's encoder):
       standardise_global_params: standardise g as described above (False: the MLP reads
         g as it is, as `train_encoder_on_pose` does).
       statistics_batches: training batches the standardisation's statistics come from.
@@ -626,26 +615,7 @@ def fit_pose_probe(
        "global_params_statistics": {"mean": [G], "std": [G]} float64: the fixed
          standardisation of g (0 and 1 without it)}.
     """
-    fit = _pose_probe_fitter(
-        train_source,
-        test_source,
-        steps=steps,
-        standardise_global_params=standardise_global_params,
-        statistics_batches=statistics_batches,
-        encoder_channels=encoder_channels,
-        encoder_strides=encoder_strides,
-        global_dim=global_dim,
-        kernel_size=kernel_size,
-        encoder_norm=encoder_norm,
-        use_image_pair=use_image_pair,
-        flow_scale=flow_scale,
-        flow_source=flow_source,
-        batch_size=batch_size,
-        learning_rate=learning_rate,
-        warmup_steps=warmup_steps,
-        seed=seed,
-        hidden=hidden,
-    )
+    fit = _pose_probe_fitter(train_source, test_source, steps=steps, **options)
     return fit(encoder_params, train_encoder)
 
 
@@ -655,14 +625,8 @@ def pose_probe_settings(
     *,
     pretrained: dict[str, Any],
     steps: int,
-    statistics_batches: int = 8,
-    flow_source: str = "gt",
-    batch_size: int = 16,
-    learning_rate: float = 1e-3,
-    warmup_steps: int = 50,
-    seed: int = 0,
-    hidden: Sequence[int] = (256, 256),
     settings: Sequence[str] = tuple(POSE_PROBE_SETTINGS),
+    **options: Any,
 ) -> dict[str, Any]:
     """The paper's pose table (Sec. 4.4) for one trained model: `fit_pose_probe` in the
     four settings of `POSE_PROBE_SETTINGS` (or those named in `settings`), the encoder
@@ -676,9 +640,11 @@ def pose_probe_settings(
     Args:
       train_source, test_source: random-access records of the splits.
       pretrained: `pretrained_global_encoder(model, variables)` of the trained model.
-      steps, statistics_batches, flow_source, batch_size, learning_rate, warmup_steps,
-        seed, hidden: as in `fit_pose_probe`.
+      steps: training steps of each setting.
       settings: the settings to run (e.g. the pretrained ones only, for a second model).
+      **options: statistics_batches, flow_source, batch_size, learning_rate,
+        warmup_steps, seed, hidden, as in `fit_pose_probe` (the encoder's options come
+        from `pretrained`, and g is always standardised).
 
     Returns:
       {each setting of `settings` ("scratch_mlp", "pretrained_mlp", ...):
@@ -696,19 +662,16 @@ def pose_probe_settings(
         raise ValueError(
             f"pretrained lacks {missing}: pass pretrained_global_encoder(model, variables)"
         )
+    fixed = sorted(set(options) & {*ENCODER_OPTIONS, "standardise_global_params"})
+    if fixed:
+        raise ValueError(f"{fixed} are fixed by the pretrained model and the settings")
     fit = _pose_probe_fitter(
         train_source,
         test_source,
         steps=steps,
         standardise_global_params=True,
-        statistics_batches=statistics_batches,
         **{name: pretrained[name] for name in ENCODER_OPTIONS},
-        flow_source=flow_source,
-        batch_size=batch_size,
-        learning_rate=learning_rate,
-        warmup_steps=warmup_steps,
-        seed=seed,
-        hidden=hidden,
+        **options,
     )
     results: dict[str, Any] = {}
     predicted = {}

@@ -19,6 +19,27 @@ import numpy as np
 from gld import metrics
 
 
+def pyplot():
+    """matplotlib's pyplot on the Agg backend: figures go to files, never to a display."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(figure, path: str | Path, *, dpi: int = 100) -> Path:
+    """Writes a figure as PNG (its folder created, the margins trimmed) and closes it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=dpi, bbox_inches="tight")
+    plt.close(figure)
+    return path
+
+
 def write_report(
     out_dir: str | Path,
     results: dict[str, tuple[dict[str, np.ndarray], list[str]]],
@@ -107,11 +128,7 @@ def render_examples(
     99th percentile of the ground truth over the examples); the supervised pixels
     (`sparse_mask`) are circled on image 1.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     truths = [
@@ -142,7 +159,5 @@ def render_examples(
             axis.set_axis_off()
         name = str(example["id"]).replace("/", "_")
         path = out_dir / f"{name}.png"
-        figure.savefig(path, dpi=80, bbox_inches="tight")
-        plt.close(figure)
-        paths.append(path)
+        paths.append(save_figure(figure, path, dpi=80))
     return paths

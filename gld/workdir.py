@@ -103,13 +103,13 @@ def _warn(message: str) -> None:
     warnings.warn(message, CheckpointWarning, stacklevel=3)
 
 
-def write_atomically(path: Path, text: str) -> None:
-    """Writes `text` to `path` through a temporary file in the same directory and
-    `os.replace`, so a reader (or a killed writer) sees the old file or the new one."""
+def write_atomically(path: Path, text: str | bytes) -> None:
+    """Writes `text` (or bytes) to `path` through a temporary file in the same directory
+    and `os.replace`, so a reader (or a killed writer) sees the old file or the new one."""
     path = Path(path)
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(handle, "w") as stream:
+        with os.fdopen(handle, "wb" if isinstance(text, bytes) else "w") as stream:
             stream.write(text)
             stream.flush()
             os.fsync(stream.fileno())
@@ -668,6 +668,21 @@ def load_trained(
 
 
 # ------------------------------------------------------------------------- metrics
+
+
+def read_metrics(workdir: str | Path) -> list[dict[str, Any]]:
+    """The records of a run's metrics.jsonl, in order (none without the file); a line cut
+    short by a killed writer is skipped."""
+    path = Path(workdir) / METRICS_FILE
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            continue
+    return records
 
 
 def drop_metrics_after(workdir: str | Path, step: int) -> int:

@@ -128,7 +128,7 @@ def test_true_depth_gives_zero_error_and_counts_every_usable_pixel(tiny_scenes):
 
     curves = flow_error.flow_error_curves(
         {
-            "truth": flow_error.DepthPredictor(true_depth),
+            "truth": flow_error.DepthMethod(true_depth),
             "triangulation_gt_pose": flow_error.triangulation_predictor(),
         },
         source,

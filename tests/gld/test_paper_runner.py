@@ -76,10 +76,11 @@ def test_curves_and_training_time_from_the_metrics_log(tmp_path):
         {"step": 150, "split": "train", "loss": 1.0},  # a self-supervised run's record
     ]
     (tmp_path / "metrics.jsonl").write_text("\n".join(json.dumps(line) for line in lines))
-    assert paper_runner._curves(tmp_path) == {
+    curves, seconds = paper_runner._training_log(tmp_path)
+    assert curves == {
         "train": [[50, 0.05], [100, 0.04]],
         "test": [[100, 0.03]],
     }
-    assert paper_runner._train_seconds(tmp_path) == pytest.approx(50 / 5.0 + 50 / 2.5)
+    assert seconds == pytest.approx(50 / 5.0 + 50 / 2.5)
     assert paper_runner._duration(59 * 60) == "59 min"
     assert paper_runner._duration(61 * 60 + 40) == "1 h 02 min"

@@ -301,3 +301,20 @@ def test_checkpoints_without_checksums_load_with_a_warning(two_checkpoints):
     trained = workdir.restore_trained(run_dir, print_fn=messages.append)
     assert trained.step == 2
     assert any(m.startswith("checkpoint step 4 skipped: restoring") for m in messages)
+
+
+def test_the_metrics_log_is_read_in_order_without_a_line_cut_short(tmp_path):
+    assert workdir.read_metrics(tmp_path) == []
+    lines = [json.dumps({"step": 1, "split": "train"}), json.dumps({"step": 2, "split": "test"})]
+    (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + '\n{"step": 3, "spl')
+    assert workdir.read_metrics(tmp_path) == [
+        {"step": 1, "split": "train"},
+        {"step": 2, "split": "test"},
+    ]
+
+
+def test_bytes_are_written_atomically_as_they_are(tmp_path):
+    payload = bytes(range(256))
+    workdir.write_atomically(tmp_path / "blob.npz", payload)
+    assert (tmp_path / "blob.npz").read_bytes() == payload
+    assert [p.name for p in tmp_path.iterdir()] == ["blob.npz"]
