@@ -92,6 +92,26 @@ def _cells(result: dict | None, reference: float | None) -> list[str]:
     return cells
 
 
+def training_loss(result: dict) -> float | None:
+    """A run's mean loss on its supervised training pixels over the last quarter of its
+    logged steps (what the learning-rate check compares; never the test split)."""
+    values = [value for _, value in result["curves"]["train"]]
+    if not values:
+        return None
+    return float(np.mean(values[-max(1, len(values) // 4) :]))
+
+
+def collapse(result: dict) -> tuple[int, int, int] | None:
+    """(first step, count, logged steps) of the zero gradients of a run that collapsed:
+    its gradient norm is zero at a quarter or more of its logged steps (a saturated
+    output no longer learns). None otherwise, or without a logged gradient."""
+    norms = result["curves"].get("grad_norm", [])
+    zero = [step for step, norm in norms if norm < 1e-12]
+    if not norms or 4 * len(zero) < len(norms):
+        return None
+    return int(zero[0]), len(zero), len(norms)
+
+
 def _paper(numbers: Sequence[float] | None) -> str:
     return " / ".join(f"{n:g}" for n in numbers) if numbers else "—"
 
@@ -132,15 +152,28 @@ class Report:
         return _metric(self.classical("dataset_mean", varying))
 
     def _label(self, name: str) -> str:
-        if name in self.runs:
-            run = self.runs[name]
-            steps = paper_suite.run_steps(self.scale, run)
-            return (
-                f"{run.label} ({steps:,} steps)"
-                if run.model in paper_suite.LARGE_MODELS
-                else run.label
-            )
-        return CLASSICAL_LABELS.get(name, name)
+        if name not in self.runs:
+            return CLASSICAL_LABELS.get(name, name)
+        run = self.runs[name]
+        label = run.label
+        if run.model in paper_suite.LARGE_MODELS:
+            label += f" ({paper_suite.run_steps(self.scale, run):,} steps)"
+        result = self.run(name)
+        if result is not None and (collapsed := collapse(result)) is not None:
+            label += f" — collapsed: zero gradient from step {collapsed[0]:,}"
+        return label
+
+    def compared_run(self, name: str) -> str | None:
+        """The run of a main-table model that its comparisons use: with a learning-rate
+        check, the one of its two rates with the lower training loss (None until both
+        have finished); else the run itself."""
+        if self.scale.check_learning_rate is None or name not in paper_suite.RATE_CHECKED:
+            return name
+        candidates = [name, paper_suite.low_rate_name(name)]
+        losses = [training_loss(r) if (r := self.run(n)) else None for n in candidates]
+        if None in losses:
+            return None
+        return candidates[int(np.argmin(losses))]
 
     def _table(self, rows: Sequence[tuple[str, dict | None, Any]], varying: bool = False) -> str:
         reference = self.mean_reference(varying)
@@ -158,12 +191,17 @@ class Report:
 
     def main_table(self) -> str:
         rows = [(n, self.run(n), PAPER_MAIN[n]) for n in PAPER_MAIN]
+        if self.scale.check_learning_rate is not None:
+            low = [paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED]
+            rows += [(n, self.run(n), None) for n in low]
         rows += [(n, self.classical(n), None) for n in paper_runner.CLASSICAL]
         text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows) + "\n"
-        ours = _metric(self.run("global_local_1px"))
+        text += self.rate_check()
+        compared = {n: self.compared_run(n) for n in paper_suite.RATE_CHECKED}
+        ours = _metric(self.run(compared["global_local_1px"] or ""))
         gaps, short = {}, {}
         for name in ("small_encdec_1px", "eigen_1px", "dispnet_1px", "fcrn_1px"):
-            theirs = _metric(self.run(name))
+            theirs = _metric(self.run(compared.get(name, name) or ""))
             if ours is None or theirs is None:
                 continue
             limited = self.scale.large_steps < self.scale.steps and (
@@ -175,6 +213,14 @@ class Report:
         detail = "global-local's Abs-Inv below each baseline's: " + (
             ", ".join(f"{name} {gap:.0%}" for name, gap in gaps.items()) or "—"
         )
+        if self.scale.check_learning_rate is not None and ours is not None:
+            detail += (
+                " (each at the rate of the learning-rate check: "
+                + ", ".join(
+                    f"{self.runs[n].label} {self._rate(r)}" for n, r in compared.items() if r
+                )
+                + ")"
+            )
         if short:
             detail += "; at their shorter budget (not counted in the verdict): " + ", ".join(
                 f"{name} {gap:.0%}" for name, gap in short.items()
@@ -186,6 +232,44 @@ class Report:
             detail + ".",
         )
         return text
+
+    def _rate(self, name: str) -> str:
+        return f"{self.run(name)['config']['learning_rate']:g}"
+
+    def rate_check(self) -> str:
+        """The main table's models at the suite's rate and at the check's, the training
+        loss that picks the compared one, and which runs collapsed."""
+        if self.scale.check_learning_rate is None:
+            return ""
+        rates = (self.scale.learning_rate, self.scale.check_learning_rate)
+        text = "### Learning-rate check\n\n| model | " + " | ".join(
+            f"peak rate {rate:g}: test Abs-Inv / training loss" for rate in rates
+        )
+        text += " | compared at |\n|---|---|---|---|\n"
+        for name in paper_suite.RATE_CHECKED:
+            cells = []
+            for run_name in (name, paper_suite.low_rate_name(name)):
+                result = self.run(run_name)
+                if result is None:
+                    cells.append(NOT_RUN)
+                    continue
+                loss = training_loss(result)
+                cell = f"{_metric(result):.4f} / " + ("—" if loss is None else f"{loss:.4f}")
+                if collapse(result) is not None:
+                    cell += " (collapsed)"
+                cells.append(cell)
+            compared = self.compared_run(name)
+            text += _row([self.runs[name].label, *cells, self._rate(compared) if compared else ""])
+        return text + (
+            "\nOne shared rate can suit one model and starve another, so the models that "
+            "share the main budget are trained at two peak rates, and every comparison "
+            "(the target below) takes each at the rate with the lower training loss: the L1 "
+            "inverse-depth loss on its supervised pixels over the last quarter of training, "
+            'never the test split. A run "collapsed" when its gradient is zero at a '
+            "quarter or more of its logged steps: its output saturated and it stopped "
+            "learning. The other rows (ablations, densities, intrinsics) use the suite's "
+            "rate.\n\n"
+        )
 
     def ablations(self) -> str:
         rows = [(n, self.run(n), PAPER_ABLATIONS[n]) for n in PAPER_ABLATIONS]
@@ -598,7 +682,14 @@ def write_report(
         f"{stamp[0].upper()}{stamp[1:]}\n\n"
         f"Budget: {budget}. Every learned model gets the same input pipeline, optimiser, "
         "peak learning rate, schedule, batch and seed, and the paper's loss (sparse L1 on "
-        "inverse depth + edge-aware smoothness). The global-local runs also carry the main "
+        "inverse depth + edge-aware smoothness)"
+        + (
+            f"; the main table's models are trained at {scale.check_learning_rate:g} too "
+            "(the learning-rate check, section 1). "
+            if scale.check_learning_rate is not None
+            else ". "
+        )
+        + "The global-local runs also carry the main "
         "job's recipe: the epipolar term at 0.1, a global encoder with instance "
         "normalisation that sees the flow alone, and the flow scaled by 10 as the model's "
         "input; the baselines see the image pair and the flow in pixels. "

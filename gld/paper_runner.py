@@ -144,18 +144,20 @@ def _summary(per_example: dict[str, np.ndarray]) -> tuple[dict[str, dict], np.nd
 
 
 def _training_log(run_dir: Path) -> tuple[dict[str, list[list[float]]], float | None]:
-    """From a run's metrics log: the training loss on the supervised pixels and the test
-    Abs-Inv by step, and the seconds of training (from the step rates, over every
-    launch; None without a log)."""
+    """From a run's metrics log: the training loss on the supervised pixels, the gradient
+    norm and the test Abs-Inv by step, and the seconds of training (from the step rates,
+    over every launch; None without a log)."""
     from gld import workdir as workdir_lib
 
     records = workdir_lib.read_metrics(run_dir)
-    curves: dict[str, list[list[float]]] = {"train": [], "test": []}
+    curves: dict[str, list[list[float]]] = {"train": [], "grad_norm": [], "test": []}
     seconds, previous = 0.0, 0
     for record in records:
         if record.get("split") == "train":
             if "depth_l1" in record:
                 curves["train"].append([record["step"], record["depth_l1"]])
+            if "grad_norm" in record:
+                curves["grad_norm"].append([record["step"], record["grad_norm"]])
             if record.get("steps_per_sec"):
                 seconds += (record["step"] - previous) / record["steps_per_sec"]
                 previous = record["step"]

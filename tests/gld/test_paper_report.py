@@ -20,18 +20,28 @@ def _metrics(abs_inv, abs_rel=0.4, s_rmse=0.35):
     }
 
 
-def _results(abs_inv: dict[str, float], **extra) -> dict[str, dict]:
-    """Results of the runs named in `abs_inv` (and the classical references)."""
+def _results(
+    abs_inv: dict[str, float], train_loss: dict[str, float] | None = None, **extra
+) -> dict[str, dict]:
+    """Results of the runs named in `abs_inv` (and the classical references). A run's
+    training loss ends at `train_loss[name]` (0.04; 0.05 at the learning-rate check's
+    rate); a loss of 1 or more comes with a zero gradient (a collapsed run)."""
     runs = {run.name: run for run in paper_suite.suite_runs(SCALE)}
     results = {}
     for name, value in abs_inv.items():
         config = paper_suite.run_config(SCALE, runs[name], height=96, width=128)
+        loss = (train_loss or {}).get(name, 0.05 if name.endswith("_low_lr") else 0.04)
+        zero = 0.0 if loss >= 1 else 0.4
         results[f"train/{name}"] = {
             "metrics": _metrics(value),
             "config": dataclasses.asdict(config),
             "parameters": 1000,
             "train_seconds": 60.0,
-            "curves": {"train": [[50, 0.05], [100, 0.04]], "test": [[100, value]]},
+            "curves": {
+                "train": [[50, 0.06], [100, 0.06], [150, loss], [200, loss]],
+                "grad_norm": [[50, 0.5], [100, 0.5], [150, zero], [200, zero]],
+                "test": [[100, value]],
+            },
         }
     for dataset, mean in (("small", 0.040), ("small_varying", 0.050)):
         results[f"classical/{dataset}"] = {
@@ -65,6 +75,8 @@ DENSITY = "global-local within 15% of its dense error, Small Enc-Dec at least 25
 VARYING = "varying intrinsics cost global-local at most 10%"
 POSE = "the pretrained encoder's probe beats the scratch one"
 BASELINES_1PX = ("small_encdec_1px", "eigen_1px", "dispnet_1px", "fcrn_1px")
+# The learning-rate check's runs, at the CPU suite's second rate.
+LOW_RATE = {name: f"{name}_low_lr" for name in paper_suite.RATE_CHECKED}
 
 
 def _write(tmp_path, results):
@@ -79,6 +91,7 @@ def test_main_table_target_needs_every_baseline_15_percent_worse(
     tmp_path, closest_baseline, verdict
 ):
     values = {"global_local_1px": 0.030, **dict.fromkeys(BASELINES_1PX, 0.045)}
+    values.update(dict.fromkeys(LOW_RATE.values(), 0.050))  # a higher training loss
     values["eigen_1px"] = closest_baseline  # 1 - 0.030 / 0.036 = 17%; / 0.034 = 12%
     readme = _write(tmp_path, _results(values))
     assert _verdicts(readme)[MAIN] == verdict
@@ -97,12 +110,39 @@ def test_main_table_target_needs_every_baseline_15_percent_worse(
 
 
 def test_targets_not_measured_until_their_runs_finish(tmp_path):
-    readme = _write(tmp_path, _results({"global_local_1px": 0.030, "small_encdec_1px": 0.040}))
+    values = {"global_local_1px": 0.030, "small_encdec_1px": 0.040, "eigen_1px": 0.045}
+    readme = _write(tmp_path, _results(values))
     verdicts = _verdicts(readme)
     assert set(verdicts) == {MAIN, ABLATIONS, DENSITY, VARYING, POSE}
     assert set(verdicts.values()) == {"not measured yet"}
-    assert "| Eigen | not run yet |" in readme
-    assert "2 of 24 training runs finished" in readme
+    assert "| Eigen | 0.0450 ± 0.0150 |" in readme
+    assert "| Small Enc-Dec, peak rate 0.0003 | not run yet |" in readme
+    assert f"3 of {len(paper_suite.suite_runs(SCALE))} training runs finished" in readme
+    # The main target waits for both rates of the learning-rate check.
+    values.update(dict.fromkeys(BASELINES_1PX[2:], 0.045))
+    values.update({LOW_RATE["global_local_1px"]: 0.03, LOW_RATE["small_encdec_1px"]: 0.04})
+    assert _verdicts(_write(tmp_path, _results(values)))[MAIN] == "not measured yet"
+
+
+def test_the_learning_rate_check_compares_each_model_at_its_lower_training_loss(tmp_path):
+    values = {
+        "global_local_1px": 0.030,
+        "small_encdec_1px": 0.040,
+        "eigen_1px": 0.060,  # collapsed at the shared rate
+        LOW_RATE["global_local_1px"]: 0.032,
+        LOW_RATE["small_encdec_1px"]: 0.033,  # better on the test split, not in training
+        LOW_RATE["eigen_1px"]: 0.034,
+    }
+    losses = {"eigen_1px": 2.0, LOW_RATE["small_encdec_1px"]: 0.045}
+    readme = _write(tmp_path, _results(values, losses))
+    check = readme.split("### Learning-rate check")[1].split("Target")[0]
+    assert "| Eigen | 0.0600 / 2.0000 (collapsed) | 0.0340 / 0.0500 | 0.0003 |" in check
+    assert "| Small Enc-Dec | 0.0400 / 0.0400 | 0.0330 / 0.0450 | 0.001 |" in check
+    assert "| Eigen — collapsed: zero gradient from step 150 |" in readme
+    # Eigen at its better rate: 1 - 0.030 / 0.034 = 12% (0.060 would have given 50%).
+    assert _verdicts(readme)[MAIN] == "**does not hold**"
+    assert "Small Enc-Dec 25%, Eigen 12% (each at the rate" in readme
+    assert "global-local 0.001, Small Enc-Dec 0.001, Eigen 0.0003" in readme
 
 
 def test_ablation_density_and_varying_targets(tmp_path):
@@ -202,4 +242,4 @@ def test_flow_error_and_overfitting_figures(tmp_path):
     for figure in ("flow_error.png", "overfitting.png"):
         assert f"]({figure})" in readme
         assert (tmp_path / "report" / figure).stat().st_size > 5000
-    assert "| DispNet (150 steps) | 0.0450 | 0.0400 |" in readme
+    assert "| DispNet (150 steps) | 0.0500 | 0.0400 |" in readme

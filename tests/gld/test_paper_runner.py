@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from gld import paper_runner
+from gld import paper_runner, paper_suite
 from gld.paper_suite import SUITES
 
 
@@ -19,7 +19,8 @@ def _runner(tmp_path):
 def test_selection_by_name_and_group(tmp_path):
     runner = _runner(tmp_path)
     names = [task.name for task in runner.tasks()]
-    assert len([n for n in names if n.startswith("train/")]) == 24
+    runs = paper_suite.suite_runs(SUITES["cpu"])
+    assert [n for n in names if n.startswith("train/")] == [f"train/{r.name}" for r in runs]
     assert names[-5:] == [
         "pose_probe",
         "triangulation_predicted_pose",
@@ -70,7 +71,7 @@ def test_an_analysis_is_redone_when_a_run_it_reads_changes(tmp_path):
 
 def test_curves_and_training_time_from_the_metrics_log(tmp_path):
     lines = [
-        {"step": 50, "split": "train", "depth_l1": 0.05, "steps_per_sec": 5.0},
+        {"step": 50, "split": "train", "depth_l1": 0.05, "grad_norm": 0.3, "steps_per_sec": 5.0},
         {"step": 100, "split": "train", "depth_l1": 0.04, "steps_per_sec": 2.5},
         {"step": 100, "split": "test", "abs_inv": 0.03, "abs_rel": 0.4, "s_rmse": 0.3},
         {"step": 150, "split": "train", "loss": 1.0},  # a self-supervised run's record
@@ -79,6 +80,7 @@ def test_curves_and_training_time_from_the_metrics_log(tmp_path):
     curves, seconds = paper_runner._training_log(tmp_path)
     assert curves == {
         "train": [[50, 0.05], [100, 0.04]],
+        "grad_norm": [[50, 0.3]],
         "test": [[100, 0.03]],
     }
     assert seconds == pytest.approx(50 / 5.0 + 50 / 2.5)

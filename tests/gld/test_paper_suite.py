@@ -16,9 +16,11 @@ def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
         config = paper_suite.run_config(scale, run, height=48, width=64)
         large = run.model in paper_suite.LARGE_MODELS
         assert config.steps == (scale.large_steps if large else scale.steps), run.name
-        # The same optimiser, rate, schedule, batch and seed for every learned model.
+        # The same optimiser, rate, schedule, batch and seed for every learned model (the
+        # learning-rate check's runs at its rate).
+        rate = scale.check_learning_rate if run.name.endswith("_low_lr") else scale.learning_rate
         assert (config.learning_rate, config.lr_schedule, config.batch_size, config.seed) == (
-            scale.learning_rate,
+            rate,
             "cosine",
             scale.batch_size,
             0,
@@ -105,6 +107,14 @@ def test_learned_models_differ_only_where_the_suite_says():
     for name in ("small_encdec_1px", "eigen_1px"):
         differing = {k for k, v in config(name).items() if main[k] != v}
         assert differing == {"model", "model_config", "epipolar_weight"}, name
+    # The learning-rate check: the main table's models again, at the second rate only.
+    assert {n for n in runs if n.endswith("_low_lr")} == {
+        paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED
+    }
+    for name in paper_suite.RATE_CHECKED:
+        low = config(paper_suite.low_rate_name(name))
+        assert {k for k, v in low.items() if config(name)[k] != v} == {"learning_rate"}
+        assert low["learning_rate"] == scale.check_learning_rate < scale.learning_rate
     # The large baselines also differ in their budget (and so warm-up and checkpoints).
     differing = {k for k, v in config("dispnet_1px").items() if main[k] != v}
     assert differing == {
