@@ -22,7 +22,8 @@ FlowNet's default, which a pretrained run must match.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -93,15 +94,18 @@ class _OnFlowNet(nn.Module):
 
 
 class GlobalLocalFlowNet(_OnFlowNet):
-    """The global-local model (its default architecture) on `FlowNet`'s flow.
+    """The global-local model on `FlowNet`'s flow.
 
     Attributes:
       flow_net_workdir: a flow network's run to start from ("" = random).
       flow_trainable: fine-tune the flow network with the depth loss (False: its
         parameters get no gradient and stay as initialised).
+      global_local: options of the global-local model (`gld.model.GlobalLocal`'s
+        arguments; empty: its defaults).
     """
 
     flow_trainable: bool = False
+    global_local: Mapping = dataclasses.field(default_factory=dict)
 
     @nn.compact
     def __call__(
@@ -114,7 +118,10 @@ class GlobalLocalFlowNet(_OnFlowNet):
         estimated = self.estimate_flow(image1, image2, flow)
         if not self.flow_trainable:
             estimated = jax.lax.stop_gradient(estimated)
-        outputs = GlobalLocal(name="global_local")(image1, image2, estimated, train=train)
+        options = {k: tuple(v) if isinstance(v, list) else v for k, v in self.global_local.items()}
+        outputs = GlobalLocal(**options, name="global_local")(
+            image1, image2, estimated, train=train
+        )
         return {**outputs, "flow": estimated}
 
 

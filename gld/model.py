@@ -404,6 +404,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
     },
+    "global_local_flow_net": {"global_local": {}},
 }
 
 
@@ -419,8 +420,14 @@ def full_config(name: str, config: dict) -> dict:
         raise ValueError(f"unknown model {name!r}; valid: {sorted(MODELS)}")
     defaults = {
         field.name: field.default
+        if field.default is not dataclasses.MISSING
+        else field.default_factory()
         for field in dataclasses.fields(MODELS[name])
-        if field.name not in ("parent", "name") and field.default is not dataclasses.MISSING
+        if field.name not in ("parent", "name")
+        and (
+            field.default is not dataclasses.MISSING
+            or field.default_factory is not dataclasses.MISSING
+        )
     }
     unknown = sorted(set(config) - set(defaults))
     if unknown:
@@ -448,6 +455,11 @@ def check_config(name: str, config: dict) -> None:
     values = full_config(name, config)
     if "flow_net_workdir" in values:
         check_flow_net_workdir(values["flow_net_workdir"])
+    if name == "global_local_flow_net":
+        try:
+            check_config("global_local", values["global_local"])
+        except ValueError as error:
+            raise ValueError(f"global_local: {error}") from None
     if name != "global_local":
         return
     for option, choices in ARCHITECTURE_CHOICES.items():

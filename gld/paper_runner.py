@@ -5,11 +5,15 @@ the analyses; each result is a file, so a killed suite continues where it stoppe
     <workdir>/results/<task>.json    one result per task, written atomically when done
     <workdir>/results/<task>.npz     arrays a later task or the report reads
 
-Tasks, in order: every training run (`train/<run>`: train or resume, then evaluate on
-the test split), the classical references on each dataset (`classical/<dataset>`), the
-pose probe (`pose_probe`), triangulation with the probe's pose
-(`triangulation_predicted_pose`), the flow-error curves (`flow_error`), the qualitative
-predictions (`qualitative`) and the generated filters (`filters`). A task is skipped when
+Tasks, in order: every training run of the paper's main experiments (`train/<run>`:
+train or resume, then evaluate on the test split), the classical references on each
+dataset (`classical/<dataset>`), the pose probe (`pose_probe`), triangulation with the
+probe's pose (`triangulation_predicted_pose`), the flow-error curves (`flow_error`), the
+qualitative predictions (`qualitative`) and the generated filters (`filters`); then the
+paper's remaining comparisons: the learned flow network (`flow_net`: trained on the
+exact flow, its end-point error and speed against DIS), the self-supervised and flow
+experiment's runs, and the flow networks' end-point error after depth training
+(`flow_finetuning`). A task is skipped when
 its result exists and was made with the same configuration; a training run whose result
 is missing resumes from its newest checkpoint. `gld.paper_report` turns the results into
 the report.
@@ -43,7 +47,12 @@ STEP_SECONDS = {
     "eigen": 0.5,
     "dispnet": 6.0,
     "fcrn": 5.0,
+    "struct2depth": 0.6,
+    "struct2depth_flow": 0.6,
+    "global_local_flow_net": 0.55,
+    "flow_net_head": 0.65,
     "pose_probe": 0.1,
+    "flow_net": 0.21,
 }
 DEFAULT_STEP_SECONDS = 5.0
 
@@ -55,6 +64,11 @@ PROBED_RUNS = (MAIN_RUN, "global_local_no_epipolar")
 # Triangulation with a predicted pose uses the main run's encoder, fine-tuned on the pose.
 PREDICTED_POSE = (MAIN_RUN, "pretrained_full")
 FILTER_PAIRS = 16
+# The runs trained after the main experiments' analyses: the paper's remaining
+# comparisons (the first of them and every later run).
+FIRST_REMAINING_RUN = "struct2depth"
+# Test pairs whose DIS flow is timed for the flow network's speed comparison.
+DIS_TIMED_PAIRS = 20
 
 
 def step_seconds(model: str) -> float:
@@ -150,14 +164,15 @@ def _training_log(run_dir: Path) -> tuple[dict[str, list[list[float]]], float | 
     from gld import workdir as workdir_lib
 
     records = workdir_lib.read_metrics(run_dir)
-    curves: dict[str, list[list[float]]] = {"train": [], "grad_norm": [], "test": []}
+    curves: dict[str, list[list[float]]] = {"train": [], "loss": [], "grad_norm": [], "test": []}
     seconds, previous = 0.0, 0
     for record in records:
         if record.get("split") == "train":
             if "depth_l1" in record:
                 curves["train"].append([record["step"], record["depth_l1"]])
-            if "grad_norm" in record:
-                curves["grad_norm"].append([record["step"], record["grad_norm"]])
+            for key in ("loss", "grad_norm"):
+                if key in record:
+                    curves[key].append([record["step"], record[key]])
             if record.get("steps_per_sec"):
                 seconds += (record["step"] - previous) / record["steps_per_sec"]
                 previous = record["step"]
@@ -204,7 +219,16 @@ class SuiteRunner:
 
     def _config(self, run: Run):
         data = self.data(self.scale.varying_dataset if run.varying else self.scale.dataset)
-        return paper_suite.run_config(self.scale, run, height=data.height, width=data.width)
+        return paper_suite.run_config(
+            self.scale,
+            run,
+            height=data.height,
+            width=data.width,
+            flow_net_workdir=str(self.flow_net_dir()),
+        )
+
+    def flow_net_dir(self) -> Path:
+        return self.workdir / "runs" / "flow_net"
 
     # -- tasks --------------------------------------------------------------------------
 
@@ -220,13 +244,23 @@ class SuiteRunner:
             identities[name] = identity
             tasks.append(Task(name, run, identity, seconds, tuple(needs)))
 
-        for run in self.runs.values():
-            add(
-                f"train/{run.name}",
-                lambda run=run: self._train(run),
-                _config_identity(paper_suite.run_config(self.scale, run, height=0, width=0)),
-                paper_suite.run_steps(self.scale, run) * step_seconds(run.model) + 30,
-            )
+        def add_runs(runs):
+            for run in runs:
+                # A flow network's run enters by the identity of the `flow_net` task.
+                config = paper_suite.run_config(
+                    self.scale, run, height=0, width=0, flow_net_workdir="<flow_net>"
+                )
+                add(
+                    f"train/{run.name}",
+                    lambda run=run: self._train(run),
+                    _config_identity(config),
+                    paper_suite.run_steps(self.scale, run) * step_seconds(run.model) + 30,
+                    needs=["flow_net"] if run.model in paper_suite.FLOW_NET_MODELS else [],
+                )
+
+        names = list(self.runs)
+        remaining = names.index(FIRST_REMAINING_RUN)
+        add_runs([self.runs[name] for name in names[:remaining]])
         for dataset, methods in (
             (self.scale.dataset, CLASSICAL),
             (self.scale.varying_dataset, CLASSICAL_VARYING),
@@ -271,6 +305,22 @@ class SuiteRunner:
             needs=[f"train/{name}" for name in QUALITATIVE_RUNS],
         )
         add("filters", self._filters, {"pairs": FILTER_PAIRS}, 20, needs=[f"train/{MAIN_RUN}"])
+        # The paper's remaining comparisons.
+        flow_config = paper_suite.flow_net_config(self.scale, height=0, width=0)
+        add(
+            "flow_net",
+            self._flow_net,
+            {**dataclasses.asdict(flow_config), "dis_timed_pairs": DIS_TIMED_PAIRS},
+            self.scale.flow_net_steps * step_seconds("flow_net") + 60,
+        )
+        add_runs([self.runs[name] for name in names[remaining:]])
+        add(
+            "flow_finetuning",
+            self._flow_finetuning,
+            {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
+            60,
+            needs=["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
+        )
         return tasks
 
     def selected(self, only: Sequence[str] | None = None) -> list[Task]:
@@ -353,6 +403,9 @@ class SuiteRunner:
 
     def _remaining_seconds(self, task: Task) -> float:
         """The task's estimated seconds, less the steps its run has checkpointed."""
+        if task.name == "flow_net":
+            left = self.scale.flow_net_steps - _checkpointed_step(self.flow_net_dir())
+            return max(0, left) * step_seconds("flow_net") + 60
         if not task.name.startswith("train/"):
             return task.seconds
         run = self.runs[task.name.removeprefix("train/")]
@@ -415,6 +468,68 @@ class SuiteRunner:
         aside = run_dir.with_name(f"{run_dir.name}.superseded-{time.strftime('%Y%m%d-%H%M%S')}")
         self.print(f"{run_dir} was trained with other options {sorted(changes)}: moved to {aside}")
         run_dir.rename(aside)
+
+    def _flow_net(self) -> dict[str, Any]:
+        """Trains the flow network on the exact flow (or resumes it), then scores it and
+        the stored DIS flow on the test pairs: end-point errors and time per pair."""
+        from gld import evaluation, flow_net, flow_training
+        from gld import flow as flow_lib
+        from gld import workdir as workdir_lib
+
+        data = self.data(self.scale.dataset)
+        config = paper_suite.flow_net_config(self.scale, height=data.height, width=data.width)
+        run_dir = self.flow_net_dir()
+        self.print(f"flow_net: {config.steps} steps of the flow network in {run_dir}")
+        flow_training.train_flow(
+            config, run_dir, data.train, data.test, progress=self.progress, print_fn=self.print
+        )
+        model, variables, _, step = flow_training.load_flow_run(run_dir)
+        _, _, summary = flow_training.evaluate_flow(
+            model, variables, data.test, batch_size=config.eval_batch_size
+        )
+        latency = flow_training.forward_latency(model, variables, data.height, data.width)
+        count = min(DIS_TIMED_PAIRS, len(data.test))
+        batch = next(
+            evaluation.split_batches(
+                data.test, batch_size=count, max_examples=count, all_processes=False
+            )
+        )
+        times = []
+        for image1, image2 in zip(batch["image1"], batch["image2"], strict=True):
+            started = time.perf_counter()
+            flow_lib.estimate(image1, image2, flow_lib.DEFAULT_ESTIMATOR)
+            times.append(time.perf_counter() - started)
+        curve = [
+            [record["step"], record["epe"]]
+            for record in workdir_lib.read_metrics(run_dir)
+            if record.get("split") == "test" and "epe" in record
+        ]
+        return {
+            "step": step,
+            "methods": summary,
+            "parameters": flow_net.parameter_count(variables["params"]),
+            "network_ms": latency["median_ms"],
+            "dis_ms": 1e3 * float(np.median(times)) if times else None,
+            "curve": curve,
+        }
+
+    def _flow_finetuning(self) -> dict[str, Any]:
+        """The end-point error of each flow-experiment run's flow network after depth
+        training (fixed: the network as trained on the exact flow; fine-tuned: what the
+        sparse depth loss made of it)."""
+        from gld import flow_training
+        from gld import workdir as workdir_lib
+        from gld.flow_net import FlowNet
+
+        data = self.data(self.scale.dataset)
+        epe = {}
+        for name in paper_suite.FLOW_EXPERIMENT[1:]:
+            _, variables, _ = workdir_lib.load_trained(self.run_dir(name))
+            _, _, summary = flow_training.evaluate_flow(
+                FlowNet(), {"params": variables["params"]["flow_net"]}, data.test
+            )
+            epe[name] = summary[flow_training.NETWORK]
+        return {"epe": epe}
 
     def _classical(self, dataset: str, methods: Sequence[str]) -> dict[str, Any]:
         from gld import evaluation

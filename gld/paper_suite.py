@@ -20,6 +20,16 @@ the image pair the main recipe leaves out, and the runs without a global module 
 without flow drop the epipolar term too (it needs g, and it reads the flow); the run
 "- epipolar term" measures what that alone costs.
 
+The paper's remaining comparisons close the suite: the self-supervised baseline
+(Struct2Depth, with and without flow; no depth labels) in the main table and its
+learning-rate check, and the flow experiment. That one trains the learned flow network
+on the exact flow (`flow_net_config`), then the global-local model on its flow, the
+network fixed or fine-tuned with the sparse depth loss, and the network with a (32, 16,
+1) conv head trained by the sparse loss alone; beside them the same model on the stored
+DIS flow. Every run of the flow experiment trains at the lower rate of the learning-rate
+check (fine-tuning the flow network at the CPU suite's 1e-3 collapsed) and without the
+epipolar term (it reads the stored flow).
+
 `run_config` turns a run into its `gld.config.TrainConfig`; `gld.paper_runner` trains,
 reuses and scores them.
 """
@@ -32,6 +42,8 @@ from typing import Any
 # The main job's recipe for the global-local model (experiments/flags/demo.flags).
 MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False}
 MAIN_EPIPOLAR_WEIGHT = 0.1
+# The depth models that run the learned flow network (and start from the suite's).
+FLOW_NET_MODELS = ("global_local_flow_net", "flow_net_head")
 
 DENSITIES = (1, 4, 16, 64, 0)  # supervised pixels per image; 0 = dense
 LARGE_MODELS = ("dispnet", "fcrn")
@@ -55,6 +67,7 @@ class Scale:
         figure (the main global-local run and the large baselines).
       curve_examples: test pairs of those evaluations (0 = all).
       probe_steps: training steps of each pose-probe setting.
+      flow_net_steps: training steps of the learned flow network (batch 8).
       large_densities: the supervision densities DispNet is trained at.
       global_local: extra options of every global-local run (e.g. a smaller encoder).
       figure_pairs: test pairs of the qualitative grid.
@@ -73,6 +86,7 @@ class Scale:
     curve_evaluations: int = 8
     curve_examples: int = 0
     probe_steps: int = 2000
+    flow_net_steps: int = 5000
     large_densities: tuple[int, ...] = DENSITIES
     global_local: dict[str, Any] = dataclasses.field(default_factory=dict)
     figure_pairs: int = 4
@@ -104,6 +118,7 @@ SUITES: dict[str, Scale] = {
         curve_evaluations=20,
         curve_examples=200,
         probe_steps=20_000,
+        flow_net_steps=50_000,
         hours="days on a CPU; about a day on one GPU",
     ),
     # A few steps on the tiny benchmark: the suite's machinery, not its numbers.
@@ -117,6 +132,7 @@ SUITES: dict[str, Scale] = {
         check_learning_rate=3e-4,
         curve_evaluations=2,
         probe_steps=4,
+        flow_net_steps=4,
         large_densities=(1, 0),
         global_local={"encoder_channels": [4, 8, 8, 8, 8]},
         figure_pairs=2,
@@ -153,7 +169,15 @@ def low_rate_name(name: str) -> str:
     return f"{name}_low_lr"
 
 
-RATE_CHECKED = ("global_local_1px", "small_encdec_1px", "eigen_1px")
+RATE_CHECKED = (
+    "global_local_1px",
+    "small_encdec_1px",
+    "eigen_1px",
+    "struct2depth",
+    "struct2depth_flow",
+)
+# The flow experiment's runs: the model on the stored DIS flow, then on the network's.
+FLOW_EXPERIMENT = ("flow_dis", "flow_net_fixed", "flow_net_finetuned", "flow_net_head")
 
 
 def density_name(gt_pixels: int) -> str:
@@ -184,18 +208,7 @@ def suite_runs(scale: Scale) -> list[Run]:
         Run("small_encdec_1px", "small_encdec", "Small Enc-Dec"),
         Run("eigen_1px", "eigen", "Eigen"),
     ]
-    if scale.check_learning_rate is not None:
-        runs += [
-            dataclasses.replace(
-                run,
-                name=low_rate_name(run.name),
-                label=f"{run.label}, peak rate {scale.check_learning_rate:g}",
-                options={**run.options, "learning_rate": scale.check_learning_rate},
-                curve=False,
-            )
-            for run in runs
-            if run.name in RATE_CHECKED
-        ]
+    runs += _rate_checks(scale, runs)
     runs += [
         _global_local(
             "global_local_image_pair",
@@ -270,7 +283,49 @@ def suite_runs(scale: Scale) -> list[Run]:
             )
     if scale.large_densities == DENSITIES:  # the paper's scale: DispNet too
         runs.append(Run("dispnet_varying", "dispnet", "DispNet", varying=True))
+    # The paper's remaining comparisons: the self-supervised baseline, the flow experiment.
+    self_supervised = [
+        Run("struct2depth", "struct2depth", "Struct2Depth (self-supervised)"),
+        Run("struct2depth_flow", "struct2depth_flow", "Struct2Depth + Flow (self-supervised)"),
+    ]
+    runs += self_supervised + _rate_checks(scale, self_supervised)
+    rate = {"learning_rate": scale.check_learning_rate or scale.learning_rate}
+    runs += [
+        _global_local("flow_dis", "global-local, DIS flow (stored)", epipolar=False, options=rate),
+        Run(
+            "flow_net_fixed",
+            "global_local_flow_net",
+            "global-local, flow network fixed",
+            options=rate,
+            model_config={"global_local": MAIN_RECIPE, "flow_trainable": False},
+        ),
+        Run(
+            "flow_net_finetuned",
+            "global_local_flow_net",
+            "global-local, flow network fine-tuned",
+            options=rate,
+            model_config={"global_local": MAIN_RECIPE, "flow_trainable": True},
+        ),
+        Run("flow_net_head", "flow_net_head", "flow network + (32, 16, 1) head", options=rate),
+    ]
     return runs
+
+
+def _rate_checks(scale: Scale, runs: list[Run]) -> list[Run]:
+    """The learning-rate check's runs of those of `runs` in `RATE_CHECKED`."""
+    if scale.check_learning_rate is None:
+        return []
+    return [
+        dataclasses.replace(
+            run,
+            name=low_rate_name(run.name),
+            label=f"{run.label}, peak rate {scale.check_learning_rate:g}",
+            options={**run.options, "learning_rate": scale.check_learning_rate},
+            curve=False,
+        )
+        for run in runs
+        if run.name in RATE_CHECKED
+    ]
 
 
 def run_steps(scale: Scale, run: Run) -> int:
@@ -283,14 +338,18 @@ def warmup_steps(scale: Scale, steps: int) -> int:
     return max(1, round(steps * scale.warmup_fraction)) if steps > 1 else 0
 
 
-def run_config(scale: Scale, run: Run, *, height: int, width: int):
-    """The run's `gld.config.TrainConfig` (validated)."""
+def run_config(scale: Scale, run: Run, *, height: int, width: int, flow_net_workdir: str = ""):
+    """The run's `gld.config.TrainConfig` (validated); the models of `FLOW_NET_MODELS`
+    start from the flow network of `flow_net_workdir` (which the trainer checks: the
+    suite names it before the network is trained)."""
     from gld import config
 
     steps = run_steps(scale, run)
     # A run's own options (an ablation's switch) win over the suite's.
     model_config = {**(scale.global_local if run.model == "global_local" else {})}
     model_config.update(run.model_config)
+    if run.model == "global_local_flow_net":
+        model_config["global_local"] = {**scale.global_local, **model_config["global_local"]}
     options = {
         "model": run.model,
         "model_config": model_config,
@@ -309,4 +368,30 @@ def run_config(scale: Scale, run: Run, *, height: int, width: int):
         "seed": 0,
     }
     options.update(run.options)
-    return config.TrainConfig(**options).validate()
+    validated = config.TrainConfig(**options).validate()
+    if run.model in FLOW_NET_MODELS:
+        validated.model_config["flow_net_workdir"] = flow_net_workdir
+    return validated
+
+
+def flow_net_config(scale: Scale, *, height: int, width: int):
+    """The learned flow network's `gld.flow_training.FlowTrainConfig` (validated): its own
+    recipe (`experiments/flags/flow/flow_net_small.flags`), trained on the exact flow of
+    the suite's training pairs."""
+    from gld import flow_training
+
+    steps = scale.flow_net_steps
+    return flow_training.FlowTrainConfig(
+        dataset=scale.dataset,
+        height=height,
+        width=width,
+        steps=steps,
+        batch_size=8,
+        learning_rate=1e-3,
+        lr_schedule="cosine",
+        warmup_steps=max(1, round(steps * 0.02)) if steps > 1 else 0,
+        checkpoint_every=max(1, min(500, steps // 4)),
+        eval_every=max(1, steps // 5),
+        eval_examples=scale.curve_examples,
+        seed=0,
+    ).validate()

@@ -87,7 +87,8 @@ def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_pat
 
 @pytest.mark.slow
 def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
-    """Every run and analysis of the suite, DispNet and FCRN included."""
+    """Every run and analysis of the suite, DispNet, FCRN and the flow experiment
+    included."""
     result = subprocess.run(
         [*_command(tiny_scenes_dir, tmp_path / "w", tmp_path / "r", "train")[:-2], "--noprogress"],
         capture_output=True,
@@ -109,4 +110,9 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
     assert sum(curves["global_local"]["count"]) == sum(curves["triangulation_gt_pose"]["count"])
     for figure in ("flow_error.png", "overfitting.png", "density.png", "qualitative.png"):
         assert (tmp_path / "r" / figure).exists(), figure
+    # The flow experiment: the fixed network is the one trained on the exact flow.
+    flow_net = json.loads((results / "flow_net.json").read_text())["methods"]["flow_net"]
+    after = json.loads((results / "flow_finetuning.json").read_text())["epe"]
+    assert after["flow_net_fixed"]["epe"] == pytest.approx(flow_net["epe"], rel=1e-5)
+    assert after["flow_net_finetuned"]["epe"] != pytest.approx(flow_net["epe"], rel=1e-5)
     assert "not run yet" not in readme

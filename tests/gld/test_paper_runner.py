@@ -21,13 +21,18 @@ def test_selection_by_name_and_group(tmp_path):
     names = [task.name for task in runner.tasks()]
     runs = paper_suite.suite_runs(SUITES["cpu"])
     assert [n for n in names if n.startswith("train/")] == [f"train/{r.name}" for r in runs]
-    assert names[-5:] == [
+    # The main experiments' analyses come before the paper's remaining comparisons.
+    analyses = names.index("pose_probe")
+    assert names[analyses : analyses + 6] == [
         "pose_probe",
         "triangulation_predicted_pose",
         "flow_error",
         "qualitative",
         "filters",
+        "flow_net",
     ]
+    assert names[analyses + 6] == "train/struct2depth" and names[-1] == "flow_finetuning"
+    assert all(not n.startswith("train/") for n in names[analyses - 2 : analyses])
 
     def selected(*only):
         return [task.name for task in runner.selected(list(only))]
@@ -51,6 +56,51 @@ def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
     assert set(runner.finished()) == {"filters"}
     path.write_text(json.dumps({"identity": {**task.identity, "pairs": 3}}))
     assert not runner._done(task) and runner.finished() == {}
+
+
+def test_the_flow_networks_runs_depend_on_the_flow_network_not_its_path(tmp_path):
+    import dataclasses
+
+    def tasks(scale, workdir):
+        runner = paper_runner.SuiteRunner(scale, workdir, None, print_fn=lambda _: None)
+        return {task.name: task for task in runner.tasks()}
+
+    before = tasks(SUITES["cpu"], tmp_path / "a")
+    assert before["train/flow_net_finetuned"].needs == ("flow_net",)
+    assert before["flow_finetuning"].needs == (
+        "flow_net",
+        "train/flow_net_fixed",
+        "train/flow_net_finetuned",
+        "train/flow_net_head",
+    )
+    assert not before["train/flow_dis"].needs
+    # Another suite directory: the same identities.
+    moved = tasks(SUITES["cpu"], tmp_path / "b")
+    assert {n: t.identity for n, t in moved.items()} == {n: t.identity for n, t in before.items()}
+    # Another flow network: its depth runs and the analysis of them are redone.
+    after = tasks(dataclasses.replace(SUITES["cpu"], flow_net_steps=4000), tmp_path / "a")
+    changed = {n for n in before if before[n].identity != after[n].identity}
+    assert changed == {
+        "flow_net",
+        "train/flow_net_fixed",
+        "train/flow_net_finetuned",
+        "train/flow_net_head",
+        "flow_finetuning",
+    }
+    runner = paper_runner.SuiteRunner(SUITES["tiny"], tmp_path, None, print_fn=lambda _: None)
+    config = paper_suite.run_config(
+        runner.scale,
+        runner.runs["flow_net_finetuned"],
+        height=48,
+        width=64,
+        flow_net_workdir=str(runner.flow_net_dir()),
+    )
+    assert config.model_config["flow_net_workdir"] == str(tmp_path / "runs" / "flow_net")
+    assert config.model_config["flow_trainable"] is True
+    assert config.model_config["global_local"] == {
+        **paper_suite.MAIN_RECIPE,
+        **SUITES["tiny"].global_local,
+    }
 
 
 def test_an_analysis_is_redone_when_a_run_it_reads_changes(tmp_path):
@@ -80,6 +130,7 @@ def test_curves_and_training_time_from_the_metrics_log(tmp_path):
     curves, seconds = paper_runner._training_log(tmp_path)
     assert curves == {
         "train": [[50, 0.05], [100, 0.04]],
+        "loss": [[150, 1.0]],
         "grad_norm": [[50, 0.3]],
         "test": [[100, 0.03]],
     }

@@ -17,8 +17,9 @@ def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
         large = run.model in paper_suite.LARGE_MODELS
         assert config.steps == (scale.large_steps if large else scale.steps), run.name
         # The same optimiser, rate, schedule, batch and seed for every learned model (the
-        # learning-rate check's runs at its rate).
-        rate = scale.check_learning_rate if run.name.endswith("_low_lr") else scale.learning_rate
+        # learning-rate check's runs and the flow experiment at the check's rate).
+        checked = run.name.endswith("_low_lr") or run.name in paper_suite.FLOW_EXPERIMENT
+        rate = scale.check_learning_rate if checked else scale.learning_rate
         assert (config.learning_rate, config.lr_schedule, config.batch_size, config.seed) == (
             rate,
             "cosine",
@@ -28,7 +29,9 @@ def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
         assert config.warmup_steps == max(1, round(config.steps * scale.warmup_fraction))
         assert config.dataset == (scale.varying_dataset if run.varying else scale.dataset)
         if run.model != "global_local":
-            assert config.epipolar_weight == 0 and config.model_config == {}
+            assert config.epipolar_weight == 0
+        if run.model not in ("global_local", *paper_suite.FLOW_NET_MODELS):
+            assert config.model_config == {}, run.name
 
 
 def test_the_ablations_change_one_switch_of_the_main_recipe():
@@ -88,6 +91,38 @@ def test_densities_and_the_large_models_budget():
     # The paper's scale gives every model the same budget; the CPU one cannot.
     assert SUITES["paper"].large_steps == SUITES["paper"].steps == 94_000
     assert SUITES["cpu"].large_steps < SUITES["cpu"].steps
+
+
+def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
+    scale = SUITES["cpu"]
+    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+
+    def config(name):
+        return paper_suite.run_config(scale, runs[name], height=96, width=128)
+
+    assert config("struct2depth").model == "struct2depth"
+    assert config("struct2depth_flow").model == "struct2depth_flow"
+    assert config("struct2depth_low_lr").learning_rate == scale.check_learning_rate
+    # The flow experiment: the main recipe without the epipolar term, on the stored DIS
+    # flow or on the network's, fixed or fine-tuned; the head; one rate for all four.
+    dis = config("flow_dis")
+    assert dis.model == "global_local" and dis.model_config == paper_suite.MAIN_RECIPE
+    fixed, finetuned, head = (
+        config(n) for n in ("flow_net_fixed", "flow_net_finetuned", "flow_net_head")
+    )
+    assert fixed.model == finetuned.model == "global_local_flow_net"
+    assert (
+        fixed.model_config["global_local"]
+        == finetuned.model_config["global_local"]
+        == (paper_suite.MAIN_RECIPE)
+    )
+    assert not fixed.model_config["flow_trainable"] and finetuned.model_config["flow_trainable"]
+    assert head.model == "flow_net_head"
+    for run in (dis, fixed, finetuned, head):
+        assert run.epipolar_weight == 0 and run.learning_rate == scale.check_learning_rate
+        assert (run.steps, run.gt_pixels, run.dataset) == (2000, 1, scale.dataset)
+    flow = paper_suite.flow_net_config(scale, height=96, width=128)
+    assert (flow.steps, flow.batch_size, flow.warmup_steps) == (5000, 8, 100)
 
 
 def test_learned_models_differ_only_where_the_suite_says():
