@@ -137,6 +137,27 @@ def test_pretrained_parameters_are_the_flow_runs(flow_run):
         flow_depth.load_pretrained_flow({**params, "flow_net": smaller}, str(flow_run))
 
 
+def test_the_global_local_options_reach_the_inner_model():
+    image1, image2, flow_given = _inputs(batch=1)
+
+    def encoder(**options):
+        depth_model = flow_depth.GlobalLocalFlowNet(global_local=options)
+        params = jax.eval_shape(depth_model.init, jax.random.key(0), image1, image2, flow_given)
+        return params["params"]["global_local"]["global_encoder"]
+
+    # The main recipe: an encoder on the flow alone (2 channels), instance-normalised.
+    recipe = encoder(
+        use_image_pair=False, encoder_norm="instance", encoder_channels=[4, 8, 8, 8, 8]
+    )
+    assert recipe["conv0"]["kernel"].shape[-2:] == (2, 4) and "norm0" in recipe
+    default = encoder()
+    assert default["conv0"]["kernel"].shape[-2] == 8 and "norm0" not in default
+    with pytest.raises(ValueError, match="global_local: encoder_norm must be one of"):
+        model.check_config("global_local_flow_net", {"global_local": {"encoder_norm": "x"}})
+    # A run stored before the option existed was trained with the defaults.
+    assert model.complete_stored_config("global_local_flow_net", {})["global_local"] == {}
+
+
 def test_a_missing_flow_run_is_refused_when_the_config_is_checked(tmp_path):
     with pytest.raises(ValueError, match="holds no flow-network run"):
         model.check_config("global_local_flow_net", {"flow_net_workdir": str(tmp_path)})
