@@ -29,6 +29,10 @@ def _run_compare(data_dir, workdir, *flags):
     return result
 
 
+# Slow: the launcher trains and scores two models end to end; the default run keeps its
+# margin under 10 minutes (experiments.paper's test covers reusing finished runs, and the
+# next test runs this launcher end to end).
+@pytest.mark.slow
 def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "compare"
     flags = [
