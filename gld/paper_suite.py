@@ -292,19 +292,18 @@ def suite_runs(scale: Scale) -> list[Run]:
     rate = {"learning_rate": scale.check_learning_rate or scale.learning_rate}
     runs += [
         _global_local("flow_dis", "global-local, DIS flow (stored)", epipolar=False, options=rate),
-        Run(
-            "flow_net_fixed",
-            "global_local_flow_net",
-            "global-local, flow network fixed",
-            options=rate,
-            model_config={"global_local": MAIN_RECIPE, "flow_trainable": False},
-        ),
-        Run(
-            "flow_net_finetuned",
-            "global_local_flow_net",
-            "global-local, flow network fine-tuned",
-            options=rate,
-            model_config={"global_local": MAIN_RECIPE, "flow_trainable": True},
+        *(
+            Run(
+                f"flow_net_{state}",
+                "global_local_flow_net",
+                f"global-local, flow network {label}",
+                options=rate,
+                model_config={"global_local": MAIN_RECIPE, "flow_trainable": trainable},
+            )
+            for state, label, trainable in (
+                ("fixed", "fixed", False),
+                ("finetuned", "fine-tuned", True),
+            )
         ),
         Run("flow_net_head", "flow_net_head", "flow network + (32, 16, 1) head", options=rate),
     ]
