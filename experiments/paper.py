@@ -9,10 +9,13 @@ Trains and evaluates every run of the suite (`gld.paper_suite`) in <workdir>/run
 the analyses (pose probe, triangulation with the probe's pose, flow-error curves,
 qualitative predictions, generated filters), and writes the report (every table with the
 paper's numbers beside ours, the targets checked, the figures as PNG) to <report_dir>.
-Each finished task leaves a result in <workdir>/results/ and is reused; an unfinished
-training run resumes from its last checkpoint, so a killed suite, re-run with the same
-command, continues where it stopped. Before each task the suite prints which it is and
-the ETA of the rest; each training run shows its own progress bar.
+Each finished task leaves a result in <results_dir> (default <report_dir>/results/, kept
+with the report) and is reused; an unfinished training run resumes from its last
+checkpoint, so a killed suite, re-run with the same command, continues where it stopped.
+The results alone are enough to continue in another checkout: an analysis retrains (same
+seed) a run whose checkpoint is not in <workdir> and notes it if it does not score its
+result. Before each task the suite prints which it is and the ETA of the rest; each
+training run shows its own progress bar.
 
 Multi-process (the paper suite on several hosts): the same command on every host with
 `--num_processes=N --process_id=i --coordinator_address=host0:port`; process 0 writes
@@ -31,9 +34,15 @@ from experiments import common
 FLAGS = flags.FLAGS
 
 flags.DEFINE_enum("suite", "cpu", ["cpu", "paper", "tiny"], "Which scale to run (gld.paper_suite).")
-flags.DEFINE_string("workdir", None, "Runs and results (default: runs/paper_<suite>).")
+flags.DEFINE_string("workdir", None, "The training runs (default: runs/paper_<suite>).")
 flags.DEFINE_string(
     "report_dir", None, "Where the report goes (default: report/ for cpu, report/<suite>/ else)."
+)
+flags.DEFINE_string(
+    "results_dir",
+    None,
+    "Each task's result, from which the report is written and the suite continues "
+    "(default: <report_dir>/results).",
 )
 flags.DEFINE_list("only", None, "Run only these tasks (names or prefixes: train/, classical).")
 flags.DEFINE_bool("report_only", False, "Write the report from the finished results only.")
@@ -84,7 +93,10 @@ def main(argv):
             width=width,
         )
 
-    runner = paper_runner.SuiteRunner(scale, workdir, data, progress=FLAGS.progress)
+    results_dir = Path(FLAGS.results_dir or report_dir / "results")
+    runner = paper_runner.SuiteRunner(
+        scale, workdir, data, results_dir=results_dir, progress=FLAGS.progress
+    )
     try:
         runner.selected(FLAGS.only)
     except ValueError as error:
@@ -95,7 +107,7 @@ def main(argv):
         path = paper_report.write_report(
             scale,
             runner.finished(),
-            workdir,
+            results_dir,
             report_dir,
             commit=commit,
             command=f"python -m experiments.paper --suite={scale.name}",

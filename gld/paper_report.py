@@ -141,13 +141,13 @@ class Report:
     Args:
       scale: the suite.
       results: task name -> result (`SuiteRunner.run`).
-      workdir: the suite's workdir (for the arrays and figures of its results).
+      results_dir: where the results are (for their arrays and figures).
     """
 
-    def __init__(self, scale: Scale, results: dict[str, dict], workdir: str | Path):
+    def __init__(self, scale: Scale, results: dict[str, dict], results_dir: str | Path):
         self.scale = scale
         self.results = results
-        self.workdir = Path(workdir)
+        self.results_dir = Path(results_dir)
         self.runs = {run.name: run for run in paper_suite.suite_runs(scale)}
         self.targets: list[tuple[str, bool | None, str]] = []
 
@@ -696,7 +696,7 @@ class Report:
 
     def qualitative(self, figure_dir: Path) -> str:
         text = "## 9. Qualitative results and generated filters\n\n"
-        path = self.workdir / "results" / "qualitative.npz"
+        path = self.results_dir / "qualitative.npz"
         if self.results.get("qualitative") is None or not path.exists():
             text += f"Predictions: {NOT_RUN}.\n\n"
         else:
@@ -710,7 +710,7 @@ class Report:
         if filters is None:
             return text + f"Filters: {NOT_RUN}.\n\n"
         for name in filters["figures"]:
-            shutil.copyfile(self.workdir / "results" / "figures" / name, figure_dir / name)
+            shutil.copyfile(self.results_dir / "figures" / name, figure_dir / name)
             text += f"![generated filters]({name})\n"
         correlation = filters["correlation"]
         return text + (
@@ -756,16 +756,17 @@ class Report:
 def write_report(
     scale: Scale,
     results: dict[str, dict],
-    workdir: str | Path,
+    results_dir: str | Path,
     report_dir: str | Path,
     *,
     commit: str = "",
     command: str = "",
 ) -> Path:
-    """Writes <report_dir>/README.md and its figures; returns the README's path."""
+    """Writes <report_dir>/README.md and its figures from the results (read from
+    `results_dir`, which holds their arrays and figures); returns the README's path."""
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
-    report = Report(scale, results, workdir)
+    report = Report(scale, results, results_dir)
     main = report.run("global_local_1px") or next(
         (r for k, r in results.items() if k.startswith("train/")), None
     )
@@ -807,12 +808,22 @@ def write_report(
         )
     )
     commits = sorted({r.get("commit") for r in results.values() if r.get("commit")})
+    try:
+        where = (
+            f"`{Path(results_dir).resolve().relative_to(report_dir.resolve())}/` beside this file"
+        )
+    except ValueError:
+        where = f"`{results_dir}`"
     head = (
         f"# The paper's experiments on `{scale.dataset}` — suite `{scale.name}`\n\n"
         f"Made by `{command or 'python -m experiments.paper --suite=' + scale.name}`"
         f"{f' at commit {commit}' if commit else ''}; {finished} of {len(report.runs)} "
         f"training runs finished (results made at commit{'s' if len(commits) > 1 else ''} "
-        f"{', '.join(commits) or '—'}). The suite takes {scale.hours}.\n\n"
+        f"{', '.join(commits) or '—'}). The suite takes {scale.hours}. Each task's result "
+        f"is in {where}: `--report_only` rewrites this report from them, and the suite "
+        "run beside them continues where they stop (an analysis whose run has a result but "
+        "no checkpoint there retrains it with the same seed and notes it if it does not "
+        "score its result).\n\n"
         f"{stamp[0].upper()}{stamp[1:]}\n\n"
         f"Budget: {budget}. Every learned model gets the same input pipeline, optimiser, "
         "peak learning rate, schedule, batch and seed, and the paper's loss (sparse L1 on "
@@ -833,6 +844,16 @@ def write_report(
     summary = "## Targets\n\n| target | verdict | numbers |\n|---|---|---|\n"
     for name, holds, detail in report.targets:
         summary += _row([name, _verdict(holds), detail])
+    retrained = [
+        f"- `{task}`: {difference}\n"
+        for task, result in sorted(results.items())
+        for difference in result.get("retrained_differently", [])
+    ]
+    if retrained:
+        summary += (
+            "\nAnalyses that read a run retrained here (its checkpoint was not beside its "
+            "result) that does not score its result exactly:\n\n" + "".join(retrained)
+        )
     text = head + summary + "\n" + "".join(sections) + report.budgets()
     path = report_dir / "README.md"
     workdir_lib.write_atomically(path, text)

@@ -1,9 +1,9 @@
 """Runs a suite of `gld.paper_suite`: trains, reuses, resumes and scores every run, then
 the analyses; each result is a file, so a killed suite continues where it stopped.
 
-    <workdir>/runs/<run>/            each training run's workdir (gld.workdir)
-    <workdir>/results/<task>.json    one result per task, written atomically when done
-    <workdir>/results/<task>.npz     arrays a later task or the report reads
+    <workdir>/runs/<run>/        each training run's workdir (gld.workdir)
+    <results>/<task>.json        one result per task, written atomically when done
+    <results>/<task>.npz         arrays a later task or the report reads
 
 Tasks, in order: every training run of the paper's main experiments (`train/<run>`:
 train or resume, then evaluate on the test split), the classical references on each
@@ -15,8 +15,11 @@ exact flow, its end-point error and speed against DIS), the self-supervised and 
 experiment's runs, and the flow networks' end-point error after depth training
 (`flow_finetuning`). A task is skipped when
 its result exists and was made with the same configuration; a training run whose result
-is missing resumes from its newest checkpoint. `gld.paper_report` turns the results into
-the report.
+is missing resumes from its newest checkpoint. The results directory can travel without
+the runs (the launcher keeps it beside the report): an analysis whose run has a result but
+no checkpoint here retrains that run with the same configuration and seed, and checks
+whether it scores what its result says (the analysis's result notes it if not).
+`gld.paper_report` turns the results into the report.
 """
 
 from __future__ import annotations
@@ -95,13 +98,13 @@ class Task:
     needs: tuple[str, ...] = ()
 
 
-def result_path(workdir: Path, task: str) -> Path:
-    return Path(workdir) / "results" / f"{task.replace('/', '__')}.json"
+def result_path(results_dir: str | Path, task: str) -> Path:
+    return Path(results_dir) / f"{task.replace('/', '__')}.json"
 
 
-def read_result(workdir: str | Path, task: str) -> dict[str, Any] | None:
+def read_result(results_dir: str | Path, task: str) -> dict[str, Any] | None:
     """A task's result, or None if it has not finished."""
-    path = result_path(Path(workdir), task)
+    path = result_path(results_dir, task)
     if not path.exists():
         return None
     return json.loads(path.read_text())
@@ -186,8 +189,9 @@ class SuiteRunner:
 
     Args:
       scale: the suite.
-      workdir: where runs and results go.
+      workdir: where the training runs go.
       data: dataset name -> its `Data` (built on first use by the caller).
+      results_dir: where the results go (default: <workdir>/results).
       print_fn: progress messages.
       progress: training progress bars.
     """
@@ -198,16 +202,21 @@ class SuiteRunner:
         workdir: str | Path,
         data: Callable[[str], Data],
         *,
+        results_dir: str | Path | None = None,
         print_fn: Callable[[str], None] = print,
         progress: bool = True,
     ):
         self.scale = scale
         self.workdir = Path(workdir)
+        self.results_dir = (
+            Path(results_dir) if results_dir is not None else self.workdir / "results"
+        )
         self._data = data
         self._loaded: dict[str, Data] = {}
         self.print = print_fn
         self.progress = progress
         self.runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+        self._differences: list[str] = []  # retrained runs that score otherwise
 
     def data(self, dataset: str) -> Data:
         if dataset not in self._loaded:
@@ -339,7 +348,7 @@ class SuiteRunner:
         """The results of every finished task made with the suite's present definition."""
         results = {}
         for task in self.tasks():
-            result = read_result(self.workdir, task.name)
+            result = read_result(self.results_dir, task.name)
             if result is not None and _same_identity(result, task):
                 results[task.name] = result
         return results
@@ -367,7 +376,7 @@ class SuiteRunner:
         pending = [task for task, finished in zip(tasks, done, strict=True) if not finished]
         for task, finished in zip(tasks, done, strict=True):
             if finished:
-                self.print(f"{task.name}: done (reused {result_path(self.workdir, task.name)})")
+                self.print(f"{task.name}: done (reused {result_path(self.results_dir, task.name)})")
         estimates = {task.name: self._remaining_seconds(task) for task in pending}
         spent, estimated, failures = 0.0, 0.0, []
         for index, task in enumerate(pending):
@@ -383,6 +392,7 @@ class SuiteRunner:
                 self.print(f"{task.name}: skipped, needs {missing} first")
                 continue
             started = time.perf_counter()
+            self._differences = []
             try:
                 result = task.run()
             except Exception as error:  # noqa: BLE001 - one failed task must not stop the rest
@@ -391,14 +401,16 @@ class SuiteRunner:
                 continue
             seconds = time.perf_counter() - started
             result.update(task=task.name, identity=task.identity, seconds=seconds, commit=commit)
+            if self._differences:
+                result["retrained_differently"] = self._differences
             if jax.process_index() == 0:
-                _write_json(result_path(self.workdir, task.name), result)
+                _write_json(result_path(self.results_dir, task.name), result)
             spent += seconds
             estimated += estimates[task.name]
         return failures
 
     def _done(self, task: Task) -> bool:
-        result = read_result(self.workdir, task.name)
+        result = read_result(self.results_dir, task.name)
         return result is not None and _same_identity(result, task)
 
     def _remaining_seconds(self, task: Task) -> float:
@@ -414,13 +426,13 @@ class SuiteRunner:
         return left * step_seconds(run.model) + 30
 
     def _train(self, run: Run) -> dict[str, Any]:
-        from gld import evaluation, train
-        from gld import model as model_lib
-        from gld import workdir as workdir_lib
+        from gld import train
 
         config = self._config(run)
         data = self.data(config.dataset)
         run_dir = self.run_dir(run.name)
+        if run.model in paper_suite.FLOW_NET_MODELS:
+            self._ensure_flow_net()
         self._supersede_other_configuration(run_dir, config)
         self.print(f"{run.name}: {config.steps} steps of {run.model} in {run_dir}")
         train.train_and_evaluate(
@@ -431,6 +443,27 @@ class SuiteRunner:
             progress=self.progress,
             print_fn=self.print,
         )
+        summary, abs_inv, parameters = self._score(run_dir, data)
+        curves, train_seconds = _training_log(run_dir)
+        return {
+            "run": run.name,
+            "model": run.model,
+            "label": run.label,
+            "dataset": data.name,
+            "config": dataclasses.asdict(config),
+            "parameters": parameters,
+            "metrics": summary,
+            "abs_inv_per_example": abs_inv,
+            "curves": curves,
+            "train_seconds": train_seconds,
+        }
+
+    def _score(self, run_dir: Path, data: Data) -> tuple[dict[str, dict], np.ndarray, int]:
+        """A finished run's test summary, per-example Abs-Inv and number of parameters."""
+        from gld import evaluation
+        from gld import model as model_lib
+        from gld import workdir as workdir_lib
+
         model, variables, saved = workdir_lib.load_trained(run_dir)
         per_example, _ = evaluation.evaluate_source(
             model,
@@ -439,20 +472,65 @@ class SuiteRunner:
             batch_size=saved.eval_batch_size,
             flow_source=saved.flow_source,
         )
-        summary, abs_inv = _summary(per_example)
-        curves, train_seconds = _training_log(run_dir)
-        return {
-            "run": run.name,
-            "model": run.model,
-            "label": run.label,
-            "dataset": data.name,
-            "config": dataclasses.asdict(config),
-            "parameters": model_lib.parameter_counts(variables["params"])["total"],
-            "metrics": summary,
-            "abs_inv_per_example": abs_inv,
-            "curves": curves,
-            "train_seconds": train_seconds,
-        }
+        parameters = model_lib.parameter_counts(variables["params"])["total"]
+        return (*_summary(per_example), parameters)
+
+    def _trained(self, name: str):
+        """(model, variables, config) of a finished run, for an analysis. A run whose
+        result came without its checkpoint (results moved to another checkout) is
+        retrained first, with the same configuration and seed, and scored against its
+        result: the analyses must read the model the tables report."""
+        from gld import train
+        from gld import workdir as workdir_lib
+
+        run = self.runs[name]
+        run_dir = self.run_dir(name)
+        if _checkpointed_step(run_dir) < paper_suite.run_steps(self.scale, run):
+            config = self._config(run)
+            data = self.data(config.dataset)
+            self.print(f"{name}: no checkpoint in {run_dir}; retraining it for the analyses")
+            if run.model in paper_suite.FLOW_NET_MODELS:
+                self._ensure_flow_net()
+            self._supersede_other_configuration(run_dir, config)
+            train.train_and_evaluate(
+                config, run_dir, data.train, None, progress=self.progress, print_fn=self.print
+            )
+            stored = read_result(self.results_dir, f"train/{name}")
+            _, abs_inv, _ = self._score(run_dir, data)
+            if stored is not None:
+                self._note_reproduction(name, stored["abs_inv_per_example"], abs_inv)
+        return workdir_lib.load_trained(run_dir)
+
+    def _ensure_flow_net(self) -> None:
+        """Retrains the flow network when its result came without its checkpoint (see
+        `_trained`); its test end-point error must be its result's."""
+        from gld import flow_training
+
+        run_dir = self.flow_net_dir()
+        if _checkpointed_step(run_dir) >= self.scale.flow_net_steps:
+            return
+        data = self.data(self.scale.dataset)
+        config = paper_suite.flow_net_config(self.scale, height=data.height, width=data.width)
+        self.print(f"flow_net: no checkpoint in {run_dir}; retraining it for the flow runs")
+        flow_training.train_flow(
+            config, run_dir, data.train, None, progress=self.progress, print_fn=self.print
+        )
+        stored = read_result(self.results_dir, "flow_net")
+        if stored is not None:
+            model, variables, _, _ = flow_training.load_flow_run(run_dir)
+            _, _, summary = flow_training.evaluate_flow(
+                model, variables, data.test, batch_size=config.eval_batch_size
+            )
+            network = flow_training.NETWORK
+            self._note_reproduction(
+                "flow_net", [stored["methods"][network]["epe"]], [summary[network]["epe"]]
+            )
+
+    def _note_reproduction(self, name: str, stored, retrained) -> None:
+        difference = _reproduction(name, stored, retrained)
+        self.print(f"{name}: retrained, " + (difference or "scores exactly its result"))
+        if difference:
+            self._differences.append(difference)
 
     def _supersede_other_configuration(self, run_dir: Path, config) -> None:
         """Moves a run directory trained with another configuration aside (never deleted),
@@ -518,13 +596,12 @@ class SuiteRunner:
         training (fixed: the network as trained on the exact flow; fine-tuned: what the
         sparse depth loss made of it)."""
         from gld import flow_training
-        from gld import workdir as workdir_lib
         from gld.flow_net import FlowNet
 
         data = self.data(self.scale.dataset)
         epe = {}
         for name in paper_suite.FLOW_EXPERIMENT[1:]:
-            _, variables, _ = workdir_lib.load_trained(self.run_dir(name))
+            _, variables, _ = self._trained(name)
             _, _, summary = flow_training.evaluate_flow(
                 FlowNet(), {"params": variables["params"]["flow_net"]}, data.test
             )
@@ -548,11 +625,10 @@ class SuiteRunner:
         """The four settings on the main run's encoder; the pretrained two on the encoder
         of the run without the epipolar term (the scratch ones are the same there)."""
         from gld import probes
-        from gld import workdir as workdir_lib
 
         errors, arrays = {}, {}
         for index, name in enumerate(PROBED_RUNS):
-            model, variables, config = workdir_lib.load_trained(self.run_dir(name))
+            model, variables, config = self._trained(name)
             data = self.data(config.dataset)
             settings = probes.pose_probe_settings(
                 data.train,
@@ -575,14 +651,14 @@ class SuiteRunner:
                 arrays[f"{name}/{setting}/rotation"] = predicted["rotation"]
                 arrays[f"{name}/{setting}/translation"] = predicted["translation"]
             errors[name] = settings
-        _write_npz(self.workdir / "results" / "pose_probe_poses.npz", **arrays)
+        _write_npz(self.results_dir / "pose_probe_poses.npz", **arrays)
         return {"errors": errors}
 
     def _predicted_pose(self) -> Callable[[dict], tuple[np.ndarray, np.ndarray]]:
         """batch -> (rotation [B, 3, 3], translation [B, 3]) that the probe of
         `PREDICTED_POSE` predicts for the batch's test pairs (by id)."""
         key = "/".join(PREDICTED_POSE)
-        with np.load(self.workdir / "results" / "pose_probe_poses.npz") as poses:
+        with np.load(self.results_dir / "pose_probe_poses.npz") as poses:
             row = {str(i): k for k, i in enumerate(poses[f"{key}/ids"])}
             rotation, translation = poses[f"{key}/rotation"], poses[f"{key}/translation"]
 
@@ -612,9 +688,8 @@ class SuiteRunner:
 
     def _flow_error(self) -> dict[str, Any]:
         from gld import flow_error
-        from gld import workdir as workdir_lib
 
-        model, variables, config = workdir_lib.load_trained(self.run_dir(MAIN_RUN))
+        model, variables, config = self._trained(MAIN_RUN)
         data = self.data(config.dataset)
         predictors = {
             "global_local": flow_error.model_predictor(model, variables),
@@ -630,7 +705,6 @@ class SuiteRunner:
 
     def _qualitative(self) -> dict[str, Any]:
         from gld import evaluation, flow_error
-        from gld import workdir as workdir_lib
 
         data = self.data(self.scale.dataset)
         count = min(self.scale.figure_pairs, len(data.test))
@@ -646,17 +720,16 @@ class SuiteRunner:
             "ids": np.asarray([str(i) for i in batch["id"]]),
         }
         for name in QUALITATIVE_RUNS:
-            model, variables, _ = workdir_lib.load_trained(self.run_dir(name))
+            model, variables, _ = self._trained(name)
             arrays[name] = 1.0 / np.asarray(flow_error.model_predictor(model, variables)(batch))
-        _write_npz(self.workdir / "results" / "qualitative.npz", **arrays)
+        _write_npz(self.results_dir / "qualitative.npz", **arrays)
         return {"runs": list(QUALITATIVE_RUNS), "ids": arrays["ids"]}
 
     def _filters(self) -> dict[str, Any]:
         from gld import evaluation
         from gld import filter_inspection as inspect_lib
-        from gld import workdir as workdir_lib
 
-        model, variables, config = workdir_lib.load_trained(self.run_dir(MAIN_RUN))
+        model, variables, config = self._trained(MAIN_RUN)
         data = self.data(config.dataset)
         count = min(FILTER_PAIRS, len(data.test))
         batch = next(
@@ -669,7 +742,7 @@ class SuiteRunner:
             )
         )
         inspected = inspect_lib.inspect_pairs(variables, batch, model)
-        figures = self.workdir / "results" / "figures"
+        figures = self.results_dir / "figures"
         figures.mkdir(parents=True, exist_ok=True)
         # The first pair, the pair whose motion is most like it and the least like it.
         order = np.argsort(inspected["motion_similarity"][0, 1:])
@@ -686,6 +759,19 @@ class SuiteRunner:
 
 # The qualitative grid's columns (besides image and truth), in order.
 QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
+
+
+def _reproduction(name: str, stored: Sequence[float], retrained: Sequence[float]) -> str | None:
+    """None when a retrained run scores what its result says, else what differs (the
+    same seed on another machine or library version need not give the same floats)."""
+    stored, retrained = np.asarray(stored, np.float64), np.asarray(retrained, np.float64)
+    if stored.shape == retrained.shape and np.allclose(stored, retrained, rtol=1e-4, atol=1e-7):
+        return None
+    return (
+        f"{name} retrained scores {retrained.mean():.6g}, its result {stored.mean():.6g}: "
+        "this analysis reads the retrained model (delete the run's result to redo the run "
+        "and the tables with it)"
+    )
 
 
 def _matches(task: str, name: str) -> bool:

@@ -3,6 +3,7 @@ finished task is reused; a killed suite continues where it stopped."""
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -41,7 +42,7 @@ def _run(*args):
 
 def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_path):
     workdir, report_dir = tmp_path / "suite", tmp_path / "report"
-    results = workdir / "results"
+    results = report_dir / "results"
     # The analyses that need no other run; the rest are in the slow whole-suite test.
     only = "train/global_local_1px,train/global_local_no_epipolar,classical/tiny,filters"
     # Killed (the whole process group) once its first task has finished.
@@ -84,6 +85,18 @@ def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_pat
     for figure in ("overfitting.png", "density.png", "filters_0.png"):
         assert (report_dir / figure).exists(), figure
 
+    # The results alone, in another place: an analysis retrains the run it reads and
+    # checks that the retrained model scores the run's result exactly.
+    moved = tmp_path / "elsewhere"
+    shutil.copytree(report_dir, moved)
+    (moved / "results" / "filters.json").unlink()
+    continued = _run(tiny_scenes_dir, tmp_path / "fresh", moved, only)
+    assert "train/global_local_1px: done (reused" in continued
+    assert "global_local_1px: no checkpoint in" in continued
+    assert "global_local_1px: retrained, scores exactly its result" in continued
+    assert "global_local_no_epipolar: no checkpoint" not in continued  # filters reads one run
+    assert json.loads((moved / "results" / "filters.json").read_text())["pairs"] == 16
+
 
 @pytest.mark.slow
 def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
@@ -100,7 +113,7 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     readme = (tmp_path / "r" / "README.md").read_text()
     assert f"{RUNS} of {RUNS} training runs finished" in readme
-    results = tmp_path / "w" / "results"
+    results = tmp_path / "r" / "results"
     probe = json.loads((results / "pose_probe.json").read_text())["errors"]
     settings = {"scratch_mlp", "pretrained_mlp", "scratch_full", "pretrained_full"}
     assert settings <= set(probe["global_local_1px"])

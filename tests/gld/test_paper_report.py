@@ -82,7 +82,7 @@ LOW_RATE = {name: f"{name}_low_lr" for name in paper_suite.RATE_CHECKED}
 
 
 def _write(tmp_path, results):
-    path = paper_report.write_report(SCALE, results, tmp_path / "work", tmp_path / "report")
+    path = paper_report.write_report(SCALE, results, tmp_path / "results", tmp_path / "report")
     return path.read_text()
 
 
@@ -222,6 +222,11 @@ def test_pose_probe_table_and_target(tmp_path):
     assert _verdicts(_write(tmp_path, _results({}, pose_probe=probe)))[POSE] == (
         "**does not hold**"
     )
+    # An analysis that read a run retrained without reproducing its result says so.
+    assert "retrained here" not in readme
+    probe["retrained_differently"] = ["global_local_1px retrained scores 0.031, its result 0.03"]
+    readme = _write(tmp_path, _results({}, pose_probe=probe))
+    assert "- `pose_probe`: global_local_1px retrained scores 0.031, its result 0.03\n" in readme
 
 
 def test_flow_error_and_overfitting_figures(tmp_path):

@@ -49,7 +49,7 @@ def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
     runner = _runner(tmp_path)
     task = next(t for t in runner.tasks() if t.name == "filters")
     assert not runner._done(task)
-    path = paper_runner.result_path(tmp_path, task.name)
+    path = paper_runner.result_path(tmp_path / "results", task.name)
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"identity": task.identity}))
     assert runner._done(task)
@@ -137,3 +137,10 @@ def test_curves_and_training_time_from_the_metrics_log(tmp_path):
     assert seconds == pytest.approx(50 / 5.0 + 50 / 2.5)
     assert paper_runner._duration(59 * 60) == "59 min"
     assert paper_runner._duration(61 * 60 + 40) == "1 h 02 min"
+
+
+def test_a_retrained_run_is_compared_with_its_result():
+    assert paper_runner._reproduction("run", [0.1, 0.2], [0.1, 0.2 + 1e-9]) is None
+    difference = paper_runner._reproduction("run", [0.1, 0.2], [0.1, 0.21])
+    assert difference.startswith("run retrained scores 0.155, its result 0.15:")
+    assert paper_runner._reproduction("run", [0.1, 0.2], [0.1]) is not None
