@@ -122,7 +122,7 @@ def _write_npz(path: Path, **arrays: np.ndarray) -> None:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez_compressed(buffer, **arrays)
     workdir_lib.write_atomically(path, buffer.getvalue())
 
 
