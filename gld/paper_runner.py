@@ -5,9 +5,10 @@ the analyses; each result is a file, so a killed suite continues where it stoppe
     <results>/<task>.json        one result per task, written atomically when done
     <results>/<task>.npz         arrays a later task or the report reads
 
-Tasks, in order: every training run of the paper's main experiments (`train/<run>`:
-train or resume, then evaluate on the test split), the classical references on each
-dataset (`classical/<dataset>`), the pose probe (`pose_probe`), triangulation with the
+Tasks, in order: the classical references on each dataset (`classical/<dataset>`, a
+minute each: the main table's reference rows come first), every training run of the
+paper's main experiments (`train/<run>`: train or resume, then evaluate on the test
+split), the pose probe (`pose_probe`), triangulation with the
 probe's pose (`triangulation_predicted_pose`), the flow-error curves (`flow_error`), the
 qualitative predictions (`qualitative`) and the generated filters (`filters`); then the
 paper's remaining comparisons: the learned flow network (`flow_net`: trained on the
@@ -267,9 +268,6 @@ class SuiteRunner:
                     needs=["flow_net"] if run.model in paper_suite.FLOW_NET_MODELS else [],
                 )
 
-        names = list(self.runs)
-        remaining = names.index(FIRST_REMAINING_RUN)
-        add_runs([self.runs[name] for name in names[:remaining]])
         for dataset, methods in (
             (self.scale.dataset, CLASSICAL),
             (self.scale.varying_dataset, CLASSICAL_VARYING),
@@ -280,6 +278,9 @@ class SuiteRunner:
                 {"dataset": dataset, "methods": list(methods)},
                 60,
             )
+        names = list(self.runs)
+        remaining = names.index(FIRST_REMAINING_RUN)
+        add_runs([self.runs[name] for name in names[:remaining]])
         probe = {
             "steps": self.scale.probe_steps,
             "batch_size": self.scale.batch_size,
