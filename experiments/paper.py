@@ -5,9 +5,10 @@ r"""The paper's experimental section on the embedded benchmark, one command:
     python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
     python -m experiments.paper --suite=cpu --report_only
 
-Trains and evaluates every run of the suite (`gld.paper_suite`) in <workdir>/runs/, then
-the analyses (pose probe, triangulation with the probe's pose, flow-error curves,
-qualitative predictions, generated filters), and writes the report (every table with the
+Trains and evaluates every run of the suite (`gld.paper_suite`) in <workdir>/runs/, with
+the analyses, each as soon as the runs it reads have finished (pose probe, triangulation
+with the probe's pose, flow-error curves, qualitative predictions, generated filters),
+and writes the report (every table with the
 paper's numbers beside ours, the targets checked, the figures as PNG) to <report_dir>.
 Each finished task leaves a result in <results_dir> (default <report_dir>/results/, kept
 with the report) and is reused; an unfinished training run resumes from its last

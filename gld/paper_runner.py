@@ -6,20 +6,21 @@ the analyses; each result is a file, so a killed suite continues where it stoppe
     <results>/<task>.npz         arrays a later task or the report reads
 
 Tasks, in order: the classical references on each dataset (`classical/<dataset>`, a
-minute each: the main table's reference rows come first), every training run of the
-paper's main experiments (`train/<run>`: train or resume, then evaluate on the test
-split), the pose probe (`pose_probe`), triangulation with the
-probe's pose (`triangulation_predicted_pose`), the flow-error curves (`flow_error`), the
-qualitative predictions (`qualitative`) and the generated filters (`filters`); then the
-paper's remaining comparisons: the learned flow network (`flow_net`: trained on the
-exact flow, its end-point error and speed against DIS), the self-supervised and flow
-experiment's runs, and the flow networks' end-point error after depth training
-(`flow_finetuning`). A task is skipped when
-its result exists and was made with the same configuration; a training run whose result
-is missing resumes from its newest checkpoint. The results directory can travel without
-the runs (the launcher keeps it beside the report): an analysis whose run has a result but
-no checkpoint here retrains that run with the same configuration and seed, and checks
-whether it scores what its result says (the analysis's result notes it if not).
+minute each: the main table's reference rows come first), then every training run of
+the paper's main experiments (`train/<run>`: train or resume, then evaluate on the test
+split) in the order of `paper_suite.suite_runs`, each analysis as soon as the runs it
+reads have finished: the generated filters (`filters`), the qualitative predictions
+(`qualitative`), the pose probe (`pose_probe`), triangulation with the probe's pose
+(`triangulation_predicted_pose`), the flow-error curves (`flow_error`); then the paper's
+remaining comparisons: the learned flow network (`flow_net`: trained on the exact flow,
+its end-point error and speed against DIS), the self-supervised and flow experiment's
+runs, and the flow networks' end-point error after depth training (`flow_finetuning`).
+A task is skipped when its result exists and was made with the same configuration; a
+training run whose result is missing resumes from its newest checkpoint. The results
+directory can travel without the runs (the launcher keeps it beside the report): an
+analysis whose run has a result but no checkpoint here retrains that run with the same
+configuration and seed, and checks whether it scores what its result says (the
+analysis's result notes it if not).
 `gld.paper_report` turns the results into the report.
 """
 
@@ -254,7 +255,7 @@ class SuiteRunner:
             identities[name] = identity
             tasks.append(Task(name, run, identity, seconds, tuple(needs)))
 
-        def add_runs(runs):
+        def add_runs(runs, then):
             for run in runs:
                 # A flow network's run enters by the identity of the `flow_net` task.
                 config = paper_suite.run_config(
@@ -267,6 +268,7 @@ class SuiteRunner:
                     paper_suite.run_steps(self.scale, run) * step_seconds(run.model) + 30,
                     needs=["flow_net"] if run.model in paper_suite.FLOW_NET_MODELS else [],
                 )
+                then()
 
         for dataset, methods in (
             (self.scale.dataset, CLASSICAL),
@@ -278,43 +280,67 @@ class SuiteRunner:
                 {"dataset": dataset, "methods": list(methods)},
                 60,
             )
-        names = list(self.runs)
-        remaining = names.index(FIRST_REMAINING_RUN)
-        add_runs([self.runs[name] for name in names[:remaining]])
         probe = {
             "steps": self.scale.probe_steps,
             "batch_size": self.scale.batch_size,
             "learning_rate": self.scale.learning_rate,
         }
-        add(
-            "pose_probe",
-            self._pose_probe,
-            probe,
-            (4 + 2) * self.scale.probe_steps * step_seconds("pose_probe") + 60,
-            needs=[f"train/{name}" for name in PROBED_RUNS],
-        )
-        add(
-            "triangulation_predicted_pose",
-            self._triangulation_predicted_pose,
-            {"pose_of": PREDICTED_POSE},
-            30,
-            needs=["pose_probe"],
-        )
-        add(
-            "flow_error",
-            self._flow_error,
-            {"pose_of": PREDICTED_POSE},
-            60,
-            needs=[f"train/{MAIN_RUN}", "pose_probe"],
-        )
-        add(
-            "qualitative",
-            self._qualitative,
-            {"pairs": self.scale.figure_pairs},
-            60,
-            needs=[f"train/{name}" for name in QUALITATIVE_RUNS],
-        )
-        add("filters", self._filters, {"pairs": FILTER_PAIRS}, 20, needs=[f"train/{MAIN_RUN}"])
+        # The analyses, each made as soon as the runs it reads have finished (their
+        # checkpoints are then at hand; where they are not, `_trained` retrains them).
+        waiting = [
+            (
+                "filters",
+                self._filters,
+                {"pairs": FILTER_PAIRS},
+                20,
+                [f"train/{MAIN_RUN}"],
+            ),
+            (
+                "qualitative",
+                self._qualitative,
+                {"pairs": self.scale.figure_pairs},
+                60,
+                [f"train/{name}" for name in QUALITATIVE_RUNS],
+            ),
+            (
+                "pose_probe",
+                self._pose_probe,
+                probe,
+                (4 + 2) * self.scale.probe_steps * step_seconds("pose_probe") + 60,
+                [f"train/{name}" for name in PROBED_RUNS],
+            ),
+            (
+                "triangulation_predicted_pose",
+                self._triangulation_predicted_pose,
+                {"pose_of": PREDICTED_POSE},
+                30,
+                ["pose_probe"],
+            ),
+            (
+                "flow_error",
+                self._flow_error,
+                {"pose_of": PREDICTED_POSE},
+                60,
+                [f"train/{MAIN_RUN}", "pose_probe"],
+            ),
+            (
+                "flow_finetuning",
+                self._flow_finetuning,
+                {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
+                60,
+                ["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
+            ),
+        ]
+
+        def add_ready():
+            for analysis in list(waiting):
+                if all(need in identities for need in analysis[4]):
+                    waiting.remove(analysis)
+                    add(*analysis)
+
+        names = list(self.runs)
+        remaining = names.index(FIRST_REMAINING_RUN)
+        add_runs([self.runs[name] for name in names[:remaining]], add_ready)
         # The paper's remaining comparisons.
         flow_config = paper_suite.flow_net_config(self.scale, height=0, width=0)
         add(
@@ -323,14 +349,8 @@ class SuiteRunner:
             {**dataclasses.asdict(flow_config), "dis_timed_pairs": DIS_TIMED_PAIRS},
             self.scale.flow_net_steps * step_seconds("flow_net") + 60,
         )
-        add_runs([self.runs[name] for name in names[remaining:]])
-        add(
-            "flow_finetuning",
-            self._flow_finetuning,
-            {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
-            60,
-            needs=["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
-        )
+        add_runs([self.runs[name] for name in names[remaining:]], add_ready)
+        assert not waiting, f"analyses whose runs are not in the suite: {waiting}"
         return tasks
 
     def selected(self, only: Sequence[str] | None = None) -> list[Task]:

@@ -201,14 +201,20 @@ BASELINE_LABELS = {
 
 
 def suite_runs(scale: Scale) -> list[Run]:
-    """Every training run of a suite, in the order they are made: the global-local model
-    and the smaller baselines first, DispNet and FCRN last."""
+    """Every training run of a suite, in the order they are made: the main table first
+    (its learning-rate check, then the large baselines' rows), then the ablations, the
+    densities, the true flow and pose given, the varying intrinsics, and the paper's
+    remaining comparisons."""
     runs = [_global_local("global_local_1px", "global-local", curve=True)]
     runs += [
         Run("small_encdec_1px", "small_encdec", "Small Enc-Dec"),
         Run("eigen_1px", "eigen", "Eigen"),
     ]
     runs += _rate_checks(scale, runs)
+    runs += [
+        Run("dispnet_1px", "dispnet", "DispNet", curve=True),
+        Run("fcrn_1px", "fcrn", "FCRN", curve=True),
+    ]
     runs += [
         _global_local(
             "global_local_image_pair",
@@ -249,6 +255,15 @@ def suite_runs(scale: Scale) -> list[Run]:
                 options={"gt_pixels": gt_pixels},
             )
         )
+        if gt_pixels in scale.large_densities:
+            runs.append(
+                Run(
+                    f"dispnet_{suffix}",
+                    "dispnet",
+                    f"DispNet, {suffix}",
+                    options={"gt_pixels": gt_pixels},
+                )
+            )
     runs += [
         _global_local(
             "global_local_gt_flow", "global-local, true flow", options={"flow_source": "gt"}
@@ -265,22 +280,6 @@ def suite_runs(scale: Scale) -> list[Run]:
         Run("small_encdec_varying", "small_encdec", "Small Enc-Dec", varying=True),
         Run("eigen_varying", "eigen", "Eigen", varying=True),
     ]
-    # The large baselines last: on a CPU they take the longest for one row each.
-    runs += [
-        Run("dispnet_1px", "dispnet", "DispNet", curve=True),
-        Run("fcrn_1px", "fcrn", "FCRN", curve=True),
-    ]
-    for gt_pixels in scale.large_densities:
-        if gt_pixels != 1:
-            suffix = density_name(gt_pixels)
-            runs.append(
-                Run(
-                    f"dispnet_{suffix}",
-                    "dispnet",
-                    f"DispNet, {suffix}",
-                    options={"gt_pixels": gt_pixels},
-                )
-            )
     if scale.large_densities == DENSITIES:  # the paper's scale: DispNet too
         runs.append(Run("dispnet_varying", "dispnet", "DispNet", varying=True))
     # The paper's remaining comparisons: the self-supervised baseline, the flow experiment.

@@ -21,20 +21,24 @@ def test_selection_by_name_and_group(tmp_path):
     names = [task.name for task in runner.tasks()]
     runs = paper_suite.suite_runs(SUITES["cpu"])
     assert [n for n in names if n.startswith("train/")] == [f"train/{r.name}" for r in runs]
-    # The main experiments' analyses come before the paper's remaining comparisons.
-    analyses = names.index("pose_probe")
-    assert names[analyses : analyses + 6] == [
-        "pose_probe",
-        "triangulation_predicted_pose",
-        "flow_error",
-        "qualitative",
-        "filters",
-        "flow_net",
-    ]
-    assert names[analyses + 6] == "train/struct2depth" and names[-1] == "flow_finetuning"
-    assert names[analyses - 1] == "train/dispnet_dense"
     # The main table's reference rows first: a minute each.
     assert names[:2] == ["classical/small", "classical/small_varying"]
+    # Each analysis right after the last run it reads (its checkpoints are at hand).
+    for analysis, after in (
+        ("filters", "train/global_local_1px"),
+        ("qualitative", "train/dispnet_1px"),
+        ("pose_probe", "train/global_local_no_epipolar"),
+        ("triangulation_predicted_pose", "pose_probe"),
+        ("flow_error", "triangulation_predicted_pose"),
+        ("flow_finetuning", "train/flow_net_head"),
+    ):
+        assert names.index(analysis) == names.index(after) + 1, analysis
+    # The main table (and its learning-rate check) before the other experiments.
+    assert names.index("train/fcrn_1px") < names.index("train/global_local_image_pair")
+    # The paper's remaining comparisons after the main experiments.
+    assert names.index("flow_net") + 1 == names.index("train/struct2depth")
+    assert names.index("flow_net") == names.index("train/eigen_varying") + 1
+    assert names[-1] == "flow_finetuning"
 
     def selected(*only):
         return [task.name for task in runner.selected(list(only))]
