@@ -123,8 +123,11 @@ def collapse(result: dict) -> tuple[int, int, int] | None:
     return int(zero[0]), len(zero), len(norms)
 
 
-def _paper(numbers: Sequence[float] | None) -> str:
-    return " / ".join(f"{n:g}" for n in numbers) if numbers else "—"
+def _paper(numbers: Sequence[float] | None, decimals: Sequence[int] = (3, 2, 2)) -> str:
+    """The paper's numbers as it prints them: Abs-Inv / Abs-Rel / S-RMSE by default."""
+    if not numbers:
+        return "—"
+    return " / ".join(f"{n:.{decimals[min(i, len(decimals) - 1)]}f}" for i, n in enumerate(numbers))
 
 
 def _row(cells: Sequence[Any]) -> str:
@@ -470,7 +473,7 @@ class Report:
             ]
             if model in paper_suite.LARGE_MODELS:
                 label += f" ({self.scale.large_steps:,} steps)"
-            text += _row([label, *cells, _paper(PAPER_DENSITY.get(model))])
+            text += _row([label, *cells, _paper(PAPER_DENSITY.get(model), decimals=(3,))])
         text += "\nAbs-Inv; columns: supervised pixels per image, and dense labels.\n\n"
         if any(v is not None for series in values.values() for v in series):
             path = figure_dir / "density.png"
@@ -594,7 +597,7 @@ class Report:
                     label,
                     cell(errors.get(main, {}), setting),
                     cell(errors.get(depth_only, {}), setting),
-                    _paper(PAPER_POSE.get(setting)),
+                    _paper(PAPER_POSE.get(setting), decimals=(1,)),
                 ]
             )
         text += (
