@@ -704,7 +704,9 @@ class Report:
             text += f"Predictions: {NOT_RUN}.\n\n"
         else:
             out = figure_dir / "qualitative.png"
-            _draw_qualitative(path, {n: self._label(n) for n in self.runs}, out)
+            # A long label (a collapsed run's) wraps under the model's name.
+            labels = {n: self._label(n).replace(" — ", "\n") for n in self.runs}
+            _draw_qualitative(path, labels, out)
             text += (
                 f"![image, truth and predictions on test pairs]({out.name})\n\n"
                 "Inverse depth, one colour scale for the whole grid.\n\n"
