@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gld import metrics, paper_runner, paper_suite, reports
+from gld import metrics, paper_analyses, paper_suite, reports
 from gld import workdir as workdir_lib
 from gld.paper_suite import Scale
 
@@ -208,7 +208,7 @@ class Report:
         if self.scale.check_learning_rate is not None:
             low = [paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED]
             rows += [(n, self.run(n), None) for n in low]
-        rows += [(n, self.classical(n), None) for n in paper_runner.CLASSICAL]
+        rows += [(n, self.classical(n), None) for n in paper_analyses.CLASSICAL]
         text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows)
         text += (
             "\nThe self-supervised baseline (Struct2Depth / monodepth2 family, "
@@ -346,7 +346,7 @@ class Report:
                 f"pairs' exact flow (Adam 1e-3, cosine; `gld.flow_training`), test EPE over "
                 f"training: {curve or '—'}. ms/pair: the network's median forward pass at "
                 "batch 1 (compiled), DIS's median over "
-                f"{paper_runner.DIS_TIMED_PAIRS} test pairs, on this suite's machine. The "
+                f"{paper_analyses.DIS_TIMED_PAIRS} test pairs, on this suite's machine. The "
                 "paper uses a PWC-Net pretrained on other data (45 ms a pair on its GPU).\n\n"
             )
             network = result["methods"][flow_training.NETWORK]["epe"]
@@ -571,7 +571,7 @@ class Report:
         )
 
     def pose_probe(self) -> str:
-        main, depth_only = paper_runner.PROBED_RUNS
+        main, depth_only = paper_analyses.PROBED_RUNS
         text = "## 6. Pose from the global parameters (Sec. 4.4)\n\n"
         result = self.results.get("pose_probe")
         errors = {} if result is None else result["errors"]
@@ -910,7 +910,9 @@ def _draw_qualitative(npz_path: Path, labels: dict[str, str], path: Path) -> Non
     )
     limit = float(np.nanpercentile(truth, 99))
     columns = [("image 1", None), ("truth", truth)]
-    columns += [(labels.get(n, n), arrays[n]) for n in paper_runner.QUALITATIVE_RUNS if n in arrays]
+    columns += [
+        (labels.get(n, n), arrays[n]) for n in paper_analyses.QUALITATIVE_RUNS if n in arrays
+    ]
     rows = len(arrays["ids"])
     figure, axes = plt.subplots(
         rows, len(columns), figsize=(2.6 * len(columns), 2.0 * rows), squeeze=False

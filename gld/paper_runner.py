@@ -1,5 +1,6 @@
 """Runs a suite of `gld.paper_suite`: trains, reuses, resumes and scores every run, then
-the analyses; each result is a file, so a killed suite continues where it stopped.
+the analyses (`gld.paper_analyses`: what each computes); each result is a file, so a
+killed suite continues where it stopped.
 
     <workdir>/runs/<run>/        each training run's workdir (gld.workdir)
     <results>/<task>.json        one result per task, written atomically when done
@@ -27,7 +28,7 @@ analysis's result notes it if not).
 from __future__ import annotations
 
 import dataclasses
-import io
+import functools
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -36,12 +37,9 @@ from typing import Any
 
 import numpy as np
 
+from gld import paper_analyses as analyses
 from gld import paper_suite
 from gld.paper_suite import Run, Scale
-
-# Classical methods of the main dataset, and of the varying-intrinsics one.
-CLASSICAL = ("dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow")
-CLASSICAL_VARYING = ("dataset_mean", "oracle_pair_median", "sfm_flow")
 
 # Seconds per training step at 128x96, batch 16, on the 2-core CPU machine (the cpu
 # suite's runs, evaluations included; `experiments.benchmark` times the bare steps), and
@@ -61,19 +59,9 @@ STEP_SECONDS = {
 }
 DEFAULT_STEP_SECONDS = 5.0
 
-MAIN_RUN = "global_local_1px"
-# The pose probe reads the encoders of the main run, whose epipolar term trains g to be
-# the camera motion, and of the run without that term (g learned from depth alone:
-# the paper's setting).
-PROBED_RUNS = (MAIN_RUN, "global_local_no_epipolar")
-# Triangulation with a predicted pose uses the main run's encoder, fine-tuned on the pose.
-PREDICTED_POSE = (MAIN_RUN, "pretrained_full")
-FILTER_PAIRS = 16
 # The runs trained after the main experiments' analyses: the paper's remaining
 # comparisons (the first of them and every later run).
 FIRST_REMAINING_RUN = "struct2depth"
-# Test pairs whose DIS flow is timed for the flow network's speed comparison.
-DIS_TIMED_PAIRS = 20
 
 
 def step_seconds(model: str) -> float:
@@ -119,15 +107,6 @@ def _write_json(path: Path, content: dict[str, Any]) -> None:
     workdir_lib.write_atomically(path, json.dumps(content, indent=1, default=_plain) + "\n")
 
 
-def _write_npz(path: Path, **arrays: np.ndarray) -> None:
-    from gld import workdir as workdir_lib
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    workdir_lib.write_atomically(path, buffer.getvalue())
-
-
 def _config_identity(config) -> dict[str, Any]:
     """A training run's identity: its whole configuration but the resolution, which the
     dataset fixes."""
@@ -152,14 +131,6 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"not JSON serialisable: {type(value)}")
-
-
-def _summary(per_example: dict[str, np.ndarray]) -> tuple[dict[str, dict], np.ndarray]:
-    """The evaluation's summary and each real example's Abs-Inv."""
-    from gld import evaluation
-
-    summary, _ = evaluation.summarise_examples(per_example)
-    return summary, np.asarray(per_example["abs_inv"])[np.asarray(per_example["example_mask"])]
 
 
 def _training_log(run_dir: Path) -> tuple[dict[str, list[list[float]]], float | None]:
@@ -271,12 +242,12 @@ class SuiteRunner:
                 then()
 
         for dataset, methods in (
-            (self.scale.dataset, CLASSICAL),
-            (self.scale.varying_dataset, CLASSICAL_VARYING),
+            (self.scale.dataset, analyses.CLASSICAL),
+            (self.scale.varying_dataset, analyses.CLASSICAL_VARYING),
         ):
             add(
                 f"classical/{dataset.split('/')[-1]}",
-                lambda dataset=dataset, methods=methods: self._classical(dataset, methods),
+                lambda dataset=dataset, methods=methods: analyses.classical(self, dataset, methods),
                 {"dataset": dataset, "methods": list(methods)},
                 60,
             )
@@ -286,46 +257,46 @@ class SuiteRunner:
             "learning_rate": self.scale.learning_rate,
         }
         # The analyses, each made as soon as the runs it reads have finished (their
-        # checkpoints are then at hand; where they are not, `_trained` retrains them).
+        # checkpoints are then at hand; where they are not, `trained` retrains them).
         waiting = [
             (
                 "filters",
-                self._filters,
-                {"pairs": FILTER_PAIRS},
+                functools.partial(analyses.filters, self),
+                {"pairs": analyses.FILTER_PAIRS},
                 20,
-                [f"train/{MAIN_RUN}"],
+                [f"train/{analyses.MAIN_RUN}"],
             ),
             (
                 "qualitative",
-                self._qualitative,
+                functools.partial(analyses.qualitative, self),
                 {"pairs": self.scale.figure_pairs},
                 60,
-                [f"train/{name}" for name in QUALITATIVE_RUNS],
+                [f"train/{name}" for name in analyses.QUALITATIVE_RUNS],
             ),
             (
                 "pose_probe",
-                self._pose_probe,
+                functools.partial(analyses.pose_probe, self),
                 probe,
                 (4 + 2) * self.scale.probe_steps * step_seconds("pose_probe") + 60,
-                [f"train/{name}" for name in PROBED_RUNS],
+                [f"train/{name}" for name in analyses.PROBED_RUNS],
             ),
             (
                 "triangulation_predicted_pose",
-                self._triangulation_predicted_pose,
-                {"pose_of": PREDICTED_POSE},
+                functools.partial(analyses.triangulation_predicted_pose, self),
+                {"pose_of": analyses.PREDICTED_POSE},
                 30,
                 ["pose_probe"],
             ),
             (
                 "flow_error",
-                self._flow_error,
-                {"pose_of": PREDICTED_POSE},
+                functools.partial(analyses.flow_error, self),
+                {"pose_of": analyses.PREDICTED_POSE},
                 60,
-                [f"train/{MAIN_RUN}", "pose_probe"],
+                [f"train/{analyses.MAIN_RUN}", "pose_probe"],
             ),
             (
                 "flow_finetuning",
-                self._flow_finetuning,
+                functools.partial(analyses.flow_finetuning, self),
                 {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
                 60,
                 ["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
@@ -345,8 +316,8 @@ class SuiteRunner:
         flow_config = paper_suite.flow_net_config(self.scale, height=0, width=0)
         add(
             "flow_net",
-            self._flow_net,
-            {**dataclasses.asdict(flow_config), "dis_timed_pairs": DIS_TIMED_PAIRS},
+            functools.partial(analyses.flow_net, self),
+            {**dataclasses.asdict(flow_config), "dis_timed_pairs": analyses.DIS_TIMED_PAIRS},
             self.scale.flow_net_steps * step_seconds("flow_net") + 60,
         )
         add_runs([self.runs[name] for name in names[remaining:]], add_ready)
@@ -447,23 +418,11 @@ class SuiteRunner:
         return left * step_seconds(run.model) + 30
 
     def _train(self, run: Run) -> dict[str, Any]:
-        from gld import train
-
         config = self._config(run)
         data = self.data(config.dataset)
         run_dir = self.run_dir(run.name)
-        if run.model in paper_suite.FLOW_NET_MODELS:
-            self._ensure_flow_net()
-        self._supersede_other_configuration(run_dir, config)
         self.print(f"{run.name}: {config.steps} steps of {run.model} in {run_dir}")
-        train.train_and_evaluate(
-            config,
-            run_dir,
-            data.train,
-            data.test if config.eval_every else None,
-            progress=self.progress,
-            print_fn=self.print,
-        )
+        self._fit(run, config, data, evaluate=True)
         summary, abs_inv, parameters = self._score(run_dir, data)
         curves, train_seconds = _training_log(run_dir)
         return {
@@ -478,6 +437,24 @@ class SuiteRunner:
             "curves": curves,
             "train_seconds": train_seconds,
         }
+
+    def _fit(self, run: Run, config, data: Data, *, evaluate: bool) -> None:
+        """Trains a run (resuming its checkpoints), after the flow network it starts from;
+        `evaluate`: the test evaluations during training (the over-fitting curves)."""
+        from gld import train
+
+        run_dir = self.run_dir(run.name)
+        if run.model in paper_suite.FLOW_NET_MODELS:
+            self._ensure_flow_net()
+        self._supersede_other_configuration(run_dir, config)
+        train.train_and_evaluate(
+            config,
+            run_dir,
+            data.train,
+            data.test if evaluate and config.eval_every else None,
+            progress=self.progress,
+            print_fn=self.print,
+        )
 
     def _score(self, run_dir: Path, data: Data) -> tuple[dict[str, dict], np.ndarray, int]:
         """A finished run's test summary, per-example Abs-Inv and number of parameters."""
@@ -494,14 +471,13 @@ class SuiteRunner:
             flow_source=saved.flow_source,
         )
         parameters = model_lib.parameter_counts(variables["params"])["total"]
-        return (*_summary(per_example), parameters)
+        return (*analyses.scores(per_example), parameters)
 
-    def _trained(self, name: str):
+    def trained(self, name: str):
         """(model, variables, config) of a finished run, for an analysis. A run whose
         result came without its checkpoint (results moved to another checkout) is
         retrained first, with the same configuration and seed, and scored against its
         result: the analyses must read the model the tables report."""
-        from gld import train
         from gld import workdir as workdir_lib
 
         run = self.runs[name]
@@ -510,12 +486,7 @@ class SuiteRunner:
             config = self._config(run)
             data = self.data(config.dataset)
             self.print(f"{name}: no checkpoint in {run_dir}; retraining it for the analyses")
-            if run.model in paper_suite.FLOW_NET_MODELS:
-                self._ensure_flow_net()
-            self._supersede_other_configuration(run_dir, config)
-            train.train_and_evaluate(
-                config, run_dir, data.train, None, progress=self.progress, print_fn=self.print
-            )
+            self._fit(run, config, data, evaluate=False)
             stored = read_result(self.results_dir, f"train/{name}")
             _, abs_inv, _ = self._score(run_dir, data)
             if stored is not None:
@@ -524,28 +495,43 @@ class SuiteRunner:
 
     def _ensure_flow_net(self) -> None:
         """Retrains the flow network when its result came without its checkpoint (see
-        `_trained`); its test end-point error must be its result's."""
+        `trained`); its test end-point error must be its result's."""
         from gld import flow_training
 
         run_dir = self.flow_net_dir()
         if _checkpointed_step(run_dir) >= self.scale.flow_net_steps:
             return
-        data = self.data(self.scale.dataset)
-        config = paper_suite.flow_net_config(self.scale, height=data.height, width=data.width)
         self.print(f"flow_net: no checkpoint in {run_dir}; retraining it for the flow runs")
-        flow_training.train_flow(
-            config, run_dir, data.train, None, progress=self.progress, print_fn=self.print
-        )
+        *_, summary = self.fit_flow_net(evaluate=False)
         stored = read_result(self.results_dir, "flow_net")
         if stored is not None:
-            model, variables, _, _ = flow_training.load_flow_run(run_dir)
-            _, _, summary = flow_training.evaluate_flow(
-                model, variables, data.test, batch_size=config.eval_batch_size
-            )
             network = flow_training.NETWORK
             self._note_reproduction(
                 "flow_net", [stored["methods"][network]["epe"]], [summary[network]["epe"]]
             )
+
+    def fit_flow_net(self, *, evaluate: bool):
+        """Trains the flow network on the exact flow (resuming it); (model, variables, its
+        step, its test end-point errors by method: the network's and the stored flow's).
+        `evaluate`: the test evaluations during training (its curve)."""
+        from gld import flow_training
+
+        data = self.data(self.scale.dataset)
+        config = paper_suite.flow_net_config(self.scale, height=data.height, width=data.width)
+        run_dir = self.flow_net_dir()
+        flow_training.train_flow(
+            config,
+            run_dir,
+            data.train,
+            data.test if evaluate else None,
+            progress=self.progress,
+            print_fn=self.print,
+        )
+        model, variables, _, step = flow_training.load_flow_run(run_dir)
+        _, _, summary = flow_training.evaluate_flow(
+            model, variables, data.test, batch_size=config.eval_batch_size
+        )
+        return model, variables, step, summary
 
     def _note_reproduction(self, name: str, stored, retrained) -> None:
         difference = _reproduction(name, stored, retrained)
@@ -567,219 +553,6 @@ class SuiteRunner:
         aside = run_dir.with_name(f"{run_dir.name}.superseded-{time.strftime('%Y%m%d-%H%M%S')}")
         self.print(f"{run_dir} was trained with other options {sorted(changes)}: moved to {aside}")
         run_dir.rename(aside)
-
-    def _flow_net(self) -> dict[str, Any]:
-        """Trains the flow network on the exact flow (or resumes it), then scores it and
-        the stored DIS flow on the test pairs: end-point errors and time per pair."""
-        from gld import evaluation, flow_net, flow_training
-        from gld import flow as flow_lib
-        from gld import workdir as workdir_lib
-
-        data = self.data(self.scale.dataset)
-        config = paper_suite.flow_net_config(self.scale, height=data.height, width=data.width)
-        run_dir = self.flow_net_dir()
-        self.print(f"flow_net: {config.steps} steps of the flow network in {run_dir}")
-        flow_training.train_flow(
-            config, run_dir, data.train, data.test, progress=self.progress, print_fn=self.print
-        )
-        model, variables, _, step = flow_training.load_flow_run(run_dir)
-        _, _, summary = flow_training.evaluate_flow(
-            model, variables, data.test, batch_size=config.eval_batch_size
-        )
-        latency = flow_training.forward_latency(model, variables, data.height, data.width)
-        count = min(DIS_TIMED_PAIRS, len(data.test))
-        batch = next(
-            evaluation.split_batches(
-                data.test, batch_size=count, max_examples=count, all_processes=False
-            )
-        )
-        times = []
-        for image1, image2 in zip(batch["image1"], batch["image2"], strict=True):
-            started = time.perf_counter()
-            flow_lib.estimate(image1, image2, flow_lib.DEFAULT_ESTIMATOR)
-            times.append(time.perf_counter() - started)
-        curve = [
-            [record["step"], record["epe"]]
-            for record in workdir_lib.read_metrics(run_dir)
-            if record.get("split") == "test" and "epe" in record
-        ]
-        return {
-            "step": step,
-            "methods": summary,
-            "parameters": flow_net.parameter_count(variables["params"]),
-            "network_ms": latency["median_ms"],
-            "dis_ms": 1e3 * float(np.median(times)) if times else None,
-            "curve": curve,
-        }
-
-    def _flow_finetuning(self) -> dict[str, Any]:
-        """The end-point error of each flow-experiment run's flow network after depth
-        training (fixed: the network as trained on the exact flow; fine-tuned: what the
-        sparse depth loss made of it)."""
-        from gld import flow_training
-        from gld.flow_net import FlowNet
-
-        data = self.data(self.scale.dataset)
-        epe = {}
-        for name in paper_suite.FLOW_EXPERIMENT[1:]:
-            _, variables, _ = self._trained(name)
-            _, _, summary = flow_training.evaluate_flow(
-                FlowNet(), {"params": variables["params"]["flow_net"]}, data.test
-            )
-            epe[name] = summary[flow_training.NETWORK]
-        return {"epe": epe}
-
-    def _classical(self, dataset: str, methods: Sequence[str]) -> dict[str, Any]:
-        from gld import evaluation
-
-        data = self.data(dataset)
-        results = {}
-        for name in methods:
-            self.print(f"{name} on {data.name}")
-            method = evaluation.fit_classical(name, data.train)
-            per_example, _ = evaluation.evaluate_predictor(method.predict, data.test)
-            summary, abs_inv = _summary(per_example)
-            results[name] = {"metrics": summary, "abs_inv_per_example": abs_inv}
-        return {"dataset": data.name, "methods": results}
-
-    def _pose_probe(self) -> dict[str, Any]:
-        """The four settings on the main run's encoder; the pretrained two on the encoder
-        of the run without the epipolar term (the scratch ones are the same there)."""
-        from gld import probes
-
-        errors, arrays = {}, {}
-        for index, name in enumerate(PROBED_RUNS):
-            model, variables, config = self._trained(name)
-            data = self.data(config.dataset)
-            settings = probes.pose_probe_settings(
-                data.train,
-                data.test,
-                pretrained=probes.pretrained_global_encoder(model, variables),
-                steps=self.scale.probe_steps,
-                batch_size=self.scale.batch_size,
-                learning_rate=self.scale.learning_rate,
-                warmup_steps=paper_suite.warmup_steps(self.scale, self.scale.probe_steps),
-                flow_source=config.flow_source,
-                seed=0,
-                settings=(
-                    tuple(probes.POSE_PROBE_SETTINGS)
-                    if index == 0
-                    else ("pretrained_mlp", "pretrained_full")
-                ),
-            )
-            for setting, predicted in settings.pop("predicted").items():
-                arrays[f"{name}/{setting}/ids"] = np.asarray(predicted["ids"], str)
-                arrays[f"{name}/{setting}/rotation"] = predicted["rotation"]
-                arrays[f"{name}/{setting}/translation"] = predicted["translation"]
-            errors[name] = settings
-        _write_npz(self.results_dir / "pose_probe_poses.npz", **arrays)
-        return {"errors": errors}
-
-    def _predicted_pose(self) -> Callable[[dict], tuple[np.ndarray, np.ndarray]]:
-        """batch -> (rotation [B, 3, 3], translation [B, 3]) that the probe of
-        `PREDICTED_POSE` predicts for the batch's test pairs (by id)."""
-        key = "/".join(PREDICTED_POSE)
-        with np.load(self.results_dir / "pose_probe_poses.npz") as poses:
-            row = {str(i): k for k, i in enumerate(poses[f"{key}/ids"])}
-            rotation, translation = poses[f"{key}/rotation"], poses[f"{key}/translation"]
-
-        def pose(batch):
-            rows = [row[str(i)] for i in batch["id"]]
-            return rotation[rows].astype(np.float32), translation[rows].astype(np.float32)
-
-        return pose
-
-    def _triangulation_predicted_pose(self) -> dict[str, Any]:
-        from gld import evaluation
-        from gld.baselines import classical
-
-        data = self.data(self.scale.dataset)
-        pose = self._predicted_pose()
-        triangulation = classical.TriangulationGtPose()
-
-        def predict(batch):
-            rotation, translation = pose(batch)
-            return triangulation.predict(
-                {**batch, "rotation": rotation, "translation": translation}
-            )
-
-        per_example, _ = evaluation.evaluate_predictor(predict, data.test)
-        summary, abs_inv = _summary(per_example)
-        return {"metrics": summary, "abs_inv_per_example": abs_inv, "pose_of": list(PREDICTED_POSE)}
-
-    def _flow_error(self) -> dict[str, Any]:
-        from gld import flow_error
-
-        model, variables, config = self._trained(MAIN_RUN)
-        data = self.data(config.dataset)
-        predictors = {
-            "global_local": flow_error.model_predictor(model, variables),
-            "triangulation_gt_pose": flow_error.triangulation_predictor(),
-            "triangulation_predicted_pose": flow_error.triangulation_predictor(
-                self._predicted_pose()
-            ),
-        }
-        curves = flow_error.flow_error_curves(
-            predictors, data.test, batch_size=self.scale.batch_size
-        )
-        return {"curves": curves}
-
-    def _qualitative(self) -> dict[str, Any]:
-        from gld import evaluation, flow_error
-
-        data = self.data(self.scale.dataset)
-        count = min(self.scale.figure_pairs, len(data.test))
-        batch = next(
-            evaluation.split_batches(
-                data.test, batch_size=count, max_examples=count, all_processes=False
-            )
-        )
-        arrays = {
-            "image1": batch["image1"],
-            "depth": batch["depth"],
-            "depth_valid": batch["depth_valid"],
-            "ids": np.asarray([str(i) for i in batch["id"]]),
-        }
-        for name in QUALITATIVE_RUNS:
-            model, variables, _ = self._trained(name)
-            arrays[name] = 1.0 / np.asarray(flow_error.model_predictor(model, variables)(batch))
-        _write_npz(self.results_dir / "qualitative.npz", **arrays)
-        return {"runs": list(QUALITATIVE_RUNS), "ids": arrays["ids"]}
-
-    def _filters(self) -> dict[str, Any]:
-        from gld import evaluation
-        from gld import filter_inspection as inspect_lib
-
-        model, variables, config = self._trained(MAIN_RUN)
-        data = self.data(config.dataset)
-        count = min(FILTER_PAIRS, len(data.test))
-        batch = next(
-            evaluation.split_batches(
-                data.test,
-                batch_size=count,
-                flow_source=config.flow_source,
-                max_examples=count,
-                all_processes=False,
-            )
-        )
-        inspected = inspect_lib.inspect_pairs(variables, batch, model)
-        figures = self.results_dir / "figures"
-        figures.mkdir(parents=True, exist_ok=True)
-        # The first pair, the pair whose motion is most like it and the least like it.
-        order = np.argsort(inspected["motion_similarity"][0, 1:])
-        shown = [0, 1 + int(order[-1]), 1 + int(order[0])] if count > 2 else list(range(count))
-        paths = []
-        for example in shown:
-            path = figures / f"filters_{example}.png"
-            inspect_lib.draw_filter_banks(
-                inspected["kernels"], example, path, title=f"test pair {batch['id'][example]}"
-            )
-            paths.append(path.name)
-        return {"correlation": inspected["correlation"], "figures": paths, "pairs": count}
-
-
-# The qualitative grid's columns (besides image and truth), in order.
-QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
 
 
 def _reproduction(name: str, stored: Sequence[float], retrained: Sequence[float]) -> str | None:
