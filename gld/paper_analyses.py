@@ -36,7 +36,8 @@ PREDICTED_POSE = (MAIN_RUN, "pretrained_full")
 FILTER_PAIRS = 16
 # Test pairs whose DIS flow is timed for the flow network's speed comparison.
 DIS_TIMED_PAIRS = 20
-# The qualitative grid's columns (besides image and truth), in order.
+# The qualitative grid's columns (besides image and truth), in order: each model at the
+# rate of its learning-rate check that its comparisons use.
 QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
 
 
@@ -230,11 +231,13 @@ def qualitative(runner: SuiteRunner) -> dict[str, Any]:
         "depth_valid": batch["depth_valid"],
         "ids": np.asarray([str(i) for i in batch["id"]]),
     }
-    for name in QUALITATIVE_RUNS:
-        model, variables, _ = runner.trained(name)
+    # Each model at the rate its comparisons use (both rates have finished before).
+    used = {name: runner.compared_run(name) for name in QUALITATIVE_RUNS}
+    for name, run in used.items():
+        model, variables, _ = runner.trained(run)
         arrays[name] = 1.0 / np.asarray(flow_error_lib.model_predictor(model, variables)(batch))
     write_npz(runner.results_dir / "qualitative.npz", **arrays)
-    return {"runs": list(QUALITATIVE_RUNS), "ids": arrays["ids"]}
+    return {"runs": used, "ids": arrays["ids"]}
 
 
 def filters(runner: SuiteRunner) -> dict[str, Any]:

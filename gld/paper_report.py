@@ -101,17 +101,6 @@ def _cells(result: dict | None, reference: float | None) -> list[str]:
     return cells
 
 
-def training_loss(result: dict) -> float | None:
-    """A run's mean loss on its supervised training pixels (a self-supervised run's: its
-    photometric loss) over the last quarter of its logged steps (what the learning-rate
-    check compares; never the test split)."""
-    curves = result["curves"]
-    values = [value for _, value in curves["train"] or curves.get("loss", [])]
-    if not values:
-        return None
-    return float(np.mean(values[-max(1, len(values) // 4) :]))
-
-
 def collapse(result: dict) -> tuple[int, int, int] | None:
     """(first step, count, logged steps) of the zero gradients of a run that collapsed:
     its gradient norm is zero at a quarter or more of its logged steps (a saturated
@@ -178,16 +167,9 @@ class Report:
         return label
 
     def compared_run(self, name: str) -> str | None:
-        """The run of a main-table model that its comparisons use: with a learning-rate
-        check, the one of its two rates with the lower training loss (None until both
-        have finished); else the run itself."""
-        if self.scale.check_learning_rate is None or name not in paper_suite.RATE_CHECKED:
-            return name
-        candidates = [name, paper_suite.low_rate_name(name)]
-        losses = [training_loss(r) if (r := self.run(n)) else None for n in candidates]
-        if None in losses:
-            return None
-        return candidates[int(np.argmin(losses))]
+        """The run of a main-table model that its comparisons use
+        (`gld.paper_suite.compared_run`)."""
+        return paper_suite.compared_run(self.scale, name, self.run)
 
     def _table(self, rows: Sequence[tuple[str, dict | None, Any]], varying: bool = False) -> str:
         reference = self.mean_reference(varying)
@@ -287,7 +269,7 @@ class Report:
                 if result is None:
                     cells.append(NOT_RUN)
                     continue
-                loss = training_loss(result)
+                loss = paper_suite.training_loss(result)
                 cell = f"{_metric(result):.4f} / " + ("—" if loss is None else f"{loss:.4f}")
                 if collapse(result) is not None:
                     cell += " (collapsed)"
@@ -295,9 +277,10 @@ class Report:
             compared = self.compared_run(name)
             text += _row([self.runs[name].label, *cells, self._rate(compared) if compared else ""])
         return text + (
-            "\nOne shared rate can suit one model and starve another, so the models that "
-            "share the main budget are trained at two peak rates, and every comparison "
-            "(the target below) takes each at the rate with the lower training loss: the L1 "
+            "\nOne shared rate can suit one model and starve another, so the main table's "
+            "learned models are trained at two peak rates, and every comparison (the target below, the "
+            "over-fitting figure, the qualitative grid) takes each at the rate with the "
+            "lower training loss: the L1 "
             "inverse-depth loss on its supervised pixels over the last quarter of training, "
             'never the test split. A run "collapsed" when its gradient is zero at a '
             "quarter or more of its logged steps: its output saturated and it stopped "
@@ -669,11 +652,9 @@ class Report:
 
     def overfitting(self, figure_dir: Path) -> str:
         text = "## 8. Loss on training points against held-out pixels\n\n"
-        curves = {
-            name: self.run(name)["curves"]
-            for name in ("global_local_1px", "dispnet_1px", "fcrn_1px")
-            if self.run(name) is not None
-        }
+        # Each model at the rate its comparisons use, once its learning-rate check is done.
+        used = [self.compared_run(n) or n for n in ("global_local_1px", "dispnet_1px", "fcrn_1px")]
+        curves = {name: self.run(name)["curves"] for name in used if self.run(name) is not None}
         if not curves:
             return text + NOT_RUN + ".\n\n"
         path = figure_dir / "overfitting.png"
@@ -704,8 +685,10 @@ class Report:
             text += f"Predictions: {NOT_RUN}.\n\n"
         else:
             out = figure_dir / "qualitative.png"
-            # A long label (a collapsed run's) wraps under the model's name.
-            labels = {n: self._label(n).replace(" — ", "\n") for n in self.runs}
+            # Each column named by the run it shows; a long label (a collapsed run's)
+            # wraps under the model's name.
+            used = self.results["qualitative"]["runs"]
+            labels = {n: self._label(run).replace(" — ", "\n") for n, run in used.items()}
             _draw_qualitative(path, labels, out)
             text += (
                 f"![image, truth and predictions on test pairs]({out.name})\n\n"

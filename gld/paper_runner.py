@@ -209,6 +209,16 @@ class SuiteRunner:
             flow_net_workdir=str(self.flow_net_dir()),
         )
 
+    def compared_run(self, name: str) -> str:
+        """The run of a main-table model that its comparisons use
+        (`gld.paper_suite.compared_run`); both of its runs have finished."""
+        run = paper_suite.compared_run(
+            self.scale, name, lambda n: read_result(self.results_dir, f"train/{n}")
+        )
+        if run is None:
+            raise RuntimeError(f"{name}: its learning-rate check has not finished")
+        return run
+
     def flow_net_dir(self) -> Path:
         return self.workdir / "runs" / "flow_net"
 
@@ -271,7 +281,11 @@ class SuiteRunner:
                 functools.partial(analyses.qualitative, self),
                 {"pairs": self.scale.figure_pairs},
                 60,
-                [f"train/{name}" for name in analyses.QUALITATIVE_RUNS],
+                [
+                    f"train/{run}"
+                    for name in analyses.QUALITATIVE_RUNS
+                    for run in paper_suite.rate_runs(self.scale, name)
+                ],
             ),
             (
                 "pose_probe",

@@ -8,10 +8,11 @@ schedule and budget, except the two large baselines (DispNet, FCRN), whose budge
 (`Scale.large_steps`) is the largest the suite's machine affords; the report says so.
 
 One shared rate could suit one model and starve another (Eigen's network collapses at
-the CPU suite's 1e-3: its output saturates and its gradient vanishes), so the main
-table's models that share the budget are also trained at a second, lower rate
+the CPU suite's 1e-3, DispNet's too: the output saturates and the gradient vanishes), so
+every learned model of the main table is also trained at a second, lower rate
 (`Scale.check_learning_rate`, runs `<run>_low_lr`); the report shows both and compares
-each model at the rate with the lower training loss (never chosen on the test split).
+each model at the rate with the lower training loss (`compared_run`; never chosen on the
+test split), and the over-fitting figure and the qualitative grid show that run.
 
 The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): the
 epipolar term at 0.1 and a global encoder with instance normalisation that sees the flow
@@ -37,7 +38,10 @@ reuses and scores them.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 # The main job's recipe for the global-local model (experiments/flags/demo.flags).
 MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False}
@@ -173,6 +177,8 @@ RATE_CHECKED = (
     "global_local_1px",
     "small_encdec_1px",
     "eigen_1px",
+    "dispnet_1px",
+    "fcrn_1px",
     "struct2depth",
     "struct2depth_flow",
 )
@@ -211,10 +217,11 @@ def suite_runs(scale: Scale) -> list[Run]:
         Run("eigen_1px", "eigen", "Eigen"),
     ]
     runs += _rate_checks(scale, runs)
-    runs += [
+    large = [
         Run("dispnet_1px", "dispnet", "DispNet", curve=True),
         Run("fcrn_1px", "fcrn", "FCRN", curve=True),
     ]
+    runs += large + _rate_checks(scale, large)
     runs += [
         _global_local(
             "global_local_image_pair",
@@ -319,11 +326,41 @@ def _rate_checks(scale: Scale, runs: list[Run]) -> list[Run]:
             name=low_rate_name(run.name),
             label=f"{run.label}, peak rate {scale.check_learning_rate:g}",
             options={**run.options, "learning_rate": scale.check_learning_rate},
-            curve=False,
         )
         for run in runs
         if run.name in RATE_CHECKED
     ]
+
+
+def training_loss(result: dict) -> float | None:
+    """A run's mean loss on its supervised training pixels (a self-supervised run's: its
+    photometric loss) over the last quarter of its logged steps (what the learning-rate
+    check compares; never the test split)."""
+    curves = result["curves"]
+    values = [value for _, value in curves["train"] or curves.get("loss", [])]
+    if not values:
+        return None
+    return float(np.mean(values[-max(1, len(values) // 4) :]))
+
+
+def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None]) -> str | None:
+    """The run of a main-table model that the comparisons use: with a learning-rate
+    check, the one of its two rates with the lower training loss (None until both have
+    finished); else the run itself. `result_of` gives a run's result by its name."""
+    candidates = rate_runs(scale, name)
+    if len(candidates) == 1:
+        return name
+    losses = [training_loss(r) if (r := result_of(n)) else None for n in candidates]
+    if None in losses:
+        return None
+    return candidates[int(np.argmin(losses))]
+
+
+def rate_runs(scale: Scale, name: str) -> list[str]:
+    """The runs a model's comparisons may use: both rates of a checked model."""
+    if scale.check_learning_rate is None or name not in RATE_CHECKED:
+        return [name]
+    return [name, low_rate_name(name)]
 
 
 def run_steps(scale: Scale, run: Run) -> int:

@@ -147,6 +147,30 @@ def test_the_learning_rate_check_compares_each_model_at_its_lower_training_loss(
     assert "global-local 0.001, Small Enc-Dec 0.001, Eigen 0.0003" in readme
 
 
+def test_the_large_baselines_are_shown_at_the_rate_they_are_compared_at(tmp_path):
+    """DispNet collapses at the shared rate: its row, the main target's listing and the
+    over-fitting figure take its run at the check's rate; FCRN stays at the shared one."""
+    values = {
+        "global_local_1px": 0.030,
+        LOW_RATE["global_local_1px"]: 0.032,
+        "dispnet_1px": 0.073,
+        LOW_RATE["dispnet_1px"]: 0.036,
+        "fcrn_1px": 0.040,
+        LOW_RATE["fcrn_1px"]: 0.041,
+    }
+    readme = _write(tmp_path, _results(values, {"dispnet_1px": 2.0}))
+    check = readme.split("### Learning-rate check")[1].split("Target")[0]
+    assert "| DispNet | 0.0730 / 2.0000 (collapsed) | 0.0360 / 0.0500 | 0.0003 |" in check
+    assert "| FCRN | 0.0400 / 0.0400 | 0.0410 / 0.0500 | 0.001 |" in check
+    # 1 - 0.030 / 0.036 = 17% (the collapsed run would have given 59%).
+    assert "at their shorter budget (not counted in the verdict): DispNet 17%, FCRN 25%" in readme
+    overfitting = readme.split("## 8.")[1].split("## 9.")[0]
+    # (The table's training loss averages the last five records: 0.06, 0.06, 0.05, 0.05.)
+    assert "| DispNet, peak rate 0.0003 (150 steps) | 0.0550 | 0.0360 |" in overfitting
+    assert "| FCRN (150 steps) | 0.0500 | 0.0400 |" in overfitting
+    assert "| DispNet (150 steps)" not in overfitting
+
+
 def test_ablation_density_and_varying_targets(tmp_path):
     values = {
         "global_local_1px": 0.030,

@@ -26,7 +26,7 @@ def test_selection_by_name_and_group(tmp_path):
     # Each analysis right after the last run it reads (its checkpoints are at hand).
     for analysis, after in (
         ("filters", "train/global_local_1px"),
-        ("qualitative", "train/dispnet_1px"),
+        ("qualitative", "train/dispnet_1px_low_lr"),
         ("pose_probe", "train/global_local_no_epipolar"),
         ("triangulation_predicted_pose", "pose_probe"),
         ("flow_error", "triangulation_predicted_pose"),

@@ -77,10 +77,16 @@ def test_densities_and_the_large_models_budget():
     for model in ("global_local", "small_encdec"):
         for suffix in ("1px", "4px", "16px", "64px", "dense"):
             assert f"{model}_{suffix}" in cpu and f"{model}_{suffix}" in paper
-    # DispNet: every density at the paper's scale, one pixel and dense on the CPU.
-    assert {n for n in cpu if n.startswith("dispnet")} == {"dispnet_1px", "dispnet_dense"}
+    # DispNet: every density at the paper's scale, one pixel and dense on the CPU (one
+    # pixel at both rates of the learning-rate check, as every main-table model).
+    assert {n for n in cpu if n.startswith("dispnet")} == {
+        "dispnet_1px",
+        "dispnet_1px_low_lr",
+        "dispnet_dense",
+    }
     assert {n for n in paper if n.startswith("dispnet")} == {
         "dispnet_1px",
+        "dispnet_1px_low_lr",
         "dispnet_4px",
         "dispnet_16px",
         "dispnet_64px",
