@@ -11,6 +11,7 @@ The paper's numbers are its Scenes11 column (the synthetic benchmark closest to
 
 from __future__ import annotations
 
+import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -83,6 +84,9 @@ CLASSICAL_LABELS = {
 }
 METRICS = ("abs_inv", "abs_rel", "s_rmse")
 NOT_RUN = "not run yet"
+# The targets, by the keys of the hand-written discussion beside the report.
+TARGETS = ("main", "ablations", "density", "varying", "pose_probe", "flow_net", "finetuning")
+DISCUSSION = "discussion.md"
 
 
 def _metric(result: dict | None, name: str = "abs_inv") -> float | None:
@@ -141,7 +145,8 @@ class Report:
         self.results = results
         self.results_dir = Path(results_dir)
         self.runs = {run.name: run for run in paper_suite.suite_runs(scale)}
-        self.targets: list[tuple[str, bool | None, str]] = []
+        # (key, name, holds, numbers) of each target, in the report's order.
+        self.targets: list[tuple[str, str, bool | None, str]] = []
 
     def run(self, name: str) -> dict | None:
         return self.results.get(f"train/{name}")
@@ -179,8 +184,10 @@ class Report:
             text += _row([self._label(name), *_cells(result, reference), _paper(paper)])
         return text
 
-    def _target(self, name: str, holds: bool | None, detail: str) -> str:
-        self.targets.append((name, holds, detail))
+    def _target(self, key: str, name: str, holds: bool | None, detail: str) -> str:
+        """A target's verdict; `key` names it in the hand-written discussion."""
+        assert key in TARGETS, key
+        self.targets.append((key, name, holds, detail))
         return f"Target — {name}: {_verdict(holds)}. {detail}\n\n"
 
     # -- sections ---------------------------------------------------------------------
@@ -242,6 +249,7 @@ class Report:
                 ", ".join(f"{name} {gap:.0%}" for name, gap in unsupervised.items())
             )
         text += self._target(
+            "main",
             "global-local at least 15% below every learned baseline with the same budget "
             "(the paper's Scenes11: 18-33%)",
             holds,
@@ -278,9 +286,9 @@ class Report:
             text += _row([self.runs[name].label, *cells, self._rate(compared) if compared else ""])
         return text + (
             "\nOne shared rate can suit one model and starve another, so the main table's "
-            "learned models are trained at two peak rates, and every comparison (the target below, the "
-            "over-fitting figure, the qualitative grid) takes each at the rate with the "
-            "lower training loss: the L1 "
+            "learned models are trained at two peak rates, and every comparison (the target "
+            "below, the over-fitting figure, the qualitative grid) takes each at the rate "
+            "with the lower training loss: the L1 "
             "inverse-depth loss on its supervised pixels over the last quarter of training, "
             'never the test split. A run "collapsed" when its gradient is zero at a '
             "quarter or more of its logged steps: its output saturated and it stopped "
@@ -337,7 +345,10 @@ class Report:
             holds = network < dis
             detail = f"{network:.3f} px against DIS's {dis:.3f} px ({network / dis:.2f}x)"
         return text + self._target(
-            "the learned flow network's end-point error below DIS's", holds, detail + "."
+            "flow_net",
+            "the learned flow network's end-point error below DIS's",
+            holds,
+            detail + ".",
         )
 
     def flow_finetuning(self) -> str:
@@ -383,6 +394,7 @@ class Report:
             if head is not None:
                 detail += f", network + head {head:.4f}"
         return text + self._target(
+            "finetuning",
             "the flow network fixed beats it fine-tuned by the sparse loss (the paper's ordering)",
             holds,
             detail + ".",
@@ -428,7 +440,9 @@ class Report:
                 detail += '; against "- epipolar term": ' + ", ".join(
                     f"{k} {v:+.1%}" for k, v in against.items()
                 )
-        return text + self._target("each ablation worse than the full model", holds, detail + ".")
+        return text + self._target(
+            "ablations", "each ablation worse than the full model", holds, detail + "."
+        )
 
     def density(self, figure_dir: Path) -> str:
         models = {
@@ -473,6 +487,7 @@ class Report:
                 f"Small Enc-Dec's {baseline_loss:+.0%}"
             )
         text += self._target(
+            "density",
             "global-local within 15% of its dense error, Small Enc-Dec at least 25% worse",
             holds,
             detail + ".",
@@ -548,6 +563,7 @@ class Report:
         )
         change = changes.get("global_local")
         return text + self._target(
+            "varying",
             "varying intrinsics cost global-local at most 10%",
             None if change is None else change <= 0.10,
             "—" if change is None else f"{change:+.1%}.",
@@ -614,7 +630,10 @@ class Report:
                     f"{theirs['translation_deg']:.1f}"
                 )
         return text + self._target(
-            "the pretrained encoder's probe beats the scratch one", holds, detail + "."
+            "pose_probe",
+            "the pretrained encoder's probe beats the scratch one",
+            holds,
+            detail + ".",
         )
 
     def flow_error(self, figure_dir: Path) -> str:
@@ -753,6 +772,7 @@ def write_report(
     """Writes <report_dir>/README.md and its figures from the results (read from
     `results_dir`, which holds their arrays and figures); returns the README's path."""
     report_dir = Path(report_dir)
+    discussion = read_discussion(report_dir / DISCUSSION)
     report_dir.mkdir(parents=True, exist_ok=True)
     report = Report(scale, results, results_dir)
     main = report.run("global_local_1px") or next(
@@ -830,8 +850,9 @@ def write_report(
         "its Scenes11 column (256x192, 94,000 steps).\n\n"
     )
     summary = "## Targets\n\n| target | verdict | numbers |\n|---|---|---|\n"
-    for name, holds, detail in report.targets:
+    for _, name, holds, detail in report.targets:
         summary += _row([name, _verdict(holds), detail])
+    summary += _discussion(report.targets, discussion)
     retrained = [
         f"- `{task}`: {difference}\n"
         for task, result in sorted(results.items())
@@ -846,6 +867,40 @@ def write_report(
     path = report_dir / "README.md"
     workdir_lib.write_atomically(path, text)
     return path
+
+
+def read_discussion(path: Path) -> dict[str, str]:
+    """The hand-written discussion of a suite's targets: under a heading `## <key>` (a key
+    of `TARGETS`), what explains that target's ordering. {} without the file."""
+    if not path.exists():
+        return {}
+    parts = re.split(r"^## +(\S+) *$", path.read_text(), flags=re.MULTILINE)
+    discussion = {key: text.strip() for key, text in zip(parts[1::2], parts[2::2], strict=True)}
+    if unknown := sorted(set(discussion) - set(TARGETS)):
+        raise ValueError(
+            f"{path}: headings {unknown} name no target; the targets are {list(TARGETS)}"
+        )
+    if empty := sorted(key for key, text in discussion.items() if not text):
+        raise ValueError(f"{path}: nothing under the headings {empty}")
+    return discussion
+
+
+def _discussion(
+    targets: Sequence[tuple[str, str, bool | None, str]], discussion: dict[str, str]
+) -> str:
+    """What explains each ordering that does not hold, from the hand-written discussion
+    beside the report; a target without its paragraph says so."""
+    failed = [(key, name) for key, name, holds, _ in targets if holds is False]
+    if not failed:
+        return ""
+    text = (
+        "\n### What we think explains the orderings that do not hold\n\n"
+        f"Written by hand (`{DISCUSSION}` beside this file, one `## <target>` section each: "
+        f"{', '.join(f'`{key}`' for key in TARGETS)}); the numbers above are the suite's.\n\n"
+    )
+    for key, name in failed:
+        text += f"**{name}** (`{key}`). {discussion.get(key, 'Not discussed yet.')}\n\n"
+    return text
 
 
 def _draw_density(values: dict[str, list], labels: dict[str, str], path: Path) -> None:

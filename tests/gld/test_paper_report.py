@@ -337,3 +337,42 @@ def test_the_self_supervised_rows_are_listed_not_counted(tmp_path):
     row = "| Struct2Depth (self-supervised) | 0.0600 ± 0.0200 | 0.400 | 0.350 | 1.50 "
     assert row + "| 0.058 / 0.95 / 0.81 |" in readme
     assert "||t|| = 1" in readme.split("## Targets")[0]
+
+
+def test_the_hand_written_discussion_explains_each_ordering_that_does_not_hold(tmp_path):
+    values = {
+        "global_local_1px": 0.030,
+        "global_local_image_pair": 0.029,
+        "global_local_no_coordconv": 0.031,
+        "global_local_no_global_module": 0.033,
+        "global_local_no_flow": 0.040,
+        "global_local_dense": 0.020,  # 1 px costs 50%: the density target fails
+        "small_encdec_1px": 0.040,
+        "small_encdec_dense": 0.030,
+    }
+    (tmp_path / "report").mkdir()
+    discussion = tmp_path / "report" / paper_report.DISCUSSION
+    discussion.write_text(
+        "# Why\n\nAn introduction the report leaves out.\n\n"
+        "## ablations\nEvery ablation costs something.\n\n"
+        "## main\nThe scale of each pair is the hard part.\n"
+    )
+    readme = _write(tmp_path, _results(values))
+    verdicts = _verdicts(readme)
+    assert verdicts[ABLATIONS] == "**holds**" and verdicts[DENSITY] == "**does not hold**"
+    section = readme.split("### What we think explains")[1].split("## 1.")[0]
+    # Only the orderings that do not hold; one without its paragraph says so.
+    assert f"**{DENSITY}** (`density`). Not discussed yet." in section
+    assert "Every ablation costs" not in readme and "introduction" not in readme
+    assert "scale of each pair" not in readme  # the main target is not measured yet
+    values.update({"eigen_1px": 0.031, **{LOW_RATE[n]: 0.05 for n in LOW_RATE}})
+    readme = _write(tmp_path, _results(values))
+    assert f"**{MAIN}** (`main`). The scale of each pair is the hard part." in readme
+    # A heading that names no target is an error, before anything is written.
+    discussion.write_text("## mian\nA typo.\n")
+    for path in (tmp_path / "report").glob("*.*"):
+        if path != discussion:
+            path.unlink()
+    with pytest.raises(ValueError, match=r"discussion.md: headings \['mian'\] name no target"):
+        _write(tmp_path, _results(values))
+    assert [p.name for p in (tmp_path / "report").iterdir()] == [paper_report.DISCUSSION]
