@@ -332,6 +332,12 @@ def _rate_checks(scale: Scale, runs: list[Run]) -> list[Run]:
     ]
 
 
+# Training losses a run logs at least (one every 50 steps, more often in a shorter run):
+# the learning-rate check averages the last quarter of them, so a 150-step run is
+# compared on a dozen batches, not one.
+TRAINING_RECORDS = 40
+
+
 def training_loss(result: dict) -> float | None:
     """A run's mean loss on its supervised training pixels (a self-supervised run's: its
     photometric loss) over the last quarter of its logged steps (what the learning-rate
@@ -398,6 +404,7 @@ def run_config(scale: Scale, run: Run, *, height: int, width: int, flow_net_work
         "warmup_steps": warmup_steps(scale, steps),
         "gt_pixels": 1,
         "checkpoint_every": max(1, min(250, steps // 4)),
+        "log_every": max(1, min(50, steps // TRAINING_RECORDS)),
         "eval_every": max(1, steps // scale.curve_evaluations) if run.curve else 0,
         "eval_examples": scale.curve_examples,
         "seed": 0,

@@ -156,7 +156,8 @@ def test_learned_models_differ_only_where_the_suite_says():
         low = config(paper_suite.low_rate_name(name))
         assert {k for k, v in low.items() if config(name)[k] != v} == {"learning_rate"}
         assert low["learning_rate"] == scale.check_learning_rate < scale.learning_rate
-    # The large baselines also differ in their budget (and so warm-up and checkpoints).
+    # The large baselines also differ in their budget (and so warm-up, checkpoints, and
+    # how often they log: as many training losses for the learning-rate check).
     differing = {k for k, v in config("dispnet_1px").items() if main[k] != v}
     assert differing == {
         "model",
@@ -165,4 +166,8 @@ def test_learned_models_differ_only_where_the_suite_says():
         "steps",
         "warmup_steps",
         "checkpoint_every",
+        "log_every",
     }
+    for name in ("global_local_1px", "dispnet_1px"):
+        records = config(name)["steps"] // config(name)["log_every"]
+        assert records >= paper_suite.TRAINING_RECORDS, name
