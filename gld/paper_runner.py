@@ -125,6 +125,17 @@ def _checkpointed_step(run_dir: Path) -> int:
     return max(steps, default=0)
 
 
+def _other_configuration(run_dir: Path, config) -> dict[str, Any]:
+    """The options in which a run directory's training differs from `config` ({} when it
+    holds none or the same)."""
+    from gld import workdir as workdir_lib
+
+    try:
+        return workdir_lib.check_run_config(run_dir, config) or {}
+    except ValueError as error:
+        return {"architecture, dataset or resolution": str(error)}
+
+
 def _plain(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -428,8 +439,30 @@ class SuiteRunner:
             return task.seconds
         run = self.runs[task.name.removeprefix("train/")]
         steps = paper_suite.run_steps(self.scale, run)
-        left = max(0, steps - _checkpointed_step(self.run_dir(run.name)))
+        left = max(0, steps - self._checkpointed_step(run))
         return left * step_seconds(run.model) + 30
+
+    def _checkpointed_step(self, run: Run) -> int:
+        """The newest checkpoint's step of the run's directory while it holds the run's
+        present configuration (0 when it holds another, which training moves aside)."""
+        from gld import workdir as workdir_lib
+
+        run_dir = self.run_dir(run.name)
+        step = _checkpointed_step(run_dir)
+        if not step:
+            return 0
+        try:
+            stored = workdir_lib.load_run_config(run_dir)
+        except (FileNotFoundError, ValueError):
+            return 0
+        config = paper_suite.run_config(
+            self.scale,
+            run,
+            height=stored.height,
+            width=stored.width,
+            flow_net_workdir=str(self.flow_net_dir()),
+        )
+        return 0 if _other_configuration(run_dir, config) else step
 
     def _train(self, run: Run) -> dict[str, Any]:
         config = self._config(run)
@@ -496,7 +529,7 @@ class SuiteRunner:
 
         run = self.runs[name]
         run_dir = self.run_dir(name)
-        if _checkpointed_step(run_dir) < paper_suite.run_steps(self.scale, run):
+        if self._checkpointed_step(run) < paper_suite.run_steps(self.scale, run):
             config = self._config(run)
             data = self.data(config.dataset)
             self.print(f"{name}: no checkpoint in {run_dir}; retraining it for the analyses")
@@ -556,12 +589,7 @@ class SuiteRunner:
     def _supersede_other_configuration(self, run_dir: Path, config) -> None:
         """Moves a run directory trained with another configuration aside (never deleted),
         so that the run starts afresh instead of resuming another one's checkpoints."""
-        from gld import workdir as workdir_lib
-
-        try:
-            changes = workdir_lib.check_run_config(run_dir, config)
-        except ValueError as error:
-            changes = {"architecture, dataset or resolution": str(error)}
+        changes = _other_configuration(run_dir, config)
         if not changes:
             return
         aside = run_dir.with_name(f"{run_dir.name}.superseded-{time.strftime('%Y%m%d-%H%M%S')}")

@@ -150,3 +150,29 @@ def test_a_retrained_run_is_compared_with_its_result():
     difference = paper_runner._reproduction("run", [0.1, 0.2], [0.1, 0.21])
     assert difference.startswith("run retrained scores 0.155, its result 0.15:")
     assert paper_runner._reproduction("run", [0.1, 0.2], [0.1]) is not None
+
+
+def test_the_eta_counts_only_checkpoints_of_the_runs_present_configuration(tmp_path):
+    """A run directory trained with other options is moved aside and trained afresh, so
+    its checkpoints do not shorten the estimate (nor count as the run trained)."""
+    import dataclasses
+
+    from gld import workdir as workdir_lib
+
+    runner = _runner(tmp_path)
+    run = runner.runs["dispnet_1px"]
+    task = next(t for t in runner.tasks() if t.name == "train/dispnet_1px")
+    steps = paper_suite.run_steps(runner.scale, run)
+    full = steps * paper_runner.step_seconds("dispnet") + 30
+    assert runner._remaining_seconds(task) == full
+    run_dir = runner.run_dir(run.name)
+    (run_dir / "checkpoints" / "100").mkdir(parents=True)
+    config = paper_suite.run_config(runner.scale, run, height=96, width=128)
+    workdir_lib.write_run_config(run_dir, config)
+    assert (
+        runner._remaining_seconds(task) == (steps - 100) * paper_runner.step_seconds("dispnet") + 30
+    )
+    # The same run logged less often: another configuration.
+    (run_dir / "config.json").unlink()
+    workdir_lib.write_run_config(run_dir, dataclasses.replace(config, log_every=50))
+    assert runner._remaining_seconds(task) == full
