@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -704,10 +705,9 @@ class Report:
             text += f"Predictions: {NOT_RUN}.\n\n"
         else:
             out = figure_dir / "qualitative.png"
-            # Each column named by the run it shows; a long label (a collapsed run's)
-            # wraps under the model's name.
+            # Each column named by the run it shows, its label wrapped to the column.
             used = self.results["qualitative"]["runs"]
-            labels = {n: self._label(run).replace(" — ", "\n") for n, run in used.items()}
+            labels = {n: textwrap.fill(self._label(run), 30) for n, run in used.items()}
             _draw_qualitative(path, labels, out)
             text += (
                 f"![image, truth and predictions on test pairs]({out.name})\n\n"
