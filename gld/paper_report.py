@@ -672,8 +672,10 @@ class Report:
 
     def overfitting(self, figure_dir: Path) -> str:
         text = "## 8. Loss on training points against held-out pixels\n\n"
-        # Each model at the rate its comparisons use, once its learning-rate check is done.
-        used = [self.compared_run(n) or n for n in ("global_local_1px", "dispnet_1px", "fcrn_1px")]
+        # The main-table runs evaluated over training (`Run.curve`), each at the rate its
+        # comparisons use once its learning-rate check is done.
+        drawn = [n for n, run in self.runs.items() if run.curve and n in paper_suite.RATE_CHECKED]
+        used = [self.compared_run(n) or n for n in drawn]
         curves = {name: self.run(name)["curves"] for name in used if self.run(name) is not None}
         if not curves:
             return text + NOT_RUN + ".\n\n"

@@ -210,13 +210,16 @@ class SuiteRunner:
     def run_dir(self, name: str) -> Path:
         return self.workdir / "runs" / name
 
-    def _config(self, run: Run):
-        data = self.data(self.scale.varying_dataset if run.varying else self.scale.dataset)
+    def _config(self, run: Run, size: tuple[int, int] | None = None):
+        """The run's configuration at `size` (height, width); by default its dataset's."""
+        if size is None:
+            data = self.data(self.scale.varying_dataset if run.varying else self.scale.dataset)
+            size = (data.height, data.width)
         return paper_suite.run_config(
             self.scale,
             run,
-            height=data.height,
-            width=data.width,
+            height=size[0],
+            width=size[1],
             flow_net_workdir=str(self.flow_net_dir()),
         )
 
@@ -439,10 +442,10 @@ class SuiteRunner:
             return task.seconds
         run = self.runs[task.name.removeprefix("train/")]
         steps = paper_suite.run_steps(self.scale, run)
-        left = max(0, steps - self._checkpointed_step(run))
+        left = max(0, steps - self._resumable_step(run))
         return left * step_seconds(run.model) + 30
 
-    def _checkpointed_step(self, run: Run) -> int:
+    def _resumable_step(self, run: Run) -> int:
         """The newest checkpoint's step of the run's directory while it holds the run's
         present configuration (0 when it holds another, which training moves aside)."""
         from gld import workdir as workdir_lib
@@ -455,13 +458,7 @@ class SuiteRunner:
             stored = workdir_lib.load_run_config(run_dir)
         except (FileNotFoundError, ValueError):
             return 0
-        config = paper_suite.run_config(
-            self.scale,
-            run,
-            height=stored.height,
-            width=stored.width,
-            flow_net_workdir=str(self.flow_net_dir()),
-        )
+        config = self._config(run, (stored.height, stored.width))
         return 0 if _other_configuration(run_dir, config) else step
 
     def _train(self, run: Run) -> dict[str, Any]:
@@ -529,7 +526,7 @@ class SuiteRunner:
 
         run = self.runs[name]
         run_dir = self.run_dir(name)
-        if self._checkpointed_step(run) < paper_suite.run_steps(self.scale, run):
+        if self._resumable_step(run) < paper_suite.run_steps(self.scale, run):
             config = self._config(run)
             data = self.data(config.dataset)
             self.print(f"{name}: no checkpoint in {run_dir}; retraining it for the analyses")
