@@ -210,8 +210,21 @@ class SuiteRunner:
     def run_dir(self, name: str) -> Path:
         return self.workdir / "runs" / name
 
+    def _rated(self, run: Run) -> Run | None:
+        """The run at the rate its model's learning-rate check chose
+        (`gld.paper_suite.with_compared_rate`); None until that check has finished."""
+        return paper_suite.with_compared_rate(
+            self.scale, run, lambda n: read_result(self.results_dir, f"train/{n}")
+        )
+
     def _config(self, run: Run, size: tuple[int, int] | None = None):
         """The run's configuration at `size` (height, width); by default its dataset's."""
+        rated = self._rated(run)
+        if rated is None:
+            raise RuntimeError(
+                f"{run.name}: the learning-rate check of {run.rate_of} has not finished"
+            )
+        run = rated
         if size is None:
             data = self.data(self.scale.varying_dataset if run.varying else self.scale.dataset)
             size = (data.height, data.width)
@@ -245,23 +258,36 @@ class SuiteRunner:
         tasks: list[Task] = []
         identities: dict[str, dict[str, Any]] = {}
 
-        def add(name, run, identity, seconds, needs=()):
-            identity = {**identity, "inputs": {need: identities[need] for need in needs}}
+        def add(name, run, identity, seconds, needs=(), inputs=None):
+            # `inputs`: the needs whose identities are this task's too (default: all).
+            inputs = needs if inputs is None else inputs
+            identity = {**identity, "inputs": {need: identities[need] for need in inputs}}
             identities[name] = identity
             tasks.append(Task(name, run, identity, seconds, tuple(needs)))
 
         def add_runs(runs, then):
             for run in runs:
                 # A flow network's run enters by the identity of the `flow_net` task.
+                needs = ["flow_net"] if run.model in paper_suite.FLOW_NET_MODELS else []
+                rated = self._rated(run)
                 config = paper_suite.run_config(
-                    self.scale, run, height=0, width=0, flow_net_workdir="<flow_net>"
+                    self.scale, rated or run, height=0, width=0, flow_net_workdir="<flow_net>"
                 )
+                identity = _config_identity(config)
+                inputs = list(needs)
+                if run.rate_of is not None:
+                    # Its rate is its model's compared one: the check's runs come first,
+                    # and its identity holds the rate they chose (a placeholder before).
+                    needs += [f"train/{n}" for n in paper_suite.rate_runs(self.scale, run.rate_of)]
+                    if rated is None:
+                        identity["learning_rate"] = f"the compared rate of {run.rate_of}"
                 add(
                     f"train/{run.name}",
                     lambda run=run: self._train(run),
-                    _config_identity(config),
+                    identity,
                     paper_suite.run_steps(self.scale, run) * step_seconds(run.model) + 30,
-                    needs=["flow_net"] if run.model in paper_suite.FLOW_NET_MODELS else [],
+                    needs=needs,
+                    inputs=inputs,
                 )
                 then()
 
@@ -411,6 +437,9 @@ class SuiteRunner:
             if missing:
                 self.print(f"{task.name}: skipped, needs {missing} first")
                 continue
+            # Its identity again, now that the tasks before it have finished (a run whose
+            # rate a learning-rate check of this launch chose).
+            task = {t.name: t for t in self.tasks()}[task.name]
             started = time.perf_counter()
             self._differences = []
             try:
@@ -452,7 +481,7 @@ class SuiteRunner:
 
         run_dir = self.run_dir(run.name)
         step = _checkpointed_step(run_dir)
-        if not step:
+        if not step or self._rated(run) is None:
             return 0
         try:
             stored = workdir_lib.load_run_config(run_dir)

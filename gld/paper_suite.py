@@ -12,7 +12,10 @@ the CPU suite's 1e-3, DispNet's too: the output saturates and the gradient vanis
 every learned model of the main table is also trained at a second, lower rate
 (`Scale.check_learning_rate`, runs `<run>_low_lr`); the report shows both and compares
 each model at the rate with the lower training loss (`compared_run`; never chosen on the
-test split), and the over-fitting figure and the qualitative grid show that run.
+test split), and the over-fitting figure and the qualitative grid show that run. The
+model's runs at the other densities and on the varying intrinsics train at that rate too
+(`Run.rate_of`, `with_compared_rate`); the ablations, at the suite's rate (global-local's
+check chose it on the CPU suite).
 
 The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): the
 epipolar term at 0.1 and a global encoder with instance normalisation that sees the flow
@@ -157,6 +160,8 @@ class Run:
       options: TrainConfig fields it sets beyond the suite's (gt_pixels, flow_source, ...).
       model_config: the model's constructor options.
       curve: evaluated over training (the over-fitting figure).
+      rate_of: the main-table run whose learning-rate check sets this run's peak rate
+        (`with_compared_rate`); None: the suite's rate, or its own options'.
     """
 
     name: str
@@ -166,6 +171,7 @@ class Run:
     options: dict[str, Any] = dataclasses.field(default_factory=dict)
     model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
     curve: bool = False
+    rate_of: str | None = None
 
 
 def low_rate_name(name: str) -> str:
@@ -252,6 +258,7 @@ def suite_runs(scale: Scale) -> list[Run]:
                 f"global_local_{suffix}",
                 f"global-local, {suffix}",
                 options={"gt_pixels": gt_pixels},
+                rate_of="global_local_1px",
             )
         )
         runs.append(
@@ -260,6 +267,7 @@ def suite_runs(scale: Scale) -> list[Run]:
                 "small_encdec",
                 f"Small Enc-Dec, {suffix}",
                 options={"gt_pixels": gt_pixels},
+                rate_of="small_encdec_1px",
             )
         )
         if gt_pixels in scale.large_densities:
@@ -269,6 +277,7 @@ def suite_runs(scale: Scale) -> list[Run]:
                     "dispnet",
                     f"DispNet, {suffix}",
                     options={"gt_pixels": gt_pixels},
+                    rate_of="dispnet_1px",
                 )
             )
     runs += [
@@ -283,12 +292,22 @@ def suite_runs(scale: Scale) -> list[Run]:
         ),
     ]
     runs += [
-        _global_local("global_local_varying", "global-local", varying=True),
-        Run("small_encdec_varying", "small_encdec", "Small Enc-Dec", varying=True),
-        Run("eigen_varying", "eigen", "Eigen", varying=True),
+        _global_local(
+            "global_local_varying", "global-local", varying=True, rate_of="global_local_1px"
+        ),
+        Run(
+            "small_encdec_varying",
+            "small_encdec",
+            "Small Enc-Dec",
+            varying=True,
+            rate_of="small_encdec_1px",
+        ),
+        Run("eigen_varying", "eigen", "Eigen", varying=True, rate_of="eigen_1px"),
     ]
     if scale.large_densities == DENSITIES:  # the paper's scale: DispNet too
-        runs.append(Run("dispnet_varying", "dispnet", "DispNet", varying=True))
+        runs.append(
+            Run("dispnet_varying", "dispnet", "DispNet", varying=True, rate_of="dispnet_1px")
+        )
     # The paper's remaining comparisons: the self-supervised baseline, the flow experiment.
     self_supervised = [
         Run("struct2depth", "struct2depth", "Struct2Depth (self-supervised)"),
@@ -360,6 +379,23 @@ def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None
     if None in losses:
         return None
     return candidates[int(np.argmin(losses))]
+
+
+def with_compared_rate(
+    scale: Scale, run: Run, result_of: Callable[[str], dict | None]
+) -> Run | None:
+    """`run` at the peak rate its model's learning-rate check chose (`Run.rate_of`:
+    the rate of `compared_run`), so a density's or the varying intrinsics' run of a model
+    trains at the rate its main-table row is compared at; None until that check has
+    finished. A run without `rate_of` is returned as it is."""
+    if run.rate_of is None:
+        return run
+    compared = compared_run(scale, run.rate_of, result_of)
+    if compared is None:
+        return None
+    low = compared != run.rate_of
+    rate = scale.check_learning_rate if low else scale.learning_rate
+    return dataclasses.replace(run, options={**run.options, "learning_rate": rate})
 
 
 def rate_runs(scale: Scale, name: str) -> list[str]:

@@ -176,3 +176,20 @@ def test_the_eta_counts_only_checkpoints_of_the_runs_present_configuration(tmp_p
     (run_dir / "config.json").unlink()
     workdir_lib.write_run_config(run_dir, dataclasses.replace(config, log_every=50))
     assert runner._remaining_seconds(task) == full
+
+
+def test_a_run_at_its_models_compared_rate_waits_for_the_check(tmp_path):
+    runner = _runner(tmp_path)
+    name = "train/small_encdec_dense"
+    task = {t.name: t for t in runner.tasks()}[name]
+    checks = ["train/small_encdec_1px", "train/small_encdec_1px_low_lr"]
+    assert set(checks) <= set(task.needs)
+    assert task.identity["learning_rate"] == "the compared rate of small_encdec_1px"
+    assert task.identity["inputs"] == {}  # the chosen rate is the identity, not the check's
+    for check, loss in zip(checks, (0.05, 0.04), strict=True):
+        path = paper_runner.result_path(tmp_path / "results", check)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"curves": {"train": [[10, loss]] * 8}}))
+    task = {t.name: t for t in runner.tasks()}[name]
+    assert task.identity["learning_rate"] == SUITES["cpu"].check_learning_rate
+    assert task.identity["gt_pixels"] == 0

@@ -171,3 +171,34 @@ def test_learned_models_differ_only_where_the_suite_says():
     for name in ("global_local_1px", "dispnet_1px"):
         records = config(name)["steps"] // config(name)["log_every"]
         assert records >= paper_suite.TRAINING_RECORDS, name
+
+
+def test_density_and_varying_runs_train_at_their_models_compared_rate():
+    scale = SUITES["cpu"]
+    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+
+    def losses(**loss):
+        def result_of(name):
+            if name not in loss:
+                return None
+            return {"curves": {"train": [[10, loss[name]]] * 8}}
+
+        return result_of
+
+    dense = runs["dispnet_dense"]
+    assert dense.rate_of == "dispnet_1px" and runs["eigen_varying"].rate_of == "eigen_1px"
+    # Until both rates of its check have finished, its rate is not known.
+    assert paper_suite.with_compared_rate(scale, dense, losses(dispnet_1px=0.07)) is None
+    # The lower training loss picks the rate, as for the main table.
+    rated = paper_suite.with_compared_rate(
+        scale, dense, losses(dispnet_1px=0.07, dispnet_1px_low_lr=0.03)
+    )
+    assert rated.options == {"gt_pixels": 0, "learning_rate": scale.check_learning_rate}
+    rated = paper_suite.with_compared_rate(
+        scale, dense, losses(dispnet_1px=0.02, dispnet_1px_low_lr=0.03)
+    )
+    assert rated.options["learning_rate"] == scale.learning_rate
+    # The ablations keep the suite's rate.
+    ablation = runs["global_local_no_coordconv"]
+    assert ablation.rate_of is None
+    assert paper_suite.with_compared_rate(scale, ablation, losses()) is ablation
