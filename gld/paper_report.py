@@ -984,7 +984,10 @@ def _draw_density(values: dict[str, list], labels: dict[str, str], path: Path) -
     axis.set_xticks(positions, [paper_suite.density_name(d) for d in paper_suite.DENSITIES])
     axis.set_xlabel("supervised pixels per image")
     axis.set_ylabel("Abs-Inv")
-    axis.legend()
+    # Room above the bars for the legend.
+    drawn = [v for series in values.values() for v in series if v is not None]
+    axis.set_ylim(0, 1.3 * max(drawn, default=1.0))
+    axis.legend(loc="upper center", ncol=len(values), fontsize="small")
     axis.grid(axis="y", alpha=0.3)
     reports.save_figure(figure, path)
 
