@@ -1,6 +1,6 @@
 r"""The paper's experimental section on the embedded benchmark, one command:
 
-    python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, about 9.5 h on 2 cores
+    python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, ~10 h on 2 cores
     python -m experiments.paper --suite=paper        # gld_scenes/full, 256x192, 94K steps (GPU)
     python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
     python -m experiments.paper --suite=cpu --report_only

@@ -491,8 +491,10 @@ class Report:
             "dense labels. Each model at every density trains at the rate its learning-rate "
             "check chose (section 1)"
             + ("; a collapsed run is not drawn" if collapsed else "")
-            + ".\n\n"
+            + ". A training image's supervised pixels are drawn again among its valid pixels "
+            "each epoch.\n\n"
         )
+        text += self._fixed_pixel()
         if any(v is not None for series in values.values() for v in series):
             path = figure_dir / "density.png"
             _draw_density(values, labels, path)
@@ -515,6 +517,33 @@ class Report:
             detail + ".",
         )
         return text
+
+    def _fixed_pixel(self) -> str:
+        """The one-fixed-pixel runs against the one-pixel column ("" if the suite has none)."""
+        cells = []
+        for model, name in paper_suite.FIXED_PIXEL_RUNS.items():
+            if name not in self.runs:
+                continue
+            fixed, redrawn = self.run(name), self.run(self._density_run(model, 1) or "")
+            label = self.runs[name].label.split(",")[0]
+            if fixed is None:
+                cells.append(f"{label} {NOT_RUN}")
+                continue
+            cells.append(
+                f"{label} {_metric(fixed):.4f} ({self._rate(name)})"
+                + (
+                    f", {_metric(fixed) / _metric(redrawn) - 1:+.1%} against a pixel drawn "
+                    f"again each epoch ({_metric(redrawn):.4f})"
+                    if redrawn is not None
+                    else ""
+                )
+            )
+        if not cells:
+            return ""
+        return (
+            "One fixed pixel per image, the same in every epoch (what a robot's range sensor "
+            "gives: one measurement of each image): " + "; ".join(cells) + ".\n\n"
+        )
 
     def _density_run(self, model: str, density: int) -> str | None:
         """The run of `model` at `density` the density table shows: at one pixel, the

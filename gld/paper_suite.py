@@ -110,7 +110,7 @@ SUITES: dict[str, Scale] = {
         large_steps=150,
         check_learning_rate=3e-4,
         large_densities=(1, 0),
-        hours="about 9.5 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
+        hours="about 10 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
     ),
     # The paper's scale: 256x192 and its 94K steps for every model, on a GPU or hosts.
     "paper": Scale(
@@ -190,6 +190,13 @@ RATE_CHECKED = (
 )
 # The flow experiment's runs: the model on the stored DIS flow, then on the network's.
 FLOW_EXPERIMENT = ("flow_dis", "flow_net_fixed", "flow_net_finetuned", "flow_net_head")
+
+
+# The runs trained with one fixed supervised pixel per image, by model.
+FIXED_PIXEL_RUNS = {
+    "global_local": "global_local_1px_fixed",
+    "small_encdec": "small_encdec_1px_fixed",
+}
 
 
 def density_name(gt_pixels: int) -> str:
@@ -280,6 +287,23 @@ def suite_runs(scale: Scale) -> list[Run]:
                     rate_of="dispnet_1px",
                 )
             )
+    # One pixel per image that stays the same every epoch, as a robot's range sensor
+    # gives it (the runs above draw a training image's pixels again each epoch).
+    runs += [
+        _global_local(
+            FIXED_PIXEL_RUNS["global_local"],
+            "global-local, one fixed pixel",
+            options={"gt_pixels": 1, "fixed_sparse_pixels": True},
+            rate_of="global_local_1px",
+        ),
+        Run(
+            FIXED_PIXEL_RUNS["small_encdec"],
+            "small_encdec",
+            "Small Enc-Dec, one fixed pixel",
+            options={"gt_pixels": 1, "fixed_sparse_pixels": True},
+            rate_of="small_encdec_1px",
+        ),
+    ]
     runs += [
         _global_local(
             "global_local_gt_flow", "global-local, true flow", options={"flow_source": "gt"}

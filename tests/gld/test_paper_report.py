@@ -417,3 +417,19 @@ def test_the_density_table_reads_each_model_at_its_compared_rate(tmp_path):
     row = "| DispNet (150 steps) | 0.0340 (0.0003) | not in this suite | not in this suite "
     assert row + "| not in this suite | 0.0730 (collapsed) |" in density
     assert "a collapsed run is not drawn" in density
+
+
+def test_the_fixed_pixel_runs_are_read_against_the_pixel_drawn_each_epoch(tmp_path):
+    values = {
+        "global_local_1px": 0.0300,
+        paper_suite.FIXED_PIXEL_RUNS["global_local"]: 0.0330,
+        "small_encdec_1px": 0.0400,  # compared at its check's lower training loss
+        LOW_RATE["small_encdec_1px"]: 0.0360,
+    }
+    losses = {"small_encdec_1px": 0.06, LOW_RATE["small_encdec_1px"]: 0.05}
+    density = _write(tmp_path, _results(values, losses)).split("## 3.")[1].split("## 4.")[0]
+    assert (
+        "global-local 0.0330 (0.001), +10.0% against a pixel drawn again each epoch (0.0300)"
+        in density
+    )
+    assert "Small Enc-Dec not run yet" in density

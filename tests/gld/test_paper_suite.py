@@ -1,6 +1,8 @@
 """The suites' runs: one recipe and budget for every learned model, the ablations'
 switches, the densities, and configs that validate."""
 
+import dataclasses
+
 import pytest
 
 from gld import paper_suite
@@ -202,3 +204,20 @@ def test_density_and_varying_runs_train_at_their_models_compared_rate():
     ablation = runs["global_local_no_coordconv"]
     assert ablation.rate_of is None
     assert paper_suite.with_compared_rate(scale, ablation, losses()) is ablation
+
+
+@pytest.mark.parametrize("model", sorted(paper_suite.FIXED_PIXEL_RUNS))
+def test_the_fixed_pixel_runs_keep_one_pixel_and_the_compared_rate(model):
+    runs = {run.name: run for run in paper_suite.suite_runs(SUITES["cpu"])}
+    fixed = runs[paper_suite.FIXED_PIXEL_RUNS[model]]
+    config = paper_suite.run_config(SUITES["cpu"], fixed, height=96, width=128)
+    redrawn = paper_suite.run_config(SUITES["cpu"], runs[f"{model}_1px"], height=96, width=128)
+    assert (config.gt_pixels, config.fixed_sparse_pixels) == (1, True)
+    assert not redrawn.fixed_sparse_pixels
+    assert fixed.model == model and fixed.rate_of == f"{model}_1px"
+    # Otherwise the same run: only the pixels' drawing differs (and the main run's test
+    # evaluations over training, which do not change its training).
+    differs = {
+        key for key, value in dataclasses.asdict(config).items() if getattr(redrawn, key) != value
+    }
+    assert differs - {"eval_every"} == {"fixed_sparse_pixels"}
