@@ -96,6 +96,18 @@ class SceneConfig(tfds.core.BuilderConfig):
         )
 
 
+# The varying configs' own version: their pairs changed when the intrinsics got a
+# random stream of their own (the fixed configs' pairs did not).
+VARYING_RELEASE = dict(
+    version=tfds.core.Version("1.1.0"),
+    release_notes={
+        "1.1.0": "Each pair has the scene and the motion draws of the fixed config's pair "
+        "of the same index; only the cameras' intrinsics differ.",
+        "1.0.0": "Initial release.",
+    },
+)
+
+
 def _configs() -> list[SceneConfig]:
     sizes = {
         "tiny": dict(height=48, width=64, num_train=32, num_test=16),
@@ -108,13 +120,22 @@ def _configs() -> list[SceneConfig]:
         "full": "256x192, 40,000 train / 1,000 test pairs (paper scale).",
     }
     configs = []
-    for jitter, suffix, extra in ((0.0, "", ""), (0.2, "_varying", " Varying intrinsics (20%).")):
+    for jitter, suffix, extra in (
+        (0.0, "", ""),
+        (
+            0.2,
+            "_varying",
+            " Varying intrinsics (20%); each pair has the scene and motion direction of the "
+            "fixed config's pair of the same index.",
+        ),
+    ):
         for name, size in sizes.items():
             configs.append(
                 SceneConfig(
                     name=name + suffix,
                     description=descriptions[name] + extra,
                     intrinsics_jitter=jitter,
+                    **(VARYING_RELEASE if jitter else {}),
                     **size,
                 )
             )

@@ -306,8 +306,12 @@ def sample_pair(
     """
     height, width = settings.height, settings.width
     scene, rotation1, center1 = sample_scene(rng, settings)
-    intrinsics1 = sample_intrinsics(rng, settings)
-    intrinsics2 = sample_intrinsics(rng, settings)
+    # The intrinsics have a stream of their own (spawning draws nothing from `rng`), so a
+    # varying-intrinsics pair has the scene and the motion draws of the nominal pair of
+    # the same generator: the varying split differs from the fixed one by its cameras.
+    (intrinsics_rng,) = rng.spawn(1)
+    intrinsics1 = sample_intrinsics(intrinsics_rng, settings)
+    intrinsics2 = sample_intrinsics(intrinsics_rng, settings)
     camera1 = raycast.Camera(rotation1, -rotation1 @ center1, intrinsics1)
     image1, depth1 = raycast.render_view(scene, camera1, height, width)
     for _ in range(20):

@@ -39,6 +39,26 @@ def test_varying_intrinsics_differ_between_views_within_20_percent():
     np.testing.assert_array_equal(fixed["intrinsics2"], nominal)
 
 
+def test_varying_intrinsics_keep_the_scene_and_the_motion_of_the_nominal_pair():
+    # No flow bound, so that the motion is the drawn one for any intrinsics.
+    nominal = dataclasses.replace(SETTINGS, max_flow_fraction=10.0)
+    varying = dataclasses.replace(nominal, intrinsics_jitter=0.2)
+    for index in range(3):
+        pairs = [
+            scenes.sample_pair(renderer.example_rng(0, "train", index), settings)
+            for settings in (nominal, varying)
+        ]
+        (scene, camera1, camera2, _, _), (scene_v, camera1_v, camera2_v, _, _) = pairs
+        assert scene.room_size.tolist() == scene_v.room_size.tolist()
+        assert [o.center.tolist() for o in scene.objects] == [
+            o.center.tolist() for o in scene_v.objects
+        ]
+        for a, b in ((camera1, camera1_v), (camera2, camera2_v)):
+            np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-12)
+            np.testing.assert_allclose(a.translation, b.translation, atol=1e-12)
+        assert not np.allclose(camera1.intrinsics, camera1_v.intrinsics)
+
+
 def test_bad_settings_raise():
     with pytest.raises(ValueError, match="intrinsics_jitter"):
         scenes.SceneSettings(intrinsics_jitter=1.5)
