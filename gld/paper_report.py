@@ -107,15 +107,7 @@ def _cells(result: dict | None, reference: float | None) -> list[str]:
     return cells
 
 
-def collapse(result: dict) -> tuple[int, int, int] | None:
-    """(first step, count, logged steps) of the zero gradients of a run that collapsed:
-    its gradient norm is zero at a quarter or more of its logged steps (a saturated
-    output no longer learns). None otherwise, or without a logged gradient."""
-    norms = result["curves"].get("grad_norm", [])
-    zero = [step for step, norm in norms if norm < 1e-12]
-    if not norms or 4 * len(zero) < len(norms):
-        return None
-    return int(zero[0]), len(zero), len(norms)
+collapse = paper_suite.collapse
 
 
 def _paper(numbers: Sequence[float] | None, decimals: Sequence[int] = (3, 2, 2)) -> str:
@@ -170,7 +162,7 @@ class Report:
             label += f" ({paper_suite.run_steps(self.scale, run):,} steps)"
         result = self.run(name)
         if result is not None and (collapsed := collapse(result)) is not None:
-            label += f" — collapsed: zero gradient from step {collapsed[0]:,}"
+            label += f" — collapsed: vanishing gradient from step {collapsed[0]:,}"
         return label
 
     def compared_run(self, name: str) -> str | None:
@@ -290,10 +282,11 @@ class Report:
             "\nOne shared rate can suit one model and starve another, so the main table's "
             "learned models are trained at two peak rates, and every comparison (the target "
             "below, the over-fitting figure, the qualitative grid) takes each at the rate "
-            "with the lower training loss: the L1 "
+            "with the lower training loss (the L1 "
             "inverse-depth loss on its supervised pixels over the last quarter of training, "
-            'never the test split. A run "collapsed" when its gradient is zero at a '
-            "quarter or more of its logged steps: its output saturated and it stopped "
+            "never the test split), unless that run collapsed and the other did not. A run "
+            '"collapsed" when its gradient norm is below 1e-4 of its largest logged one at '
+            "a quarter or more of its logged steps: its output saturated and it stopped "
             "learning. A model's runs at the other densities and on the varying intrinsics "
             "train at its compared rate too; the ablations, at the suite's rate.\n\n"
         )

@@ -392,16 +392,43 @@ def training_loss(result: dict) -> float | None:
     return float(np.mean(values[-max(1, len(values) // 4) :]))
 
 
+# A logged gradient norm below this fraction of the run's largest one has vanished.
+VANISHED_GRADIENT = 1e-4
+
+
+def collapse(result: dict) -> tuple[int, int, int] | None:
+    """(first step, count, logged steps) of the vanished gradients of a run that
+    collapsed: its gradient norm is below `VANISHED_GRADIENT` of its largest logged one
+    at a quarter or more of its logged steps (a saturated output no longer learns). None
+    otherwise, or without a logged gradient."""
+    norms = result["curves"].get("grad_norm", [])
+    if not norms:
+        return None
+    largest = max(norm for _, norm in norms)
+    vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * largest]
+    if 4 * len(vanished) < len(norms):
+        return None
+    return int(vanished[0]), len(vanished), len(norms)
+
+
 def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None]) -> str | None:
     """The run of a main-table model that the comparisons use: with a learning-rate
-    check, the one of its two rates with the lower training loss (None until both have
-    finished); else the run itself. `result_of` gives a run's result by its name."""
+    check, the one of its two rates with the lower training loss, unless that one
+    collapsed and the other did not (a collapsed self-supervised run can have the lower
+    photometric loss); None until both have finished. Else the run itself. `result_of`
+    gives a run's result by its name."""
     candidates = rate_runs(scale, name)
     if len(candidates) == 1:
         return name
-    losses = [training_loss(r) if (r := result_of(n)) else None for n in candidates]
+    results = [result_of(n) for n in candidates]
+    if None in results:
+        return None
+    losses = [training_loss(r) for r in results]
     if None in losses:
         return None
+    collapsed = [collapse(r) is not None for r in results]
+    if collapsed.count(True) == 1:
+        return candidates[collapsed.index(False)]
     return candidates[int(np.argmin(losses))]
 
 

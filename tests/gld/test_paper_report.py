@@ -152,7 +152,7 @@ def test_the_learning_rate_check_compares_each_model_at_its_lower_training_loss(
     check = readme.split("### Learning-rate check")[1].split("Target")[0]
     assert "| Eigen | 0.0600 / 2.0000 (collapsed) | 0.0340 / 0.0500 | 0.0003 |" in check
     assert "| Small Enc-Dec | 0.0400 / 0.0400 | 0.0330 / 0.0450 | 0.001 |" in check
-    assert "| Eigen — collapsed: zero gradient from step 150 |" in readme
+    assert "| Eigen — collapsed: vanishing gradient from step 150 |" in readme
     # Eigen at its better rate: 1 - 0.030 / 0.034 = 12% (0.060 would have given 50%).
     assert _verdicts(readme)[MAIN] == "**does not hold**"
     assert "Small Enc-Dec 25%, Eigen 12% (each at the rate" in readme

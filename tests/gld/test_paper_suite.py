@@ -221,3 +221,43 @@ def test_the_fixed_pixel_runs_keep_one_pixel_and_the_compared_rate(model):
         key for key, value in dataclasses.asdict(config).items() if getattr(redrawn, key) != value
     }
     assert differs - {"eval_every"} == {"fixed_sparse_pixels"}
+
+
+def _result(losses, grad_norms):
+    steps = range(50, 50 * (len(losses) + 1), 50)
+    return {
+        "curves": {
+            "train": [],
+            "loss": [[s, v] for s, v in zip(steps, losses, strict=True)],
+            "grad_norm": [[s, v] for s, v in zip(steps, grad_norms, strict=True)],
+        }
+    }
+
+
+def test_a_gradient_that_vanishes_against_its_own_scale_is_a_collapse():
+    # A small network's gradient: 1e-2 at first, then 1e-7 (never exactly zero).
+    vanished = _result([0.14] * 8, [7e-3, 6e-3, 2e-3, 1e-6, 5e-7, 4e-7, 6e-7, 3e-7])
+    assert paper_suite.collapse(vanished) == (250, 4, 8)  # 1e-6 is above 1e-4 of 7e-3
+    # Small but alive: 2% of the largest norm at the end.
+    alive = _result([0.14] * 8, [0.5, 0.3, 0.1, 0.05, 0.02, 0.01, 0.01, 0.01])
+    assert paper_suite.collapse(alive) is None
+    # One vanished record in eight is a blip, not a collapse.
+    blip = _result([0.14] * 8, [0.5, 0.3, 0.0, 0.05, 0.02, 0.01, 0.01, 0.01])
+    assert paper_suite.collapse(blip) is None
+
+
+def test_the_rate_check_never_prefers_a_collapsed_run():
+    scale = SUITES["cpu"]
+    # Self-supervised at the suite's rate: everything projects out of view, the
+    # photometric loss is low and the gradient has vanished.
+    collapsed = _result([0.14] * 8, [7e-3, 6e-3, 1e-6, 5e-7, 4e-7, 6e-7, 3e-7, 2e-7])
+    learning = _result([0.20] * 8, [0.5, 0.4, 0.3, 0.3, 0.2, 0.2, 0.2, 0.2])
+    results = {"struct2depth": collapsed, "struct2depth_low_lr": learning}
+    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth_low_lr"
+    # Neither collapsed: the lower training loss.
+    results["struct2depth"] = _result([0.14] * 8, [0.5] * 8)
+    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth"
+    # Both collapsed: the lower training loss too (the report marks both).
+    results = {"struct2depth": collapsed, "struct2depth_low_lr": collapsed}
+    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth"
+    assert paper_suite.compared_run(scale, "struct2depth", {}.get) is None
