@@ -99,10 +99,12 @@ class SceneConfig(tfds.core.BuilderConfig):
 # The varying configs' own version: their pairs changed when the intrinsics got a
 # random stream of their own (the fixed configs' pairs did not).
 VARYING_RELEASE = dict(
-    version=tfds.core.Version("1.1.0"),
+    version=tfds.core.Version("1.2.0"),
     release_notes={
+        "1.2.0": "Each pair is the fixed config's pair of the same index (scene, cameras' "
+        "poses) with other intrinsics: the motion is bounded with the nominal intrinsics.",
         "1.1.0": "Each pair has the scene and the motion draws of the fixed config's pair "
-        "of the same index; only the cameras' intrinsics differ.",
+        "of the same index.",
         "1.0.0": "Initial release.",
     },
 )
@@ -125,8 +127,8 @@ def _configs() -> list[SceneConfig]:
         (
             0.2,
             "_varying",
-            " Varying intrinsics (20%); each pair has the scene and motion direction of the "
-            "fixed config's pair of the same index.",
+            " Varying intrinsics (20%); each pair is the fixed config's pair of the same "
+            "index (scene, poses) seen with other intrinsics.",
         ),
     ):
         for name, size in sizes.items():

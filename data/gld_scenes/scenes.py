@@ -37,9 +37,9 @@ class SceneSettings:
       max_rotation_degrees: the relative rotation angle is uniform in [0, this].
       min_translation, max_translation: norm range of the relative translation
         (metres, uniform direction).
-      max_flow_fraction: the 99th percentile of the true flow magnitude is kept
-        below this fraction of the image width (40 px at 256x192) by shrinking
-        the motion.
+      max_flow_fraction: the 99th percentile of the true flow magnitude with the
+        nominal intrinsics is kept below this fraction of the image width (40 px at
+        256x192) by shrinking the motion (varying intrinsics add their own flow).
       min_objects, max_objects: number of objects drawn (inclusive); an object that
         would come too close to the first camera is dropped.
     """
@@ -314,8 +314,16 @@ def sample_pair(
     intrinsics2 = sample_intrinsics(intrinsics_rng, settings)
     camera1 = raycast.Camera(rotation1, -rotation1 @ center1, intrinsics1)
     image1, depth1 = raycast.render_view(scene, camera1, height, width)
+    # The motion is the nominal pair's: drawn and bounded with the nominal intrinsics, so
+    # the varying pair differs from it by its cameras alone (their change adds its own
+    # flow on top of the bound).
+    nominal = sample_intrinsics(rng, dataclasses.replace(settings, intrinsics_jitter=0.0))
+    depth_nominal = depth1
+    if settings.intrinsics_jitter:
+        nominal_camera = raycast.Camera(rotation1, camera1.translation, nominal)
+        _, depth_nominal = raycast.render_view(scene, nominal_camera, height, width)
     for _ in range(20):
-        rotation, translation = sample_motion(rng, settings, depth1, intrinsics1, intrinsics2)
+        rotation, translation = sample_motion(rng, settings, depth_nominal, nominal, nominal)
         camera2 = raycast.Camera(
             rotation @ rotation1, rotation @ camera1.translation + translation, intrinsics2
         )
