@@ -24,7 +24,6 @@ if TYPE_CHECKING:
 
 # Classical methods of the main dataset, and of the varying-intrinsics one.
 CLASSICAL = ("dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow")
-CLASSICAL_VARYING = ("dataset_mean", "oracle_pair_median", "sfm_flow")
 
 MAIN_RUN = "global_local_1px"
 # The pose probe reads the encoders of the main run, whose epipolar term trains g to be

@@ -291,14 +291,11 @@ class SuiteRunner:
                 )
                 then()
 
-        for dataset, methods in (
-            (self.scale.dataset, analyses.CLASSICAL),
-            (self.scale.varying_dataset, analyses.CLASSICAL_VARYING),
-        ):
+        for dataset in (self.scale.dataset, self.scale.varying_dataset):
             add(
                 f"classical/{dataset.split('/')[-1]}",
-                lambda dataset=dataset, methods=methods: analyses.classical(self, dataset, methods),
-                {"dataset": dataset, "methods": list(methods)},
+                lambda dataset=dataset: analyses.classical(self, dataset, analyses.CLASSICAL),
+                {"dataset": dataset, "methods": list(analyses.CLASSICAL)},
                 60,
             )
         probe = {
