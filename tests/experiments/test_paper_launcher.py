@@ -129,3 +129,28 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
     assert after["flow_net_fixed"]["epe"] == pytest.approx(flow_net["epe"], rel=1e-5)
     assert after["flow_net_finetuned"]["epe"] != pytest.approx(flow_net["epe"], rel=1e-5)
     assert "not run yet" not in readme
+
+
+def test_commit_stamp_ignores_the_suites_own_outputs(tmp_path, monkeypatch):
+    from experiments import paper
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "report" / "results").mkdir(parents=True)
+    for name in ("code.py", "report/README.md", "report/results/task.json"):
+        (tmp_path / name).write_text("0\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
+    monkeypatch.chdir(tmp_path)
+    outputs = (tmp_path / "report", tmp_path / "report" / "results")
+    clean = paper._commit(*outputs)
+    assert clean and not clean.endswith("+changes")
+    # A rewritten report or a removed result is the suite's own doing: still clean.
+    (tmp_path / "report" / "README.md").write_text("1\n")
+    (tmp_path / "report" / "results" / "task.json").unlink()
+    assert paper._commit(*outputs) == clean
+    # A changed source file is not.
+    (tmp_path / "code.py").write_text("1\n")
+    assert paper._commit(*outputs) == clean + "+changes"
