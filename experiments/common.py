@@ -289,6 +289,32 @@ def flags_file_text() -> str:
     return "\n".join(sorted(line for line in lines if line)) + "\n"
 
 
+def commit_stamp(*outputs: Path) -> str:
+    """The repository's commit, with "+changes" when the tracked files differ from it
+    outside `outputs` (the report and the results the suite itself writes)."""
+
+    import subprocess
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", *args], capture_output=True, text=True, check=True
+        ).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        top = Path(git("rev-parse", "--show-toplevel")).resolve()
+        changed = git("diff", "--name-only", "HEAD").splitlines()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+    outputs = [path.resolve() for path in outputs]
+    dirty = [
+        name
+        for name in changed
+        if not any((top / name).resolve().is_relative_to(path) for path in outputs)
+    ]
+    return commit + ("+changes" if dirty else "")
+
+
 def write_text_atomically(path: Path, text: str) -> None:
     """Writes `text` to `path` through a temporary file in the same folder, so a reader
     (or a crash) never sees half a file. Process 0 only."""

@@ -25,7 +25,6 @@ the results and the report.
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 from absl import app, flags
@@ -51,30 +50,6 @@ flags.DEFINE_bool("progress", True, "Progress bars of the training runs.")
 flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
 flags.DEFINE_string("manual_dir", None, "Unused by gld_scenes; kept for the data flags.")
 common.define_distributed_flags()
-
-
-def _commit(*outputs: Path) -> str:
-    """The repository's commit, with "+changes" when the tracked files differ from it
-    outside `outputs` (the report and the results the suite itself writes)."""
-
-    def git(*args: str) -> str:
-        return subprocess.run(
-            ["git", *args], capture_output=True, text=True, check=True
-        ).stdout.strip()
-
-    try:
-        commit = git("rev-parse", "--short", "HEAD")
-        top = Path(git("rev-parse", "--show-toplevel")).resolve()
-        changed = git("diff", "--name-only", "HEAD").splitlines()
-    except (OSError, subprocess.CalledProcessError):
-        return ""
-    outputs = [path.resolve() for path in outputs]
-    dirty = [
-        name
-        for name in changed
-        if not any((top / name).resolve().is_relative_to(path) for path in outputs)
-    ]
-    return commit + ("+changes" if dirty else "")
 
 
 def main(argv):
@@ -109,7 +84,7 @@ def main(argv):
         runner.selected(FLAGS.only)
     except ValueError as error:
         raise app.UsageError(f"--only: {error}") from None
-    commit = _commit(report_dir, results_dir)
+    commit = common.commit_stamp(report_dir, results_dir)
     failures = [] if FLAGS.report_only else runner.run(FLAGS.only, commit=commit)
     if jax.process_index() == 0:
         path = paper_report.write_report(

@@ -132,7 +132,7 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
 
 
 def test_commit_stamp_ignores_the_suites_own_outputs(tmp_path, monkeypatch):
-    from experiments import paper
+    from experiments import common
 
     def git(*args):
         subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
@@ -145,12 +145,12 @@ def test_commit_stamp_ignores_the_suites_own_outputs(tmp_path, monkeypatch):
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
     monkeypatch.chdir(tmp_path)
     outputs = (tmp_path / "report", tmp_path / "report" / "results")
-    clean = paper._commit(*outputs)
+    clean = common.commit_stamp(*outputs)
     assert clean and not clean.endswith("+changes")
     # A rewritten report or a removed result is the suite's own doing: still clean.
     (tmp_path / "report" / "README.md").write_text("1\n")
     (tmp_path / "report" / "results" / "task.json").unlink()
-    assert paper._commit(*outputs) == clean
+    assert common.commit_stamp(*outputs) == clean
     # A changed source file is not.
     (tmp_path / "code.py").write_text("1\n")
-    assert paper._commit(*outputs) == clean + "+changes"
+    assert common.commit_stamp(*outputs) == clean + "+changes"
