@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -292,8 +293,6 @@ def flags_file_text() -> str:
 def commit_stamp(*outputs: Path) -> str:
     """The repository's commit, with "+changes" when the tracked files differ from it
     outside `outputs` (the report and the results the suite itself writes)."""
-
-    import subprocess
 
     def git(*args: str) -> str:
         return subprocess.run(

@@ -107,9 +107,6 @@ def _cells(result: dict | None, reference: float | None) -> list[str]:
     return cells
 
 
-collapse = paper_suite.collapse
-
-
 def _paper(numbers: Sequence[float] | None, decimals: Sequence[int] = (3, 2, 2)) -> str:
     """The paper's numbers as it prints them: Abs-Inv / Abs-Rel / S-RMSE by default."""
     if not numbers:
@@ -153,6 +150,9 @@ class Report:
     def mean_reference(self, varying: bool = False) -> float | None:
         return _metric(self.classical("dataset_mean", varying))
 
+    def oracle_reference(self, varying: bool = False) -> float | None:
+        return _metric(self.classical("oracle_pair_median", varying))
+
     def _label(self, name: str) -> str:
         if name not in self.runs:
             return CLASSICAL_LABELS.get(name, name)
@@ -161,7 +161,7 @@ class Report:
         if run.model in paper_suite.LARGE_MODELS:
             label += f" ({paper_suite.run_steps(self.scale, run):,} steps)"
         result = self.run(name)
-        if result is not None and (collapsed := collapse(result)) is not None:
+        if result is not None and (collapsed := paper_suite.collapse(result)) is not None:
             label += f" — collapsed: vanishing gradient from step {collapsed[0]:,}"
         return label
 
@@ -273,7 +273,7 @@ class Report:
                     continue
                 loss = paper_suite.training_loss(result)
                 cell = f"{_metric(result):.4f} / " + ("—" if loss is None else f"{loss:.4f}")
-                if collapse(result) is not None:
+                if paper_suite.collapse(result) is not None:
                     cell += " (collapsed)"
                 cells.append(cell)
             compared = self.compared_run(name)
@@ -285,7 +285,8 @@ class Report:
             "with the lower training loss (the L1 "
             "inverse-depth loss on its supervised pixels over the last quarter of training, "
             "never the test split), unless that run collapsed and the other did not. A run "
-            '"collapsed" when its gradient norm is below 1e-4 of its largest logged one at '
+            f'"collapsed" when its gradient norm is below {paper_suite.VANISHED_GRADIENT:g} of '
+            "its largest logged one at "
             "a quarter or more of its logged steps: its output saturated and it stopped "
             "learning. A model's runs at the other densities and on the varying intrinsics "
             "train at its compared rate too; the ablations, at the suite's rate.\n\n"
@@ -462,7 +463,7 @@ class Report:
             values[model], cells = [], []
             for name in names:
                 result = None if name is None else self.run(name)
-                if result is not None and collapse(result) is not None:
+                if result is not None and paper_suite.collapse(result) is not None:
                     collapsed = True
                     values[model].append(None)  # not drawn: a saturated output
                     cells.append(f"{_metric(result):.4f} (collapsed)")
@@ -609,11 +610,11 @@ class Report:
                 continue
             fixed_run = self.compared_run(f"{model}_1px") or f"{model}_1px"
             fixed, varying = _metric(self.run(fixed_run)), _metric(self.run(name))
-            if (result := self.run(name)) is not None and collapse(result) is not None:
+            if (result := self.run(name)) is not None and paper_suite.collapse(result) is not None:
                 label += " — collapsed on the varying intrinsics"
             text += row(label, fixed, varying, PAPER_VARYING.get(model, "—"))
             changes[model] = (fixed, varying)
-        for name in ("dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow"):
+        for name in paper_analyses.CLASSICAL:
             fixed, varying = _metric(self.classical(name)), _metric(self.classical(name, True))
             text += row(CLASSICAL_LABELS[name], fixed, varying)
         text += (
@@ -642,9 +643,7 @@ class Report:
                 f"({means[1] / means[0] - 1:+.1%}); as a multiple of the mean "
                 f"{fixed / means[0]:.2f} → {varying / means[1]:.2f} ({relative:+.1%})"
             )
-            oracles = [
-                _metric(self.classical("oracle_pair_median", varying=v)) for v in (False, True)
-            ]
+            oracles = [self.oracle_reference(), self.oracle_reference(True)]
             if None not in oracles:
                 detail += (
                     f"; as a multiple of the per-pair oracle constant {fixed / oracles[0]:.2f} "

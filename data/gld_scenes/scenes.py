@@ -317,7 +317,7 @@ def sample_pair(
     # The motion is the nominal pair's: drawn and bounded with the nominal intrinsics, so
     # the varying pair differs from it by its cameras alone (their change adds its own
     # flow on top of the bound).
-    nominal = sample_intrinsics(rng, dataclasses.replace(settings, intrinsics_jitter=0.0))
+    nominal = np.asarray(settings.intrinsics, np.float64)
     depth_nominal = depth1
     if settings.intrinsics_jitter:
         nominal_camera = raycast.Camera(rotation1, camera1.translation, nominal)
