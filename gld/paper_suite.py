@@ -392,8 +392,12 @@ def training_loss(result: dict) -> float | None:
     return float(np.mean(values[-max(1, len(values) // 4) :]))
 
 
-# A logged gradient norm below this fraction of the run's largest one has vanished.
-VANISHED_GRADIENT = 1e-4
+# A logged gradient norm below this fraction of the run's largest one has vanished. On
+# the cpu suite the learning runs keep a quarter of their records above 1e-2 of their
+# largest norm (FCRN the lowest, at 1e-2); a self-supervised run with every pixel out of
+# view sits at 3e-4 to 5e-4 of it, with a rare record of 5e-2 when a batch lands a
+# pixel back in view, and a saturated output at 0.
+VANISHED_GRADIENT = 1e-3
 
 
 def collapse(result: dict) -> tuple[int, int, int] | None:
