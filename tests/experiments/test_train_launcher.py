@@ -374,3 +374,42 @@ def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
     mean = launch(["experiments.evaluate", "--method=dataset_mean"], test_only, tmp_path / "mean")
     assert mean.returncode != 0
     assert "--method=dataset_mean is fitted on the train split" in mean.stderr
+
+
+def test_diagnose_self_supervised_launcher(tiny_scenes_dir, tmp_path):
+    workdir = tmp_path / "struct2depth"
+    trained = _launch(
+        [
+            "experiments.train",
+            "--model=struct2depth",
+            f"--workdir={workdir}",
+            "--steps=2",
+            "--batch_size=4",
+            "--log_every=1",
+            "--warmup_steps=1",
+            "--nofinal_eval",
+        ],
+        tiny_scenes_dir,
+    )
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    missing = _launch(
+        ["experiments.diagnose_self_supervised", f"--workdirs={workdir},{tmp_path / 'none'}"],
+        tiny_scenes_dir,
+    )
+    assert missing.returncode != 0 and "no such directory" in missing.stderr
+    assert not (workdir / "eval" / "self_supervised_diagnosis.json").exists()
+
+    result = _launch(
+        ["experiments.diagnose_self_supervised", f"--workdirs={workdir}"], tiny_scenes_dir
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((workdir / "eval" / "self_supervised_diagnosis.json").read_text())
+    assert report["summary"]["pairs"] == 16
+    assert set(report["photometric_at_truth"]) == {
+        "truth",
+        "flat depth, true pose",
+        "true depth, half translation",
+        "true depth, twice the translation",
+        "true depth, reversed translation",
+    }
+    assert "at the truth's scale" in result.stdout

@@ -1,0 +1,152 @@
+"""Where a self-supervised depth run's error comes from: its scale, its shape or its pose,
+and whether the photometric loss is lowest at the truth on a dataset.
+
+Three questions, each answered on a split's pairs (`experiments.diagnose_self_supervised`):
+
+* Scale or shape. The run's depth is scored as the protocol scores it (units of its
+  predicted translation, ||t|| = 1) and again with each pair's scale taken from the truth
+  (`median_scaled`: the median inverse depth over valid pixels made the truth's). The
+  second score has no scale error left; against the per-pair oracle constant (the flat map
+  at the same median) it says whether the map's shape helps.
+* Pose. The predicted rotation and translation direction against the true ones, in
+  degrees, beside the error of predicting no rotation.
+* The loss itself. `photometric_at_truth`: the photometric loss with the true depth and
+  pose, and with one of them spoiled (a flat depth; half, twice or reversed translation).
+  If the truth is not the lowest, no optimiser will find it; if it is, a run that sits
+  above it has not found the basin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gld import geometry, layers, metrics, photometric
+
+# The photometric loss at the true depth and pose, and with one of them spoiled: the
+# translation is multiplied by the factor, or the depth replaced by its median.
+TRUTH = "truth"
+SPOILED_TRUTH: Mapping[str, dict] = {
+    TRUTH: {},
+    "flat depth, true pose": {"flat": True},
+    "true depth, half translation": {"translation_factor": 0.5},
+    "true depth, twice the translation": {"translation_factor": 2.0},
+    "true depth, reversed translation": {"translation_factor": -1.0},
+}
+
+
+def _median_inv_depth(inv_depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per-example median of inverse depth [B, H, W] over valid pixels, [B, 1, 1]; 1 for
+    an example without one (no metric counts it)."""
+    masked = np.where(valid, inv_depth, np.nan)
+    counts = valid.reshape(len(valid), -1).sum(axis=1)
+    medians = np.ones(len(valid))
+    if counts.any():
+        medians[counts > 0] = np.nanmedian(masked[counts > 0], axis=(1, 2))
+    return medians[:, None, None]
+
+
+def _truth_inv_depth(batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    depth = np.asarray(batch["depth"], np.float64)
+    valid = np.asarray(batch["depth_valid"], bool) & (depth > 0) & np.isfinite(depth)
+    return np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0), valid
+
+
+def median_scaled(depth: np.ndarray, batch: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Predicted depth [B, H, W] rescaled per pair so that its median inverse depth over
+    the valid truth pixels is the truth's: the prediction's shape at the truth's scale."""
+    inv_depth = 1.0 / np.asarray(depth, np.float64)
+    inv_truth, valid = _truth_inv_depth(batch)
+    ratio = _median_inv_depth(inv_truth, valid) / _median_inv_depth(inv_depth, valid)
+    return (1.0 / (inv_depth * ratio)).astype(np.float32)
+
+
+def pose_errors(outputs: Mapping[str, np.ndarray], batch: Mapping[str, np.ndarray]) -> dict:
+    """Per-pair pose errors in degrees, each [B]: 'rotation_deg' and 'translation_deg' of
+    the prediction, 'identity_rotation_deg' of predicting no rotation."""
+    rotation_true = np.asarray(batch["rotation"], np.float64)
+    return {
+        "rotation_deg": geometry.rotation_error_degrees(
+            np.asarray(outputs["rotation"], np.float64), rotation_true
+        ),
+        "translation_deg": geometry.translation_error_degrees(
+            np.asarray(outputs["translation"], np.float64),
+            np.asarray(batch["translation"], np.float64),
+        ),
+        "identity_rotation_deg": geometry.rotation_angle_degrees(rotation_true),
+    }
+
+
+def diagnose_model(model, variables: dict, batches: Iterable[dict]) -> dict[str, np.ndarray]:
+    """Per-pair diagnosis of a self-supervised model (outputs 'depth', 'rotation',
+    'translation') over `batches` (the example contract, with 'example_mask').
+
+    Returns [N] arrays over the real pairs: 'abs_inv' and 's_rmse' as scored,
+    'abs_inv_median_scaled' and 's_rmse_median_scaled', and `pose_errors`' keys.
+    """
+    apply = jax.jit(lambda v, b: layers.apply_model(model, v, b, train=False))
+    rows: dict[str, list[np.ndarray]] = {}
+    for batch in batches:
+        inputs = {key: batch[key] for key in layers.input_keys(model)}
+        outputs = {
+            key: np.asarray(value)
+            for key, value in apply(variables, inputs).items()
+            if key in ("depth", "rotation", "translation")
+        }
+        missing = {"depth", "rotation", "translation"} - set(outputs)
+        if missing:
+            raise ValueError(f"the model does not predict {sorted(missing)}: not self-supervised")
+        mask = np.asarray(batch["example_mask"], bool)
+        truth = (jnp.asarray(batch["depth"]), jnp.asarray(batch["depth_valid"]))
+        for suffix, depth in (
+            ("", outputs["depth"]),
+            ("_median_scaled", median_scaled(outputs["depth"], batch)),
+        ):
+            scored = metrics.depth_metrics(jnp.asarray(depth), *truth)
+            for name in ("abs_inv", "s_rmse"):
+                rows.setdefault(name + suffix, []).append(np.asarray(scored[name])[mask])
+        for name, value in pose_errors(outputs, batch).items():
+            rows.setdefault(name, []).append(np.asarray(value)[mask])
+    return {name: np.concatenate(values) for name, values in rows.items()}
+
+
+def photometric_at_truth(batches: Iterable[dict]) -> dict[str, dict[str, float]]:
+    """The self-supervised loss's photometric term and auto-mask fraction at the true
+    depth and pose and at each spoiled truth of `SPOILED_TRUTH`, averaged over the real
+    pairs of `batches` (rows whose 'example_mask' is False are left out).
+
+    Pixels without a valid true depth take the pair's median true inverse depth.
+    """
+    sums: dict[str, np.ndarray] = {name: np.zeros(2) for name in SPOILED_TRUTH}
+    count = 0
+    loss = jax.jit(photometric.self_supervised_loss)
+    for batch in batches:
+        real = np.asarray(batch.get("example_mask", np.ones(len(batch["depth"]), bool)), bool)
+        if not real.any():
+            continue
+        batch = {key: np.asarray(value)[real] for key, value in batch.items() if key != "id"}
+        inv_truth, valid = _truth_inv_depth(batch)
+        median = _median_inv_depth(inv_truth, valid)
+        filled = np.where(valid, inv_truth, median)
+        images = {key: jnp.asarray(batch[key]) for key in photometric.BATCH_KEYS if key in batch}
+        for name, spoil in SPOILED_TRUTH.items():
+            inv_depth = np.broadcast_to(median, filled.shape) if spoil.get("flat") else filled
+            translation = np.asarray(batch["translation"]) * spoil.get("translation_factor", 1.0)
+            outputs = {
+                "inv_depth_scales": (jnp.asarray(inv_depth, jnp.float32),),
+                "rotation": jnp.asarray(batch["rotation"], jnp.float32),
+                "translation": jnp.asarray(translation, jnp.float32),
+            }
+            _, terms = loss(outputs, images)
+            terms = [float(terms["photometric"]), float(terms["auto_mask_fraction"])]
+            sums[name] += np.asarray(terms) * real.sum()
+        count += int(real.sum())
+    if not count:
+        raise ValueError("photometric_at_truth needs at least one real pair")
+    return {
+        name: {"photometric": total[0] / count, "auto_mask_fraction": total[1] / count}
+        for name, total in sums.items()
+    }
