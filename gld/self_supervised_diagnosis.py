@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import geometry, layers, metrics, photometric
+from gld import evaluation, geometry, layers, photometric
 
 # The photometric loss at the true depth and pose, and with one of them spoiled: the
 # translation is multiplied by the factor, or the depth replaced by its median.
@@ -84,8 +84,9 @@ def diagnose_model(model, variables: dict, batches: Iterable[dict]) -> dict[str,
     """Per-pair diagnosis of a self-supervised model (outputs 'depth', 'rotation',
     'translation') over `batches` (the example contract, with 'example_mask').
 
-    Returns [N] arrays over the real pairs: 'abs_inv' and 's_rmse' as scored,
-    'abs_inv_median_scaled' and 's_rmse_median_scaled', and `pose_errors`' keys.
+    Returns [N] arrays over the pairs the evaluation counts (real, with valid truth):
+    'abs_inv' and 's_rmse' as scored, 'abs_inv_median_scaled' and 's_rmse_median_scaled',
+    and `pose_errors`' keys.
     """
     apply = jax.jit(lambda v, b: layers.apply_model(model, v, b, train=False))
     rows: dict[str, list[np.ndarray]] = {}
@@ -99,13 +100,14 @@ def diagnose_model(model, variables: dict, batches: Iterable[dict]) -> dict[str,
         missing = {"depth", "rotation", "translation"} - set(outputs)
         if missing:
             raise ValueError(f"the model does not predict {sorted(missing)}: not self-supervised")
-        mask = np.asarray(batch["example_mask"], bool)
-        truth = (jnp.asarray(batch["depth"]), jnp.asarray(batch["depth_valid"]))
+        truth = {key: jnp.asarray(batch[key]) for key in ("depth", "depth_valid", "example_mask")}
         for suffix, depth in (
             ("", outputs["depth"]),
             ("_median_scaled", median_scaled(outputs["depth"], batch)),
         ):
-            scored = metrics.depth_metrics(jnp.asarray(depth), *truth)
+            # The evaluation's own scoring and its rule for the pairs that count.
+            scored = evaluation.score_batch(jnp.asarray(depth), truth)
+            mask = np.asarray(scored["example_mask"], bool)
             for name in ("abs_inv", "s_rmse"):
                 rows.setdefault(name + suffix, []).append(np.asarray(scored[name])[mask])
         for name, value in pose_errors(outputs, batch).items():
