@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import evaluation, geometry, layers, photometric
+from gld import evaluation, geometry, layers, metrics, photometric
+from gld.baselines import classical
 
 # The photometric loss at the true depth and pose, and with one of them spoiled: the
 # translation is multiplied by the factor, or the depth replaced by its median.
@@ -38,46 +39,43 @@ SPOILED_TRUTH: Mapping[str, dict] = {
 }
 
 
-def _median_inv_depth(inv_depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Per-example median of inverse depth [B, H, W] over valid pixels, [B, 1, 1]; 1 for
-    an example without one (no metric counts it)."""
-    masked = np.where(valid, inv_depth, np.nan)
-    counts = valid.reshape(len(valid), -1).sum(axis=1)
-    medians = np.ones(len(valid))
-    if counts.any():
-        medians[counts > 0] = np.nanmedian(masked[counts > 0], axis=(1, 2))
-    return medians[:, None, None]
-
-
-def _truth_inv_depth(batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _valid_truth(batch: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The pixels scored: valid in the batch and of finite positive true depth."""
     depth = np.asarray(batch["depth"], np.float64)
-    valid = np.asarray(batch["depth_valid"], bool) & (depth > 0) & np.isfinite(depth)
-    return np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0), valid
+    return geometry.valid_depth(depth) & np.asarray(batch["depth_valid"], bool)
+
+
+def _truth_median_inv_depth(batch: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Each pair's median true inverse depth, as a map [B, H, W] (the per-pair oracle
+    constant's prediction)."""
+    return classical.OraclePairMedian().predict(batch)["inv_depth"].astype(np.float64)
 
 
 def median_scaled(depth: np.ndarray, batch: Mapping[str, np.ndarray]) -> np.ndarray:
     """Predicted depth [B, H, W] rescaled per pair so that its median inverse depth over
     the valid truth pixels is the truth's: the prediction's shape at the truth's scale."""
     inv_depth = 1.0 / np.asarray(depth, np.float64)
-    inv_truth, valid = _truth_inv_depth(batch)
-    ratio = _median_inv_depth(inv_truth, valid) / _median_inv_depth(inv_depth, valid)
-    return (1.0 / (inv_depth * ratio)).astype(np.float32)
+    valid = _valid_truth(batch)
+    truth = _truth_median_inv_depth(batch)
+    scaled = inv_depth.copy()
+    for pair, (pair_inv_depth, pair_valid) in enumerate(zip(inv_depth, valid, strict=True)):
+        if pair_valid.any():  # a pair without a valid pixel counts in no metric
+            scaled[pair] *= truth[pair, 0, 0] / np.median(pair_inv_depth[pair_valid])
+    return (1.0 / scaled).astype(np.float32)
 
 
 def pose_errors(outputs: Mapping[str, np.ndarray], batch: Mapping[str, np.ndarray]) -> dict:
     """Per-pair pose errors in degrees, each [B]: 'rotation_deg' and 'translation_deg' of
-    the prediction, 'identity_rotation_deg' of predicting no rotation."""
+    the prediction (`metrics.pose_errors`), 'identity_rotation_deg' of predicting no
+    rotation."""
     rotation_true = np.asarray(batch["rotation"], np.float64)
-    return {
-        "rotation_deg": geometry.rotation_error_degrees(
-            np.asarray(outputs["rotation"], np.float64), rotation_true
-        ),
-        "translation_deg": geometry.translation_error_degrees(
-            np.asarray(outputs["translation"], np.float64),
-            np.asarray(batch["translation"], np.float64),
-        ),
-        "identity_rotation_deg": geometry.rotation_angle_degrees(rotation_true),
-    }
+    errors = metrics.pose_errors(
+        np.asarray(outputs["rotation"], np.float64),
+        np.asarray(outputs["translation"], np.float64),
+        rotation_true,
+        np.asarray(batch["translation"], np.float64),
+    )
+    return {**errors, "identity_rotation_deg": geometry.rotation_angle_degrees(rotation_true)}
 
 
 def diagnose_model(model, variables: dict, batches: Iterable[dict]) -> dict[str, np.ndarray]:
@@ -130,12 +128,12 @@ def photometric_at_truth(batches: Iterable[dict]) -> dict[str, dict[str, float]]
         if not real.any():
             continue
         batch = {key: np.asarray(value)[real] for key, value in batch.items() if key != "id"}
-        inv_truth, valid = _truth_inv_depth(batch)
-        median = _median_inv_depth(inv_truth, valid)
-        filled = np.where(valid, inv_truth, median)
+        valid = _valid_truth(batch)
+        median = _truth_median_inv_depth(batch)
+        filled = np.where(valid, 1.0 / np.where(valid, batch["depth"], 1.0), median)
         images = {key: jnp.asarray(batch[key]) for key in photometric.BATCH_KEYS if key in batch}
         for name, spoil in SPOILED_TRUTH.items():
-            inv_depth = np.broadcast_to(median, filled.shape) if spoil.get("flat") else filled
+            inv_depth = median if spoil.get("flat") else filled
             translation = np.asarray(batch["translation"]) * spoil.get("translation_factor", 1.0)
             outputs = {
                 "inv_depth_scales": (jnp.asarray(inv_depth, jnp.float32),),

@@ -48,7 +48,7 @@ def test_pose_errors_in_degrees():
 
 
 @pytest.fixture(scope="module")
-def test_batches(tiny_scenes):
+def tiny_test_batches(tiny_scenes):
     from gld import evaluation
 
     source = tiny_scenes.as_data_source("test")
@@ -65,27 +65,27 @@ def test_batches(tiny_scenes):
     )
 
 
-def test_the_photometric_loss_is_lowest_at_the_truth(test_batches):
-    at_truth = diagnosis.photometric_at_truth(test_batches)
+def test_the_photometric_loss_is_lowest_at_the_truth(tiny_test_batches):
+    at_truth = diagnosis.photometric_at_truth(tiny_test_batches)
     assert set(at_truth) == set(diagnosis.SPOILED_TRUTH)
     truth = at_truth[diagnosis.TRUTH]["photometric"]
     for name, terms in at_truth.items():
         if name != diagnosis.TRUTH:
             assert terms["photometric"] > truth, name
     # Padded rows are left out: the padded batches give the unpadded pairs' loss.
-    whole = [{k: v[b["example_mask"]] for k, v in b.items()} for b in test_batches]
+    whole = [{k: v[b["example_mask"]] for k, v in b.items()} for b in tiny_test_batches]
     again = diagnosis.photometric_at_truth(whole)
     assert again[diagnosis.TRUTH]["photometric"] == pytest.approx(truth, rel=1e-5)
 
 
-def test_diagnose_model_scores_as_the_evaluation_does(tiny_scenes, test_batches):
+def test_diagnose_model_scores_as_the_evaluation_does(tiny_scenes, tiny_test_batches):
     import jax
 
     from gld import evaluation, layers
 
     model = SelfSupervised(num_scales=1)
     variables = random_variables(model, 48, 64, seed=0)
-    per_pair = diagnosis.diagnose_model(model, variables, test_batches)
+    per_pair = diagnosis.diagnose_model(model, variables, tiny_test_batches)
     assert {len(v) for v in per_pair.values()} == {16}  # the real pairs only
     apply = jax.jit(lambda b: layers.apply_model(model, variables, b, train=False)["depth"])
 
