@@ -1,6 +1,7 @@
 r"""The paper's experimental section on the embedded benchmark, one command:
 
-    python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, ~10 h on 2 cores
+    python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, ~3 h on 2 cores
+    python -m experiments.paper --suite=cpu_full     # twice the budget, every run: ~10 h
     python -m experiments.paper --suite=paper        # gld_scenes/full, 256x192, 94K steps (GPU)
     python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
     python -m experiments.paper --suite=cpu --report_only
@@ -30,10 +31,13 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
+from gld import paper_suite
 
 FLAGS = flags.FLAGS
 
-flags.DEFINE_enum("suite", "cpu", ["cpu", "paper", "tiny"], "Which scale to run (gld.paper_suite).")
+flags.DEFINE_enum(
+    "suite", "cpu", list(paper_suite.SUITES), "Which scale to run (gld.paper_suite.SUITES)."
+)
 flags.DEFINE_string("workdir", None, "The training runs (default: runs/paper_<suite>).")
 flags.DEFINE_string(
     "report_dir", None, "Where the report goes (default: report/ for cpu, report/<suite>/ else)."
@@ -57,7 +61,7 @@ def main(argv):
     common.initialise()
     import jax
 
-    from gld import paper_report, paper_runner, paper_suite
+    from gld import paper_report, paper_runner
 
     scale = paper_suite.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")

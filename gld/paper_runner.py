@@ -345,14 +345,17 @@ class SuiteRunner:
                 60,
                 [f"train/{analyses.MAIN_RUN}", "pose_probe"],
             ),
-            (
-                "flow_finetuning",
-                functools.partial(analyses.flow_finetuning, self),
-                {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
-                60,
-                ["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
-            ),
         ]
+        if self.scale.further:
+            waiting.append(
+                (
+                    "flow_finetuning",
+                    functools.partial(analyses.flow_finetuning, self),
+                    {"runs": list(paper_suite.FLOW_EXPERIMENT[1:])},
+                    60,
+                    ["flow_net", *(f"train/{n}" for n in paper_suite.FLOW_EXPERIMENT[1:])],
+                )
+            )
 
         def add_ready():
             for analysis in list(waiting):
@@ -361,17 +364,17 @@ class SuiteRunner:
                     add(*analysis)
 
         names = list(self.runs)
-        remaining = names.index(FIRST_REMAINING_RUN)
+        remaining = names.index(FIRST_REMAINING_RUN) if self.scale.further else len(names)
         add_runs([self.runs[name] for name in names[:remaining]], add_ready)
-        # The paper's remaining comparisons.
-        flow_config = paper_suite.flow_net_config(self.scale, height=0, width=0)
-        add(
-            "flow_net",
-            functools.partial(analyses.flow_net, self),
-            {**dataclasses.asdict(flow_config), "dis_timed_pairs": analyses.DIS_TIMED_PAIRS},
-            self.scale.flow_net_steps * step_seconds("flow_net") + 60,
-        )
-        add_runs([self.runs[name] for name in names[remaining:]], add_ready)
+        if self.scale.further:  # the paper's remaining comparisons
+            flow_config = paper_suite.flow_net_config(self.scale, height=0, width=0)
+            add(
+                "flow_net",
+                functools.partial(analyses.flow_net, self),
+                {**dataclasses.asdict(flow_config), "dis_timed_pairs": analyses.DIS_TIMED_PAIRS},
+                self.scale.flow_net_steps * step_seconds("flow_net") + 60,
+            )
+            add_runs([self.runs[name] for name in names[remaining:]], add_ready)
         assert not waiting, f"analyses whose runs are not in the suite: {waiting}"
         return tasks
 

@@ -24,9 +24,11 @@ the image pair the main recipe leaves out, and the runs without a global module 
 without flow drop the epipolar term too (it needs g, and it reads the flow); the run
 "- epipolar term" measures what that alone costs.
 
-The paper's remaining comparisons close the suite: the self-supervised baseline
-(Struct2Depth, with and without flow; no depth labels) in the main table and its
-learning-rate check, and the flow experiment. That one trains the learned flow network
+A suite with the further runs (`Scale.further`; all but cpu) adds the control of one
+fixed pixel per image to the densities, and closes with the paper's remaining
+comparisons: the self-supervised baseline (Struct2Depth, with and without flow; no depth
+labels) in the main table and its learning-rate check, and the flow experiment. That
+one trains the learned flow network
 on the exact flow (`flow_net_config`), then the global-local model on its flow, the
 network fixed or fine-tuned with the sparse depth loss, and the network with a (32, 16,
 1) conv head trained by the sparse loss alone; beside them the same model on the stored
@@ -78,6 +80,8 @@ class Scale:
       large_densities: the supervision densities DispNet is trained at.
       global_local: extra options of every global-local run (e.g. a smaller encoder).
       figure_pairs: test pairs of the qualitative grid.
+      further: the runs beyond the paper's main experiments: the one-fixed-pixel control
+        of the densities, the self-supervised baseline and the flow experiment.
       hours: what the suite takes on the machine it was sized for, for the report.
     """
 
@@ -97,13 +101,28 @@ class Scale:
     large_densities: tuple[int, ...] = DENSITIES
     global_local: dict[str, Any] = dataclasses.field(default_factory=dict)
     figure_pairs: int = 4
+    further: bool = True
     hours: str = ""
 
 
 SUITES: dict[str, Scale] = {
-    # Sized for the 2-core CPU machine at 128x96 (step times: experiments.benchmark).
+    # The paper's main experiments in about 3 hours on the 2-core CPU machine at 128x96
+    # (step times: experiments.benchmark): half of cpu_full's budget, no further runs.
     "cpu": Scale(
         name="cpu",
+        dataset="gld_scenes/small",
+        varying_dataset="gld_scenes/small_varying",
+        steps=1000,
+        large_steps=100,
+        check_learning_rate=3e-4,
+        probe_steps=1000,
+        large_densities=(1, 0),
+        further=False,
+        hours="about 3 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
+    ),
+    # Every run at twice the cpu suite's budget, with the further runs: about 10 hours.
+    "cpu_full": Scale(
+        name="cpu_full",
         dataset="gld_scenes/small",
         varying_dataset="gld_scenes/small_varying",
         steps=2000,
@@ -289,7 +308,7 @@ def suite_runs(scale: Scale) -> list[Run]:
             )
     # One pixel per image that stays the same every epoch, as a robot's range sensor
     # gives it (the runs above draw a training image's pixels again each epoch).
-    runs += [
+    fixed_pixel = [
         _global_local(
             FIXED_PIXEL_RUNS["global_local"],
             "global-local, one fixed pixel",
@@ -304,6 +323,7 @@ def suite_runs(scale: Scale) -> list[Run]:
             rate_of="small_encdec_1px",
         ),
     ]
+    runs += fixed_pixel if scale.further else []
     runs += [
         _global_local(
             "global_local_gt_flow", "global-local, true flow", options={"flow_source": "gt"}
@@ -332,6 +352,8 @@ def suite_runs(scale: Scale) -> list[Run]:
         runs.append(
             Run("dispnet_varying", "dispnet", "DispNet", varying=True, rate_of="dispnet_1px")
         )
+    if not scale.further:
+        return runs
     # The paper's remaining comparisons: the self-supervised baseline, the flow experiment.
     self_supervised = [
         Run("struct2depth", "struct2depth", "Struct2Depth (self-supervised)"),

@@ -9,7 +9,7 @@ import pytest
 from gld import paper_report, paper_suite
 from gld.paper_suite import SUITES
 
-SCALE = SUITES["cpu"]
+SCALE = SUITES["cpu_full"]
 
 
 def _metrics(abs_inv, abs_rel=0.4, s_rmse=0.35):

@@ -9,17 +9,17 @@ from gld import paper_runner, paper_suite
 from gld.paper_suite import SUITES
 
 
-def _runner(tmp_path):
+def _runner(tmp_path, suite="cpu_full"):
     def no_data(dataset):
         raise AssertionError(f"{dataset} must not be loaded to list or select tasks")
 
-    return paper_runner.SuiteRunner(SUITES["cpu"], tmp_path, no_data, print_fn=lambda _: None)
+    return paper_runner.SuiteRunner(SUITES[suite], tmp_path, no_data, print_fn=lambda _: None)
 
 
 def test_selection_by_name_and_group(tmp_path):
     runner = _runner(tmp_path)
     names = [task.name for task in runner.tasks()]
-    runs = paper_suite.suite_runs(SUITES["cpu"])
+    runs = paper_suite.suite_runs(SUITES["cpu_full"])
     assert [n for n in names if n.startswith("train/")] == [f"train/{r.name}" for r in runs]
     # The main table's reference rows first: a minute each.
     assert names[:2] == ["classical/small", "classical/small_varying"]
@@ -51,6 +51,18 @@ def test_selection_by_name_and_group(tmp_path):
         runner.selected(["train/global"])
 
 
+def test_a_suite_without_the_further_runs_has_no_flow_network_task(tmp_path):
+    full = [task.name for task in _runner(tmp_path / "full").tasks()]
+    lean = [task.name for task in _runner(tmp_path / "lean", "cpu").tasks()]
+    runs = paper_suite.suite_runs(SUITES["cpu"])
+    assert [n for n in lean if n.startswith("train/")] == [f"train/{r.name}" for r in runs]
+    # The main experiments' tasks in the full suite's order; no flow network, no
+    # fine-tuning analysis; the suite ends with its last run.
+    assert lean == [n for n in full if n in lean]
+    assert "flow_net" not in lean and "flow_finetuning" not in lean
+    assert lean[-1] == "train/eigen_varying"
+
+
 def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
     runner = _runner(tmp_path)
     task = next(t for t in runner.tasks() if t.name == "filters")
@@ -71,7 +83,7 @@ def test_the_flow_networks_runs_depend_on_the_flow_network_not_its_path(tmp_path
         runner = paper_runner.SuiteRunner(scale, workdir, None, print_fn=lambda _: None)
         return {task.name: task for task in runner.tasks()}
 
-    before = tasks(SUITES["cpu"], tmp_path / "a")
+    before = tasks(SUITES["cpu_full"], tmp_path / "a")
     assert before["train/flow_net_finetuned"].needs == ("flow_net",)
     assert before["flow_finetuning"].needs == (
         "flow_net",
@@ -81,10 +93,10 @@ def test_the_flow_networks_runs_depend_on_the_flow_network_not_its_path(tmp_path
     )
     assert not before["train/flow_dis"].needs
     # Another suite directory: the same identities.
-    moved = tasks(SUITES["cpu"], tmp_path / "b")
+    moved = tasks(SUITES["cpu_full"], tmp_path / "b")
     assert {n: t.identity for n, t in moved.items()} == {n: t.identity for n, t in before.items()}
     # Another flow network: its depth runs and the analysis of them are redone.
-    after = tasks(dataclasses.replace(SUITES["cpu"], flow_net_steps=4000), tmp_path / "a")
+    after = tasks(dataclasses.replace(SUITES["cpu_full"], flow_net_steps=4000), tmp_path / "a")
     changed = {n for n in before if before[n].identity != after[n].identity}
     assert changed == {
         "flow_net",
@@ -116,8 +128,8 @@ def test_an_analysis_is_redone_when_a_run_it_reads_changes(tmp_path):
         runner = paper_runner.SuiteRunner(scale, tmp_path, None, print_fn=lambda _: None)
         return {task.name: task.identity for task in runner.tasks()}
 
-    before = identities(SUITES["cpu"])
-    after = identities(dataclasses.replace(SUITES["cpu"], learning_rate=5e-4))
+    before = identities(SUITES["cpu_full"])
+    after = identities(dataclasses.replace(SUITES["cpu_full"], learning_rate=5e-4))
     assert before["train/global_local_1px"]["learning_rate"] == 1e-3
     for name in ("train/global_local_1px", "pose_probe", "flow_error", "filters", "qualitative"):
         assert before[name] != after[name], name
@@ -191,5 +203,5 @@ def test_a_run_at_its_models_compared_rate_waits_for_the_check(tmp_path):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"curves": {"train": [[10, loss]] * 8}}))
     task = {t.name: t for t in runner.tasks()}[name]
-    assert task.identity["learning_rate"] == SUITES["cpu"].check_learning_rate
+    assert task.identity["learning_rate"] == SUITES["cpu_full"].check_learning_rate
     assert task.identity["gt_pixels"] == 0

@@ -47,7 +47,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert main.model_config == {"encoder_norm": "instance", "use_image_pair": False}
     assert main.epipolar_weight == 0.1 and main.gt_pixels == 1 and main.flow_source == "estimated"
     # The over-fitting figure needs the main run's test curve.
-    assert main.eval_every == 2000 // scale.curve_evaluations
+    assert main.eval_every == scale.steps // scale.curve_evaluations
 
     def differences(name):
         config = configs[name]
@@ -102,7 +102,7 @@ def test_densities_and_the_large_models_budget():
 
 
 def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
-    scale = SUITES["cpu"]
+    scale = SUITES["cpu_full"]
     runs = {run.name: run for run in paper_suite.suite_runs(scale)}
 
     def config(name):
@@ -128,9 +128,38 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     assert head.model == "flow_net_head"
     for run in (dis, fixed, finetuned, head):
         assert run.epipolar_weight == 0 and run.learning_rate == scale.check_learning_rate
-        assert (run.steps, run.gt_pixels, run.dataset) == (2000, 1, scale.dataset)
+        assert (run.steps, run.gt_pixels, run.dataset) == (scale.steps, 1, scale.dataset)
     flow = paper_suite.flow_net_config(scale, height=96, width=128)
     assert (flow.steps, flow.batch_size, flow.warmup_steps) == (5000, 8, 100)
+
+
+def test_the_cpu_suite_is_the_full_ones_main_experiments_at_half_the_budget():
+    """The 3-hour suite trains the runs of the paper's main experiments that cpu_full
+    trains, in the same order and with the same options but the budget; the further runs
+    (one fixed pixel, the self-supervised baseline, the flow experiment) only cpu_full."""
+    cpu, full = SUITES["cpu"], SUITES["cpu_full"]
+    assert not cpu.further and full.further
+    assert (cpu.steps, cpu.probe_steps) == (full.steps // 2, full.probe_steps // 2)
+    assert cpu.large_steps < full.large_steps
+    cpu_runs = paper_suite.suite_runs(cpu)
+    full_runs = {run.name: run for run in paper_suite.suite_runs(full)}
+    further = {
+        *paper_suite.FIXED_PIXEL_RUNS.values(),
+        *paper_suite.FLOW_EXPERIMENT,
+        "struct2depth",
+        "struct2depth_flow",
+        "struct2depth_low_lr",
+        "struct2depth_flow_low_lr",
+    }
+    assert [run.name for run in cpu_runs] == [n for n in full_runs if n not in further]
+    for run in cpu_runs:
+        assert run == full_runs[run.name]
+        short, long = (
+            paper_suite.run_config(scale, run, height=96, width=128) for scale in (cpu, full)
+        )
+        differs = {k for k, v in dataclasses.asdict(short).items() if getattr(long, k) != v}
+        budget = {"steps", "warmup_steps", "eval_every", "log_every", "checkpoint_every"}
+        assert differs <= budget, run.name
 
 
 def test_learned_models_differ_only_where_the_suite_says():
@@ -152,9 +181,9 @@ def test_learned_models_differ_only_where_the_suite_says():
         assert differing == {"model", "model_config", "epipolar_weight"}, name
     # The learning-rate check: the main table's models again, at the second rate only.
     assert {n for n in runs if n.endswith("_low_lr")} == {
-        paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED
+        paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED if n in runs
     }
-    for name in paper_suite.RATE_CHECKED:
+    for name in set(paper_suite.RATE_CHECKED) & set(runs):
         low = config(paper_suite.low_rate_name(name))
         assert {k for k, v in low.items() if config(name)[k] != v} == {"learning_rate"}
         assert low["learning_rate"] == scale.check_learning_rate < scale.learning_rate
@@ -208,10 +237,11 @@ def test_density_and_varying_runs_train_at_their_models_compared_rate():
 
 @pytest.mark.parametrize("model", sorted(paper_suite.FIXED_PIXEL_RUNS))
 def test_the_fixed_pixel_runs_keep_one_pixel_and_the_compared_rate(model):
-    runs = {run.name: run for run in paper_suite.suite_runs(SUITES["cpu"])}
+    scale = SUITES["cpu_full"]
+    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
     fixed = runs[paper_suite.FIXED_PIXEL_RUNS[model]]
-    config = paper_suite.run_config(SUITES["cpu"], fixed, height=96, width=128)
-    redrawn = paper_suite.run_config(SUITES["cpu"], runs[f"{model}_1px"], height=96, width=128)
+    config = paper_suite.run_config(scale, fixed, height=96, width=128)
+    redrawn = paper_suite.run_config(scale, runs[f"{model}_1px"], height=96, width=128)
     assert (config.gt_pixels, config.fixed_sparse_pixels) == (1, True)
     assert not redrawn.fixed_sparse_pixels
     assert fixed.model == model and fixed.rate_of == f"{model}_1px"
