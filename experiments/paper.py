@@ -1,7 +1,7 @@
 r"""The paper's experimental section on the embedded benchmark, one command:
 
     python -m experiments.paper --suite=cpu          # gld_scenes/small, 128x96, ~3 h on 2 cores
-    python -m experiments.paper --suite=cpu_full     # twice the budget, every run: ~10 h
+    python -m experiments.paper --suite=cpu_full     # twice the budget, every run: ~11 h
     python -m experiments.paper --suite=paper        # gld_scenes/full, 256x192, 94K steps (GPU)
     python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
     python -m experiments.paper --suite=cpu --report_only

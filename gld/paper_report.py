@@ -136,6 +136,8 @@ class Report:
         self.results = results
         self.results_dir = Path(results_dir)
         self.runs = {run.name: run for run in paper_suite.suite_runs(scale)}
+        # The main table's models of this suite that the learning-rate check trains twice.
+        self.checked = [n for n in paper_suite.RATE_CHECKED if n in self.runs]
         # (key, name, holds, numbers) of each target, in the report's order.
         self.targets: list[tuple[str, str, bool | None, str]] = []
 
@@ -187,23 +189,27 @@ class Report:
     # -- sections ---------------------------------------------------------------------
 
     def main_table(self) -> str:
-        rows = [(n, self.run(n), PAPER_MAIN[n]) for n in PAPER_MAIN]
+        rows = [(n, self.run(n), PAPER_MAIN[n]) for n in PAPER_MAIN if n in self.runs]
         if self.scale.check_learning_rate is not None:
-            low = [paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED]
+            low = [paper_suite.low_rate_name(n) for n in self.checked]
             rows += [(n, self.run(n), None) for n in low]
         rows += [(n, self.classical(n), None) for n in paper_analyses.CLASSICAL]
         text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows)
         text += (
-            "\nThe self-supervised baseline (Struct2Depth / monodepth2 family, "
-            "`gld.baselines.self_supervised`) learns depth and pose from the image pair "
-            "alone with a photometric reprojection loss (SSIM + L1, per-pixel minimum, "
-            "auto-masking, edge-aware smoothness); no depth label. Its depth is scored in "
-            "units of its pose network's translation (||t|| = 1, the paper's "
-            "normalisation). Struct2Depth's object-motion model is left out: the scenes "
-            "are static.\n\n"
+            "\n"
+            if not any(n in self.runs for n in SELF_SUPERVISED)
+            else (
+                "\nThe self-supervised baseline (Struct2Depth / monodepth2 family, "
+                "`gld.baselines.self_supervised`) learns depth and pose from the image pair "
+                "alone with a photometric reprojection loss (SSIM + L1, per-pixel minimum, "
+                "auto-masking, edge-aware smoothness); no depth label. Its depth is scored in "
+                "units of its pose network's translation (||t|| = 1, the paper's "
+                "normalisation). Struct2Depth's object-motion model is left out: the scenes "
+                "are static.\n\n"
+            )
         )
         text += self.rate_check()
-        compared = {n: self.compared_run(n) for n in paper_suite.RATE_CHECKED}
+        compared = {n: self.compared_run(n) for n in self.checked}
         ours = _metric(self.run(compared["global_local_1px"] or ""))
         gaps, short = {}, {}
         for name in SUPERVISED_BASELINES:
@@ -264,7 +270,7 @@ class Report:
             f"peak rate {rate:g}: test Abs-Inv / training loss" for rate in rates
         )
         text += " | compared at |\n|---|---|---|---|\n"
-        for name in paper_suite.RATE_CHECKED:
+        for name in self.checked:
             cells = []
             for run_name in (name, paper_suite.low_rate_name(name)):
                 result = self.run(run_name)
@@ -293,7 +299,10 @@ class Report:
         )
 
     def learned_flow(self, figure_dir: Path) -> str:
-        """The learned flow network against DIS: end-point error and speed."""
+        """The learned flow network against DIS: end-point error and speed ("" in a suite
+        without the further runs)."""
+        if not self.scale.further:
+            return ""
         text = "## 10. Learned optical flow\n\n"
         result = self.results.get("flow_net")
         holds, detail = None, "—"
@@ -348,7 +357,10 @@ class Report:
         )
 
     def flow_finetuning(self) -> str:
-        """The paper's table "Fine-tuning Optical Flow"."""
+        """The paper's table "Fine-tuning Optical Flow" ("" in a suite without the further
+        runs)."""
+        if not self.scale.further:
+            return ""
         text = "## 11. Fine-tuning optical flow\n\n"
         reference = self.mean_reference()
         epe = (self.results.get("flow_finetuning") or {}).get("epe", {})
@@ -546,7 +558,7 @@ class Report:
         name = f"{model}_{paper_suite.density_name(density)}"
         if name not in self.runs:
             return None
-        if name in paper_suite.RATE_CHECKED:
+        if name in self.checked:
             return self.compared_run(name) or name
         return name
 
@@ -775,7 +787,7 @@ class Report:
         text = "## 8. Loss on training points against held-out pixels\n\n"
         # The main-table runs evaluated over training (`Run.curve`), each at the rate its
         # comparisons use once its learning-rate check is done.
-        drawn = [n for n, run in self.runs.items() if run.curve and n in paper_suite.RATE_CHECKED]
+        drawn = [n for n, run in self.runs.items() if run.curve and n in self.checked]
         used = [self.compared_run(n) or n for n in drawn]
         curves = {name: self.run(name)["curves"] for name in used if self.run(name) is not None}
         if not curves:
@@ -890,8 +902,12 @@ def write_report(
         count,
         extra=(
             f"batch {scale.batch_size}, Adam at peak rate {scale.learning_rate:g}, warm-up "
-            "then cosine decay, seed 0; self-supervised depth in units of its pose "
-            "network's translation (||t|| = 1)"
+            "then cosine decay, seed 0"
+            + (
+                "; self-supervised depth in units of its pose network's translation (||t|| = 1)"
+                if scale.further
+                else ""
+            )
         ),
     )
     sections = [
@@ -914,11 +930,21 @@ def write_report(
         else (
             f"{scale.steps:,} steps for every learned model but DispNet and FCRN, which get "
             f"{scale.large_steps:,} (at 5-6 s a step on this suite's machine, the full budget "
-            "would take about 3 hours each; their rows are reported, not counted in the "
-            "main table's verdict)"
+            f"would take about {scale.steps * 5.5 / 3600:.1f} hours each; their rows are "
+            "reported, not counted in the main table's verdict)"
         )
     )
     commits = sorted({r.get("commit") for r in results.values() if r.get("commit")})
+    # What the finished tasks took here: each one's wall time, or a resumed run's
+    # training over all its launches (from its log) where that is longer.
+    took = sum(max(r.get("seconds") or 0, r.get("train_seconds") or 0) for r in results.values())
+    further = (
+        ""
+        if scale.further
+        else " This suite leaves out the further runs (one fixed pixel per image, the "
+        "self-supervised baseline, the learned flow network and its fine-tuning): "
+        "`--suite=cpu_full` makes them, at twice this budget."
+    )
     try:
         where = (
             f"`{Path(results_dir).resolve().relative_to(report_dir.resolve())}/` beside this file"
@@ -930,7 +956,9 @@ def write_report(
         f"Made by `{command or 'python -m experiments.paper --suite=' + scale.name}`"
         f"{f' at commit {commit}' if commit else ''}; {finished} of {len(report.runs)} "
         f"training runs finished (results made at commit{'s' if len(commits) > 1 else ''} "
-        f"{', '.join(commits) or '—'}). The suite takes {scale.hours}. Each task's result "
+        f"{', '.join(commits) or '—'}). The suite takes {scale.hours}; its "
+        f"{len(results)} finished tasks took {took / 3600:.1f} hours here.{further} Each "
+        "task's result "
         f"is in {where}: `--report_only` rewrites this report from them, and the suite "
         "run beside them continues where they stop (an analysis whose run has a result but "
         "no checkpoint there retrains it with the same seed and notes it if it does not "

@@ -21,15 +21,18 @@ def _metrics(abs_inv, abs_rel=0.4, s_rmse=0.35):
 
 
 def _results(
-    abs_inv: dict[str, float], train_loss: dict[str, float] | None = None, **extra
+    abs_inv: dict[str, float],
+    train_loss: dict[str, float] | None = None,
+    scale: paper_suite.Scale = SCALE,
+    **extra,
 ) -> dict[str, dict]:
     """Results of the runs named in `abs_inv` (and the classical references). A run's
     training loss ends at `train_loss[name]` (0.04; 0.05 at the learning-rate check's
     rate); a loss of 1 or more comes with a zero gradient (a collapsed run)."""
-    runs = {run.name: run for run in paper_suite.suite_runs(SCALE)}
+    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
     results = {}
     for name, value in abs_inv.items():
-        config = paper_suite.run_config(SCALE, runs[name], height=96, width=128)
+        config = paper_suite.run_config(scale, runs[name], height=96, width=128)
         loss = (train_loss or {}).get(name, 0.05 if name.endswith("_low_lr") else 0.04)
         zero = 0.0 if loss >= 1 else 0.4
         results[f"train/{name}"] = {
@@ -122,6 +125,32 @@ def test_main_table_target_needs_every_baseline_15_percent_worse(
         readme
     )
     assert "| DispNet (150 steps) | 0.0310 ± 0.0103 |" in readme
+
+
+def test_a_suite_without_the_further_runs_reports_the_main_experiments(tmp_path):
+    scale = SUITES["cpu"]
+    runs = [run.name for run in paper_suite.suite_runs(scale)]
+    values = {n: 0.03 if n.startswith("global_local") else 0.04 for n in runs}
+    values.update({n: 0.05 for n in runs if n.endswith("_low_lr")})
+    results = _results(values, scale=scale)
+    path = paper_report.write_report(scale, results, tmp_path / "results", tmp_path / "report")
+    readme = path.read_text()
+    verdicts = _verdicts(readme)
+    # No row, section or target of the further runs; the header says where they are.
+    assert set(verdicts) == {MAIN, ABLATIONS, DENSITY, VARYING, POSE}
+    assert verdicts[MAIN] == "**holds**"  # 1 - 0.03 / 0.04 = 25% below each baseline
+    body = readme.split("## Targets")[1]
+    for absent in ("Struct2Depth", "self-supervised", "## 10.", "## 11.", "one fixed pixel"):
+        assert absent not in body, absent
+    assert "`--suite=cpu_full` makes them" in readme
+    assert f"{len(runs)} of {len(runs)} training runs finished" in readme
+    # The learning-rate check: each of the five main-table models at both rates.
+    check = readme.split("### Learning-rate check")[1].split("\n\n")[1]
+    assert len(check.splitlines()) == 2 + 5
+    # What the tasks took: each run's 60 s of training; the references record none.
+    hours = 60 * len(runs) / 3600
+    assert f"its {len(results)} finished tasks took {hours:.1f} hours here" in readme
+    assert f"{scale.steps:,} steps for every learned model but DispNet and FCRN" in readme
 
 
 def test_targets_not_measured_until_their_runs_finish(tmp_path):
