@@ -1,7 +1,7 @@
 r"""Where a self-supervised run's depth error comes from: scale, shape or pose.
 
     python -m experiments.diagnose_self_supervised \
-        --workdirs=runs/paper_cpu/runs/struct2depth_low_lr[,...] [--split=test]
+        --workdirs=runs/paper_cpu_full/runs/struct2depth_low_lr[,...] [--split=test]
 
 Prints, per workdir, on the split's pairs (`gld.self_supervised_diagnosis`): Abs-Inv and
 S-RMSE as scored (units of the predicted translation) and with each pair's scale from the
