@@ -195,11 +195,10 @@ class Report:
             rows += [(n, self.run(n), None) for n in low]
         rows += [(n, self.classical(n), None) for n in paper_analyses.CLASSICAL]
         text = "## 1. Main table: one supervised pixel per image\n\n" + self._table(rows)
-        text += (
-            "\n"
-            if not any(n in self.runs for n in SELF_SUPERVISED)
-            else (
-                "\nThe self-supervised baseline (Struct2Depth / monodepth2 family, "
+        text += "\n"
+        if any(n in self.runs for n in SELF_SUPERVISED):
+            text += (
+                "The self-supervised baseline (Struct2Depth / monodepth2 family, "
                 "`gld.baselines.self_supervised`) learns depth and pose from the image pair "
                 "alone with a photometric reprojection loss (SSIM + L1, per-pixel minimum, "
                 "auto-masking, edge-aware smoothness); no depth label. Its depth is scored in "
@@ -207,7 +206,6 @@ class Report:
                 "normalisation). Struct2Depth's object-motion model is left out: the scenes "
                 "are static.\n\n"
             )
-        )
         text += self.rate_check()
         compared = {n: self.compared_run(n) for n in self.checked}
         ours = _metric(self.run(compared["global_local_1px"] or ""))
@@ -942,8 +940,8 @@ def write_report(
         ""
         if scale.further
         else " This suite leaves out the further runs (one fixed pixel per image, the "
-        "self-supervised baseline, the learned flow network and its fine-tuning): "
-        "`--suite=cpu_full` makes them, at twice this budget."
+        "self-supervised baseline, the learned flow network and its fine-tuning); the "
+        "suites with them (`--suite=cpu_full`, `paper`) report those too."
     )
     try:
         where = (

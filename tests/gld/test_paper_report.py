@@ -142,7 +142,7 @@ def test_a_suite_without_the_further_runs_reports_the_main_experiments(tmp_path)
     body = readme.split("## Targets")[1]
     for absent in ("Struct2Depth", "self-supervised", "## 10.", "## 11.", "one fixed pixel"):
         assert absent not in body, absent
-    assert "`--suite=cpu_full` makes them" in readme
+    assert "the suites with them (`--suite=cpu_full`, `paper`) report those too" in readme
     assert f"{len(runs)} of {len(runs)} training runs finished" in readme
     # The learning-rate check: each of the five main-table models at both rates.
     check = readme.split("### Learning-rate check")[1].split("\n\n")[1]
