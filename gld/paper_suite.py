@@ -415,7 +415,7 @@ def training_loss(result: dict) -> float | None:
 
 
 # A logged gradient norm below this fraction of the run's largest one has vanished. On
-# the cpu suite the learning runs keep a quarter of their records above 1e-2 of their
+# the cpu_full suite the learning runs keep a quarter of their records above 1e-2 of their
 # largest norm (FCRN the lowest, at 1e-2); a self-supervised run with every pixel out of
 # view sits at 3e-4 to 5e-4 of it, with a rare record of 5e-2 when a batch lands a
 # pixel back in view, and a saturated output at 0.
