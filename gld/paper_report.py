@@ -804,11 +804,13 @@ class Report:
                     "—" if test is None else f"{test:.4f}",
                 ]
             )
+        pairs = self.scale.curve_examples
         return text + (
             "\nSolid: the L1 inverse-depth loss on the supervised pixels of the training "
             "batches (logged during training; the last five records averaged in the table); "
-            "dashed: Abs-Inv over every pixel of the test pairs (the same quantity on "
-            "held-out pixels), evaluated during training.\n\n"
+            "dashed: Abs-Inv over every pixel of the "
+            + (f"first {pairs} test pairs" if pairs else "test pairs")
+            + " (the same quantity on held-out pixels), evaluated during training.\n\n"
         )
 
     def qualitative(self, figure_dir: Path) -> str:

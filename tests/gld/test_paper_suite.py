@@ -29,6 +29,9 @@ def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
             0,
         )
         assert config.warmup_steps == max(1, round(config.steps * scale.warmup_fraction))
+        # Only the runs of the over-fitting figure are evaluated during training.
+        assert config.eval_examples == (scale.curve_examples if run.curve else 0)
+        assert bool(config.eval_every) == run.curve
         assert config.dataset == (scale.varying_dataset if run.varying else scale.dataset)
         if run.model != "global_local":
             assert config.epipolar_weight == 0
@@ -159,6 +162,7 @@ def test_the_cpu_suite_is_the_full_ones_main_experiments_at_half_the_budget():
         )
         differs = {k for k, v in dataclasses.asdict(short).items() if getattr(long, k) != v}
         budget = {"steps", "warmup_steps", "eval_every", "log_every", "checkpoint_every"}
+        budget |= {"eval_examples"} if run.curve else set()  # its curve's test pairs
         assert differs <= budget, run.name
 
 
