@@ -428,16 +428,19 @@ VANISHED_GRADIENT = 1e-3
 def collapse(result: dict) -> tuple[int, int, int] | None:
     """(first step, count, logged steps) of the vanished gradients of a run that
     collapsed: its gradient norm is below `VANISHED_GRADIENT` of its largest logged one
-    at a quarter or more of its logged steps (a saturated output no longer learns). None
+    at a quarter or more of its logged steps (a saturated output no longer learns). The
+    first step is the first vanished one after the largest norm (an early step of a run
+    whose gradient later spiked is small against the spike, not vanished). None
     otherwise, or without a logged gradient."""
     norms = result["curves"].get("grad_norm", [])
     if not norms:
         return None
-    largest = max(norm for _, norm in norms)
+    peak, largest = max(norms, key=lambda record: record[1])
     vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * largest]
     if 4 * len(vanished) < len(norms):
         return None
-    return int(vanished[0]), len(vanished), len(norms)
+    after = [step for step in vanished if step > peak]
+    return int((after or vanished)[0]), len(vanished), len(norms)
 
 
 def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None]) -> str | None:

@@ -275,6 +275,10 @@ def test_a_gradient_that_vanishes_against_its_own_scale_is_a_collapse():
     # Out of view with a rare batch back in view: the gradient flickers up, still collapsed.
     flickering = _result([0.14] * 8, [1e-2, 2.6e-2, 4e-3, 1.5e-5, 1.5e-3, 2e-5, 1.3e-5, 1.2e-5])
     assert paper_suite.collapse(flickering) == (200, 4, 8)
+    # A gradient that spikes, then vanishes: it collapsed after the spike, not at the
+    # first step, which is small against the spike but learning.
+    spiked = _result([0.14] * 8, [0.2, 0.3, 300.0, 5.0, 1e-4, 1e-4, 1e-4, 1e-4])
+    assert paper_suite.collapse(spiked) == (250, 6, 8)
     # 2e-3 of the largest norm at the end is not yet vanished.
     slow = _result([0.14] * 8, [1.0, 0.5, 0.1, 0.05, 2e-3, 2e-3, 2e-3, 2e-3])
     assert paper_suite.collapse(slow) is None
