@@ -429,18 +429,23 @@ def collapse(result: dict) -> tuple[int, int, int] | None:
     """(first step, count, logged steps) of the vanished gradients of a run that
     collapsed: its gradient norm is below `VANISHED_GRADIENT` of its largest logged one
     at a quarter or more of its logged steps (a saturated output no longer learns). The
-    first step is the first vanished one after the largest norm (an early step of a run
-    whose gradient later spiked is small against the spike, not vanished). None
-    otherwise, or without a logged gradient."""
+    first step is the first whose norm has vanished against the largest one logged up to
+    it (an early step of a run whose gradient spiked later is small against the spike,
+    not vanished). None otherwise, or without a logged gradient."""
     norms = result["curves"].get("grad_norm", [])
     if not norms:
         return None
-    peak, largest = max(norms, key=lambda record: record[1])
+    largest = max(norm for _, norm in norms)
     vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * largest]
     if 4 * len(vanished) < len(norms):
         return None
-    after = [step for step in vanished if step > peak]
-    return int((after or vanished)[0]), len(vanished), len(norms)
+    so_far = np.maximum.accumulate([norm for _, norm in norms])
+    first = next(
+        step
+        for (step, norm), top in zip(norms, so_far, strict=True)
+        if norm <= VANISHED_GRADIENT * top
+    )
+    return int(first), len(vanished), len(norms)
 
 
 def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None]) -> str | None:

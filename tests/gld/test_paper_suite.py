@@ -279,6 +279,9 @@ def test_a_gradient_that_vanishes_against_its_own_scale_is_a_collapse():
     # first step, which is small against the spike but learning.
     spiked = _result([0.14] * 8, [0.2, 0.3, 300.0, 5.0, 1e-4, 1e-4, 1e-4, 1e-4])
     assert paper_suite.collapse(spiked) == (250, 6, 8)
+    # Vanished, then one batch spikes it: the collapse began before the spike.
+    relapsed = _result([0.14] * 8, [0.5, 0.4, 0.0, 0.0, 4.7, 0.0, 0.0, 0.0])
+    assert paper_suite.collapse(relapsed) == (150, 5, 8)
     # 2e-3 of the largest norm at the end is not yet vanished.
     slow = _result([0.14] * 8, [1.0, 0.5, 0.1, 0.05, 2e-3, 2e-3, 2e-3, 2e-3])
     assert paper_suite.collapse(slow) is None
