@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from gld import metrics, paper_analyses, paper_suite, reports
+from gld import metrics, paper_analyses, paper_runner, paper_suite, reports
 from gld import workdir as workdir_lib
 from gld.paper_suite import Scale
 
@@ -924,13 +924,15 @@ def write_report(
         report.flow_finetuning(),
     ]
     finished = sum(1 for k in results if k.startswith("train/"))
+    # A large baseline at the suite's budget, from the runner's step times.
+    full_budget = scale.steps * max(map(paper_runner.step_seconds, paper_suite.LARGE_MODELS))
     budget = (
         f"{scale.steps:,} steps for every learned model"
         if scale.large_steps == scale.steps
         else (
             f"{scale.steps:,} steps for every learned model but DispNet and FCRN, which get "
             f"{scale.large_steps:,} (at 5-6 s a step on this suite's machine, the full budget "
-            f"would take about {scale.steps * 5.5 / 3600:.1f} hours each; their rows are "
+            f"would take up to {full_budget / 3600:.1f} hours each; their rows are "
             "reported, not counted in the main table's verdict)"
         )
     )

@@ -28,13 +28,13 @@ A suite with the further runs (`Scale.further`; all but cpu) adds the control of
 fixed pixel per image to the densities, and closes with the paper's remaining
 comparisons: the self-supervised baseline (Struct2Depth, with and without flow; no depth
 labels) in the main table and its learning-rate check, and the flow experiment. That
-one trains the learned flow network
-on the exact flow (`flow_net_config`), then the global-local model on its flow, the
-network fixed or fine-tuned with the sparse depth loss, and the network with a (32, 16,
-1) conv head trained by the sparse loss alone; beside them the same model on the stored
-DIS flow. Every run of the flow experiment trains at the lower rate of the learning-rate
-check (fine-tuning the flow network at the CPU suite's 1e-3 collapsed) and without the
-epipolar term (it reads the stored flow).
+one trains the learned flow network on the exact flow (`flow_net_config`), then the
+global-local model on its flow, the network fixed or fine-tuned with the sparse depth
+loss, and the network with a (32, 16, 1) conv head trained by the sparse loss alone;
+beside them the same model on the stored DIS flow. Every run of the flow experiment
+trains at the lower rate of the learning-rate check (fine-tuning the flow network at
+the CPU suite's 1e-3 collapsed) and without the epipolar term (it reads the stored
+flow).
 
 `run_config` turns a run into its `gld.config.TrainConfig`; `gld.paper_runner` trains,
 reuses and scores them.
