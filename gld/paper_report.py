@@ -924,15 +924,16 @@ def write_report(
         report.flow_finetuning(),
     ]
     finished = sum(1 for k in results if k.startswith("train/"))
-    # A large baseline at the suite's budget, from the runner's step times.
-    full_budget = scale.steps * max(map(paper_runner.step_seconds, paper_suite.LARGE_MODELS))
+    # A large baseline's step and the suite's whole budget of it, from the runner's times.
+    large_step = [paper_runner.step_seconds(model) for model in paper_suite.LARGE_MODELS]
     budget = (
         f"{scale.steps:,} steps for every learned model"
         if scale.large_steps == scale.steps
         else (
             f"{scale.steps:,} steps for every learned model but DispNet and FCRN, which get "
-            f"{scale.large_steps:,} (at 5-6 s a step on this suite's machine, the full budget "
-            f"would take up to {full_budget / 3600:.1f} hours each; their rows are "
+            f"{scale.large_steps:,} (at {min(large_step):.0f}-{max(large_step):.0f} s a step on "
+            f"this suite's machine, the full budget would take up to "
+            f"{scale.steps * max(large_step) / 3600:.1f} hours each; their rows are "
             "reported, not counted in the main table's verdict)"
         )
     )

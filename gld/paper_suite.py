@@ -435,11 +435,10 @@ def collapse(result: dict) -> tuple[int, int, int] | None:
     norms = result["curves"].get("grad_norm", [])
     if not norms:
         return None
-    largest = max(norm for _, norm in norms)
-    vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * largest]
+    so_far = np.maximum.accumulate([norm for _, norm in norms])
+    vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * so_far[-1]]
     if 4 * len(vanished) < len(norms):
         return None
-    so_far = np.maximum.accumulate([norm for _, norm in norms])
     first = next(
         step
         for (step, norm), top in zip(norms, so_far, strict=True)
