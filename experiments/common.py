@@ -235,11 +235,21 @@ def initialise() -> None:
         watchdog.cancel()
 
 
-def prepare_dataset(dataset: str | None = None):
-    """Builds the dataset on first use and returns its TFDS builder."""
+def prepare_dataset(dataset: str | None = None, parallel: bool = True):
+    """Builds the dataset on first use and returns its TFDS builder.
+
+    With `parallel`, a rendered dataset is built by one process per core (up to 8; its
+    records do not depend on the number, `data.gld_scenes`). The processes are forked: a
+    caller that may already have run JAX or OpenCV's thread pool passes parallel=False."""
+    import os
+
     import data
 
-    return data.prepare(dataset or FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir)
+    dataset = dataset or FLAGS.dataset
+    options = {}
+    if parallel and data.parse_name(dataset)[0] == "gld_scenes":
+        options["workers"] = max(1, min(len(os.sched_getaffinity(0)), 8))
+    return data.prepare(dataset, FLAGS.data_dir, FLAGS.manual_dir, **options)
 
 
 def dataset_resolution(builder) -> tuple[int, int]:

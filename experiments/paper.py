@@ -70,7 +70,8 @@ def main(argv):
     )
 
     def data(dataset: str) -> paper_runner.Data:
-        builder = common.prepare_dataset(dataset)
+        # Built between runs, after JAX has started: in this process.
+        builder = common.prepare_dataset(dataset, parallel=False)
         height, width = common.dataset_resolution(builder)
         return paper_runner.Data(
             name=builder.info.full_name,

@@ -14,12 +14,21 @@ processes: `data.prepare("gld_scenes/full", data_dir, workers=8)`. Example i of 
 split is rendered from a generator seeded by (config seed, split, i), so the
 records are identical across builds and independent of the number of workers.
 
+Version 2.0.0 puts band-limited detail on every surface (`raycast.SurfaceDetail`), so
+that the estimated flow is right on the large plain, gradient and striped surfaces where
+it used to be wrong; geometry, poses, depth and true flow are those of 1.0.0. The
+`*_untextured` configs keep 1.0.0's look (the surfaces' textures alone), for analyses of
+depth where the flow is wrong.
+
 The dataset card (`metadata.json`) records, per split, the estimated flow's end-point
-error and the benchmark's signal (`signal_<split>`, see `signal_statistics`): how far
-pixels move, how much of that motion is parallax (the part that carries depth), and
-how well triangulation with the true pose recovers depth (and each pair's depth scale)
-from the estimated and from the true flow, and the per-pair oracle constant's error; and
-what produced the stored flow (`flow_estimator_source`).
+error, overall and by the texture kind of the surface (`flow_epe_by_texture_<split>`),
+and the benchmark's signal (`signal_<split>`, see `signal_statistics`): how far pixels
+move, how much of that motion is parallax (the part that carries depth), how well
+triangulation with the true pose recovers depth (and each pair's depth scale) from the
+estimated and from the true flow, what the classical pipeline on the estimated flow
+alone (`sfm_flow`: essential matrix, then triangulation) gets of the pose and the depth,
+and the per-pair oracle constant's error; and what produced the stored flow
+(`flow_estimator_source`).
 """
 
 from __future__ import annotations
@@ -34,21 +43,23 @@ import tensorflow_datasets as tfds
 
 import data
 from gld import flow as flow_lib
-from gld import geometry, records
+from gld import geometry, metrics, records
 from gld.baselines import classical
 
-from . import renderer, scenes
+from . import raycast, renderer, scenes
 
 _DESCRIPTION = """\
 Procedural two-view indoor scenes in the spirit of DeMoN's Scenes11: a room
 (floor, walls, ceiling) with random boxes, spheres and cylinders, solid
-procedural textures (plain colours, checkers, stripes, gradients, value noise),
-ambient + Lambertian lighting (view independent). The second view moves like a
-hand-held camera (rotation up to 10 degrees, translation 0.05-0.5 m, flow up to
-about 40 px at 256x192). Exact depth of both views, intrinsics, relative pose
-and ground-truth flow with validity (inside view 2, not occluded); the stored
-`flow` is estimated from the images. The `*_varying` configs perturb fx, fy, cx,
-cy of each view independently by up to 20%.
+procedural textures (plain colours, checkers, stripes, gradients, value noise)
+with band-limited multi-octave detail fixed to every surface (the `*_untextured`
+configs leave it out), ambient + Lambertian lighting (view independent). The
+second view moves like a hand-held camera (rotation up to 10 degrees,
+translation 0.05-0.5 m, flow up to about 40 px at 256x192). Exact depth of both
+views, intrinsics, relative pose and ground-truth flow with validity (inside
+view 2, not occluded); the stored `flow` is estimated from the images. The
+`*_varying` configs perturb fx, fy, cx, cy of each view independently by up to
+20%.
 """
 
 _CITATION = """\
@@ -67,6 +78,10 @@ _CITATION = """\
 # The card's signal statistics come from the first CARD_PAIRS pairs of each split (pairs
 # are independent draws), so they cost seconds even for `full`.
 CARD_PAIRS = 500
+# The card's classical pipeline: `sfm_flow`'s pose estimate (numpy and OpenCV only, so it
+# runs in the rendering workers); its fallback is never used here (a failed pair is
+# counted, not scored).
+_SFM_FLOW = classical.SfMFlow(fallback_inv_depth=1.0)
 
 
 @dataclasses.dataclass(eq=False)
@@ -78,6 +93,7 @@ class SceneConfig(tfds.core.BuilderConfig):
       num_train, num_test: number of pairs per split.
       seed: seed of the whole dataset (with the split and the index).
       intrinsics_jitter: relative perturbation of each view's fx, fy, cx, cy (0 = nominal).
+      surface_detail: detail on every surface (`scenes.SceneSettings.surface_detail`).
       flow_estimator: the stored estimated flow's estimator (`gld.flow.check_estimator`);
         a build may override it (`Builder(flow_estimator=...)`).
     """
@@ -88,19 +104,33 @@ class SceneConfig(tfds.core.BuilderConfig):
     num_test: int = 1_000
     seed: int = 0
     intrinsics_jitter: float = 0.0
+    surface_detail: bool = True
     flow_estimator: str = flow_lib.DEFAULT_ESTIMATOR
 
     def scene_settings(self) -> scenes.SceneSettings:
         return scenes.SceneSettings(
-            height=self.height, width=self.width, intrinsics_jitter=self.intrinsics_jitter
+            height=self.height,
+            width=self.width,
+            intrinsics_jitter=self.intrinsics_jitter,
+            surface_detail=self.surface_detail,
         )
 
 
-# The varying configs' own version: their pairs changed when the intrinsics got a
+_DETAIL_NOTE = (
+    "Every surface carries band-limited multi-octave value noise fixed to it (object "
+    "coordinates for objects, world coordinates for the room) that multiplies its albedo, "
+    "each octave fading out between 4 and 2 pixels on the surface: the estimated flow is "
+    "right where 1.0.0's large plain, gradient and striped surfaces left it wrong. "
+    "Geometry, poses, depth and true flow are those of the previous version; the images "
+    "and the estimated flow change. The *_untextured configs render the previous look."
+)
+RELEASE_NOTES = {"2.0.0": _DETAIL_NOTE, "1.0.0": "Initial release."}
+# The varying configs' own history: their pairs changed when the intrinsics got a
 # random stream of their own (the fixed configs' pairs did not).
 VARYING_RELEASE = dict(
-    version=tfds.core.Version("1.2.0"),
+    version=tfds.core.Version("2.0.0"),
     release_notes={
+        "2.0.0": _DETAIL_NOTE,
         "1.2.0": "Each pair is the fixed config's pair of the same index (scene, cameras' "
         "poses) with other intrinsics: the motion is bounded with the nominal intrinsics.",
         "1.1.0": "Each pair has the scene and the motion draws of the fixed config's pair "
@@ -122,13 +152,22 @@ def _configs() -> list[SceneConfig]:
         "full": "256x192, 40,000 train / 1,000 test pairs (paper scale).",
     }
     configs = []
-    for jitter, suffix, extra in (
-        (0.0, "", ""),
+    for jitter, detail, suffix, extra in (
+        (0.0, True, "", ""),
         (
             0.2,
+            True,
             "_varying",
             " Varying intrinsics (20%); each pair is the fixed config's pair of the same "
             "index (scene, poses) seen with other intrinsics.",
+        ),
+        (
+            0.0,
+            False,
+            "_untextured",
+            " Without surface detail: the fixed config's pairs as version 1.0.0 rendered "
+            "them (images and estimated flow alike), with large plain surfaces where the "
+            "estimated flow is wrong.",
         ),
     ):
         for name, size in sizes.items():
@@ -137,6 +176,7 @@ def _configs() -> list[SceneConfig]:
                     name=name + suffix,
                     description=descriptions[name] + extra,
                     intrinsics_jitter=jitter,
+                    surface_detail=detail,
                     **(VARYING_RELEASE if jitter else {}),
                     **size,
                 )
@@ -162,7 +202,7 @@ def render_example(
 
 def render_pair(config: SceneConfig, split: str, index: int) -> dict[str, Any]:
     """Example `index` of `split` without its estimated flow (numpy only: safe in a
-    forked worker), with its "id"."""
+    forked worker), with its "id" (and view 1's "texture_kind1", which is not stored)."""
     example = renderer.render_pair(
         renderer.example_rng(config.seed, split, index), config.scene_settings()
     )
@@ -205,7 +245,13 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
         inverse depth: how well the estimated flow fixes the pair's depth scale even
         given the pose;
       oracle_constant_abs_inv: Abs-Inv of the pair's own median true inverse depth
-        predicted everywhere (the per-pair oracle constant of the evaluations).
+        predicted everywhere (the per-pair oracle constant of the evaluations);
+      sfm_flow_failed: 1 when the classical pipeline (`classical.SfMFlow`: essential
+        matrix from the estimated flow) finds no pose, else 0;
+      sfm_flow_rotation_deg, sfm_flow_translation_deg: its pose's rotation and
+        translation-direction errors, and sfm_flow_abs_inv: Abs-Inv of triangulation
+        with that pose (as the `sfm_flow` baseline predicts it); NaN when it failed
+        (the evaluation then predicts the dataset mean).
       The flow values are NaN for a pair without a valid true-flow pixel.
     """
     depth = np.asarray(example["depth1"], np.float64)
@@ -227,20 +273,29 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
     magnitude = np.linalg.norm(gt_flow, axis=-1)[flow_valid]
     parallax = np.linalg.norm(gt_flow - rotational_flow, axis=-1)[flow_valid]
 
-    def twice(value):
-        return np.stack([np.asarray(value, np.float32)] * 2)
+    sfm_rotation, sfm_translation, sfm_found = _SFM_FLOW.estimate_pose(
+        np.asarray(example["flow"], np.float64),
+        geometry.intrinsics_matrix(intrinsics1, height, width),
+        geometry.intrinsics_matrix(intrinsics2, height, width),
+    )
 
-    # One batch of two: the estimated flow, then the true flow.
+    def thrice(value):
+        return np.stack([np.asarray(value, np.float32)] * 3)
+
+    # One batch of three: the estimated flow, then the true flow, with the true pose; the
+    # estimated flow with sfm_flow's pose.
     predicted = classical.triangulate_batch(
-        np.stack([example["flow"], example["gt_flow"]]).astype(np.float32),
-        twice(intrinsics1),
-        twice(intrinsics2),
-        twice(rotation),
-        twice(translation),
+        np.stack([example["flow"], example["gt_flow"], example["flow"]]).astype(np.float32),
+        thrice(intrinsics1),
+        thrice(intrinsics2),
+        np.stack([rotation, rotation, sfm_rotation]).astype(np.float32),
+        np.stack([translation, translation, sfm_translation]).astype(np.float32),
     )["inv_depth"]
     depth_valid = geometry.valid_depth(depth)
     true_inv_depth = np.linalg.norm(translation) / depth[depth_valid]
     abs_inv = [np.abs(true_inv_depth - pair[depth_valid]).mean() for pair in predicted]
+    sfm_errors = metrics.pose_errors(sfm_rotation, sfm_translation, rotation, translation)
+    nan = float("nan")
     true_median = np.median(true_inv_depth)
     scale_log_error = np.log(np.median(predicted[0][depth_valid]) / true_median)
     has_flow = bool(flow_valid.any())
@@ -252,7 +307,51 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
         "triangulation_abs_inv_gt_flow": float(abs_inv[1]),
         "triangulation_scale_log_error_estimated_flow": float(scale_log_error),
         "oracle_constant_abs_inv": float(np.abs(true_inv_depth - true_median).mean()),
+        "sfm_flow_failed": float(not sfm_found),
+        "sfm_flow_rotation_deg": float(sfm_errors["rotation_deg"]) if sfm_found else nan,
+        "sfm_flow_translation_deg": float(sfm_errors["translation_deg"]) if sfm_found else nan,
+        "sfm_flow_abs_inv": float(abs_inv[2]) if sfm_found else nan,
     }
+
+
+def flow_error_by_texture(example: Mapping[str, Any]) -> dict[str, tuple[float, int]]:
+    """The estimated flow's end-point error summed over the valid true-flow pixels of each
+    texture kind of view 1's surface, and their count: {kind: (error sum px, pixels)}.
+
+    Args:
+      example: 'flow', 'gt_flow' [H, W, 2]; 'gt_flow_valid' [H, W] bool; 'texture_kind1'
+        [H, W] int (an index into `raycast.TEXTURES`, as `renderer.render_pair` gives it).
+    """
+    valid = np.asarray(example["gt_flow_valid"], bool)
+    error = np.linalg.norm(
+        np.asarray(example["flow"], np.float64) - np.asarray(example["gt_flow"], np.float64),
+        axis=-1,
+    )
+    kinds = np.asarray(example["texture_kind1"])
+    return {
+        kind: (float(error[valid & (kinds == index)].sum()), int((valid & (kinds == index)).sum()))
+        for index, kind in enumerate(raycast.TEXTURES)
+    }
+
+
+def summarise_texture_errors(per_pair: list[dict[str, tuple[float, int]]]) -> dict[str, Any]:
+    """The card's `flow_epe_by_texture_<split>` from `flow_error_by_texture` of some pairs:
+    per texture kind, the mean end-point error over its pixels and its share of them."""
+    total = sum(count for pair in per_pair for _, count in pair.values())
+    summary: dict[str, Any] = {
+        "pairs": len(per_pair),
+        "note": "estimated flow's end-point error (px) over the valid true-flow pixels of "
+        "each texture kind of view 1's surface (pixel-weighted), and the kind's share of "
+        "those pixels",
+    }
+    for kind in raycast.TEXTURES:
+        error_sum = sum(pair[kind][0] for pair in per_pair)
+        count = sum(pair[kind][1] for pair in per_pair)
+        summary[kind] = {
+            "epe_px": error_sum / count if count else None,
+            "pixel_share": count / total if total else None,
+        }
+    return summary
 
 
 def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict[str, Any]:
@@ -286,22 +385,30 @@ def summarise_signal(per_pair: list[dict[str, float]], split_pairs: int) -> dict
     return summary
 
 
+_CardEntry = tuple[dict[str, float], dict[str, tuple[float, int]]]
+
+
 def _render_record(
     task: tuple[SceneConfig, str, int, str],
-) -> tuple[str, dict[str, Any], float, float, dict[str, float] | None]:
+) -> tuple[str, dict[str, Any], float, float, _CardEntry | None]:
     """Pool worker (or this process): `render_example` with the record already encoded
-    (PNG in parallel), and the stored record's `signal_statistics` for the first
-    CARD_PAIRS of a split."""
+    (PNG in parallel), and for the first CARD_PAIRS of a split the stored record's
+    `signal_statistics` and `flow_error_by_texture`."""
     return _finish_record(render_example(*task), task[2])
 
 
 def _finish_record(
     rendered: tuple[str, dict[str, Any], float, float], index: int
-) -> tuple[str, dict[str, Any], float, float, dict[str, float] | None]:
+) -> tuple[str, dict[str, Any], float, float, _CardEntry | None]:
     example_id, example, epe, valid_fraction = rendered
     record = records.encode(example)
-    signal = signal_statistics(record) if index < CARD_PAIRS else None
-    return example_id, record, epe, valid_fraction, signal
+    card = None
+    if index < CARD_PAIRS:
+        card = (
+            signal_statistics(record),
+            flow_error_by_texture({**record, "texture_kind1": example["texture_kind1"]}),
+        )
+    return example_id, record, epe, valid_fraction, card
 
 
 def _render_pair_task(task: tuple[SceneConfig, str, int]) -> dict[str, Any]:
@@ -311,8 +418,8 @@ def _render_pair_task(task: tuple[SceneConfig, str, int]) -> dict[str, Any]:
 class Builder(tfds.core.GeneratorBasedBuilder):
     """Procedural two-view scenes with exact depth, pose, intrinsics and flow."""
 
-    VERSION = tfds.core.Version("1.0.0")
-    RELEASE_NOTES = {"1.0.0": "Initial release."}
+    VERSION = tfds.core.Version("2.0.0")
+    RELEASE_NOTES = RELEASE_NOTES
     BUILDER_CONFIGS = _configs()
     DEFAULT_CONFIG_NAME = "small"
 
@@ -374,11 +481,11 @@ class Builder(tfds.core.GeneratorBasedBuilder):
 
     def _generate_examples(self, split: str, count: int) -> Iterator[tuple[str, dict[str, Any]]]:
         estimator = self.flow_estimator
-        errors, valid_fractions, signal = [], [], []
+        errors, valid_fractions, card = [], [], []
         if self._workers == 1:
             tasks = [(self.builder_config, split, index, estimator) for index in range(count)]
             results = map(_render_record, tasks)
-            yield from self._collect(results, errors, valid_fractions, signal)
+            yield from self._collect(results, errors, valid_fractions, card)
         else:
             # Fork: workers inherit the imported modules (the builder may have been imported
             # from a path that a fresh interpreter could not import). A trained network's
@@ -397,22 +504,28 @@ class Builder(tfds.core.GeneratorBasedBuilder):
                         (self.builder_config, split, index, estimator) for index in range(count)
                     ]
                     results = pool.imap(_render_record, tasks, chunksize=4)
-                yield from self._collect(results, errors, valid_fractions, signal)
+                yield from self._collect(results, errors, valid_fractions, card)
         # The dataset card: written to metadata.json after the splits are generated.
         errors = np.asarray(errors, np.float64)
         finite = errors[np.isfinite(errors)]
         self.info.metadata[f"flow_epe_{split}"] = float(finite.mean()) if finite.size else None
         self.info.metadata[f"flow_epe_{split}_std"] = float(finite.std()) if finite.size else None
         self.info.metadata[f"gt_flow_valid_fraction_{split}"] = float(np.mean(valid_fractions))
-        self.info.metadata[f"signal_{split}"] = summarise_signal(signal, count)
+        self.info.metadata[f"signal_{split}"] = summarise_signal(
+            [signal for signal, _ in card], count
+        )
+        self.info.metadata[f"flow_epe_by_texture_{split}"] = summarise_texture_errors(
+            [texture_errors for _, texture_errors in card]
+        )
+        self.info.metadata["surface_detail"] = self.builder_config.surface_detail
         self.info.metadata.setdefault("build_options", {})[split] = self.build_options(split)
         self.info.metadata["flow_estimator_source"] = flow_lib.describe(estimator)
 
     @staticmethod
-    def _collect(results, errors: list, valid_fractions: list, signal: list):
-        for example_id, record, epe, valid_fraction, pair_signal in results:
+    def _collect(results, errors: list, valid_fractions: list, card: list):
+        for example_id, record, epe, valid_fraction, card_entry in results:
             errors.append(epe)
             valid_fractions.append(valid_fraction)
-            if pair_signal is not None:
-                signal.append(pair_signal)
+            if card_entry is not None:
+                card.append(card_entry)
             yield example_id, record

@@ -8,6 +8,14 @@ Lambertian shading. Colour is a function of the 3-D point only (no specular term
 so a point looks the same from both views and image 2 warped by the true flow
 reproduces image 1.
 
+A material may also carry surface detail (`SurfaceDetail`): multi-octave value noise
+fixed to the surface that multiplies its albedo, so that every surface, plain ones
+included, has something optical flow can track. One ray per pixel samples it with no
+anti-aliasing, so each octave fades out as its lattice spacing shrinks from
+`DETAIL_FADE_PIXELS[1]` to `DETAIL_FADE_PIXELS[0]` pixels on the surface: what stays is
+resolved alike in both views (the fade depends on the view's distance and angle to the
+surface, which two nearby views share nearly).
+
 Geometry follows `gld.geometry`: pixel (0, 0) is the centre of the top-left
 pixel, intrinsics are normalised `[fx/W, fy/H, cx/W, cy/H]`, cameras are
 world-to-camera `X_cam = R X_world + t`. The world has y pointing up, the floor at
@@ -27,6 +35,18 @@ TEXTURES = ("plain", "checker", "stripes", "gradient", "noise")
 # Room surfaces are ids 0..5 in the surface map; object k has id ROOM_SURFACES + k.
 ROOM_SURFACES = 6
 _NEAR = 1e-3  # metres; ignores self-hits of a ray leaving a surface
+
+# Surface detail: lattice spacings of its octaves (metres, halving from 0.4 m to 1.25 cm:
+# 4 pixels at 1 m for 256x192 images), each octave's amplitude relative to the previous,
+# and the fade of an octave between these two spacings in pixels on the surface.
+DETAIL_SPACINGS = tuple(0.4 / 2**octave for octave in range(6))
+DETAIL_PERSISTENCE = 0.65
+DETAIL_FADE_PIXELS = (2.0, 4.0)
+DETAIL_LATTICE = 16  # periodic lattice size per axis (a power of two)
+# Surfaces seen at a grazing angle stretch the footprint of a pixel; beyond this cosine
+# between the ray and the normal the stretch is no longer followed (a floor far away
+# keeps some detail rather than none).
+_MIN_FOOTPRINT_COSINE = 0.25
 
 
 def _transform(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
@@ -58,6 +78,7 @@ class Material:
     direction: np.ndarray
     offset: np.ndarray
     lattice: np.ndarray | None = None
+    detail: SurfaceDetail | None = None
 
     def albedo(self, points: np.ndarray) -> np.ndarray:
         """RGB albedo [N, 3] at points [N, 3]."""
@@ -80,9 +101,72 @@ class Material:
         return self.color_a + weight * (self.color_b - self.color_a)
 
 
-def _value_noise(lattice: np.ndarray, coords: np.ndarray) -> np.ndarray:
-    """Smooth periodic value noise in [0, 1] at coords [N, 3] (lattice units)."""
-    size = lattice.shape[0]  # a power of two, so `& (size - 1)` wraps indices
+@dataclasses.dataclass(frozen=True)
+class SurfaceDetail:
+    """Band-limited multi-octave value noise that multiplies a material's albedo.
+
+    `lattice` [DETAIL_LATTICE] * 3 holds the noise samples, `octave_offsets`
+    [len(DETAIL_SPACINGS), 3] shift each octave (lattice units) so the octaves do not
+    share lattice points, and `contrast` is the largest relative change of the albedo
+    (the albedo is scaled by 1 + contrast * d, d in [-1, 1]).
+    """
+
+    lattice: np.ndarray
+    octave_offsets: np.ndarray
+    contrast: float
+
+    def factor(self, points: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        """The albedo's multiplier [N] at surface points [N, 3] (metres, in the frame the
+        detail is fixed to) whose pixels cover `footprint` [N] metres of the surface."""
+        return detail_factors((self,), np.zeros(len(points), np.int64), points, footprint)
+
+
+def detail_factors(
+    details: tuple[SurfaceDetail, ...],
+    which: np.ndarray,
+    points: np.ndarray,
+    footprint: np.ndarray,
+) -> np.ndarray:
+    """`SurfaceDetail.factor` of many surfaces at once: point n has detail `which[n]`.
+
+    Args:
+      details: the surfaces' details.
+      which: [N] int, an index into `details` per point.
+      points: [N, 3] metres, each in the frame its detail is fixed to.
+      footprint: [N] metres of the surface one pixel covers at the point.
+
+    Returns:
+      [N] float32 multipliers of the albedo, 1 + contrast * d with d in [-1, 1].
+    """
+    lattices = np.stack([detail.lattice for detail in details])
+    octave_offsets = np.stack([detail.octave_offsets for detail in details])
+    contrast = np.array([detail.contrast for detail in details], np.float32)[which]
+    total = np.zeros(len(points), np.float32)
+    weight_sum = 0.0
+    low, high = DETAIL_FADE_PIXELS
+    for octave, spacing in enumerate(DETAIL_SPACINGS):
+        amplitude = DETAIL_PERSISTENCE**octave
+        weight_sum += amplitude
+        fade = np.clip((spacing / footprint - low) / (high - low), 0.0, 1.0)
+        visible = np.flatnonzero(fade > 0)
+        if not visible.size:
+            continue
+        fade = fade[visible]
+        fade = fade * fade * (3.0 - 2.0 * fade)
+        layers = which[visible]
+        coords = points[visible] / np.float32(spacing) + octave_offsets[layers, octave]
+        noise = _value_noise(lattices, coords, layers)
+        total[visible] += (amplitude * fade * (2.0 * noise - 1.0)).astype(np.float32)
+    return 1.0 + contrast * total / np.float32(weight_sum)
+
+
+def _value_noise(
+    lattice: np.ndarray, coords: np.ndarray, layers: np.ndarray | None = None
+) -> np.ndarray:
+    """Smooth periodic value noise in [0, 1] at coords [N, 3] (lattice units).
+
+    `lattice` is [L, L, L], or [S, L, L, L] with `layers` [N] choosing each point's."""
+    size = lattice.shape[-1]  # a power of two, so `& (size - 1)` wraps indices
     values = lattice.ravel()
     base = np.floor(coords)
     frac = coords - base
@@ -90,6 +174,9 @@ def _value_noise(lattice: np.ndarray, coords: np.ndarray) -> np.ndarray:
     low = base.astype(np.int64) & (size - 1)
     high = (low + 1) & (size - 1)
     x0, x1 = low[:, 0] * size * size, high[:, 0] * size * size
+    if layers is not None:
+        x0 = x0 + layers * size**3
+        x1 = x1 + layers * size**3
     y0, y1 = low[:, 1] * size, high[:, 1] * size
     z0, z1 = low[:, 2], high[:, 2]
     fx, fy, fz = frac[:, 0], frac[:, 1], frac[:, 2]
@@ -365,41 +452,76 @@ def shade(
     """
     height, width = depth.shape
     points = (camera.center.astype(np.float32) + depth[..., None] * directions).reshape(-1, 3)
+    flat_directions = directions.reshape(-1, 3)
+    flat_depth = depth.ravel()
     image = np.empty_like(points)
+    # A pixel's width on a surface facing the camera at camera-z depth d is d / focal.
+    focal_pixels = np.float32(np.sqrt(camera.intrinsics[0] * width * camera.intrinsics[1] * height))
     # Group pixels by surface with one (radix) sort instead of a boolean mask per surface.
     flat_surface = surface.ravel().astype(np.uint8)
     order = np.argsort(flat_surface, kind="stable")
     counts = np.bincount(flat_surface, minlength=ROOM_SURFACES + len(scene.objects))
     ends = np.cumsum(counts)
+    # The surface detail of every pixel is computed at once, after the loop.
+    detailed_pixels, detailed_points, footprints, detail_index, details = [], [], [], [], []
     for surface_id in np.flatnonzero(counts):
         pixels = order[ends[surface_id] - counts[surface_id] : ends[surface_id]]
         surface_points = points[pixels]
         to_light = scene.light_position - surface_points
         light_distance = np.sqrt(np.einsum("nc,nc->n", to_light, to_light))
+        rays = flat_directions[pixels]
         if surface_id < ROOM_SURFACES:
             axis, sign = surface_id // 2, (1.0 if surface_id % 2 == 0 else -1.0)
             along_normal = sign * to_light[:, axis]  # the inward normal is an axis
             material = scene.room_materials[surface_id]
             texture_points = surface_points
+            ray_along_normal = np.abs(rays[:, axis])
         else:
             obj = scene.objects[surface_id - ROOM_SURFACES]
             normals, texture_points = obj.normals(surface_points)
             along_normal = np.einsum("nc,nc->n", normals, to_light)
             material = obj.material
+            ray_along_normal = np.abs(np.einsum("nc,nc->n", normals, rays))
         diffuse = np.maximum(along_normal / light_distance, 0.0)
         intensity = (scene.ambient + (1.0 - scene.ambient) * diffuse)[:, None]
         if material.kind == "plain":
             image[pixels] = material.color_a * intensity
         else:
             image[pixels] = material.albedo(texture_points) * intensity
+        if material.detail is not None:
+            cosine = ray_along_normal / np.sqrt(np.einsum("nc,nc->n", rays, rays))
+            footprints.append(
+                flat_depth[pixels] / (focal_pixels * np.maximum(cosine, _MIN_FOOTPRINT_COSINE))
+            )
+            detailed_pixels.append(pixels)
+            detailed_points.append(texture_points)
+            detail_index.append(np.full(len(pixels), len(details)))
+            details.append(material.detail)
+    if details:
+        pixels = np.concatenate(detailed_pixels)
+        image[pixels] *= detail_factors(
+            tuple(details),
+            np.concatenate(detail_index),
+            np.concatenate(detailed_points),
+            np.concatenate(footprints),
+        )[:, None]
     return image.reshape(height, width, 3)
 
 
 def render_view(
     scene: Scene, camera: Camera, height: int, width: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """RGB [H, W, 3] uint8 and camera-z depth [H, W] float32 of one view."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RGB [H, W, 3] uint8, camera-z depth [H, W] float32 and surface id [H, W] int32
+    (as `cast`) of one view."""
     directions = ray_directions(camera, height, width)
     depth, surface = cast(scene, camera, height, width, directions=directions)
     image = shade(scene, camera, depth, surface, directions)
-    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8), depth
+    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8), depth, surface
+
+
+def texture_kinds(scene: Scene, surface: np.ndarray) -> np.ndarray:
+    """The texture kind [H, W] int8 (an index into `TEXTURES`) of each pixel's surface, from
+    a surface id map [H, W] (`cast`)."""
+    materials = scene.room_materials + tuple(obj.material for obj in scene.objects)
+    kinds = np.array([TEXTURES.index(material.kind) for material in materials], np.int8)
+    return kinds[surface]

@@ -37,10 +37,12 @@ def render_pair(rng: np.random.Generator, settings: SceneSettings) -> dict[str, 
       camera-z metres; intrinsics1, intrinsics2 [4] float32 normalised; rotation
       [3, 3], translation [3] float32 (X2 = R X1 + t, metres); gt_flow [H, W, 2]
       float32 pixels I1 -> I2 and gt_flow_valid [H, W] bool (lands inside view 2,
-      in front of it and not occluded there).
+      in front of it and not occluded there); texture_kind1 [H, W] int8, the texture
+      kind of view 1's surface at each pixel (an index into `raycast.TEXTURES`; not
+      stored in the records).
     """
-    scene, camera1, camera2, image1, depth1 = scenes.sample_pair(rng, settings)
-    image2, depth2 = raycast.render_view(scene, camera2, settings.height, settings.width)
+    scene, camera1, camera2, image1, depth1, surface1 = scenes.sample_pair(rng, settings)
+    image2, depth2, _ = raycast.render_view(scene, camera2, settings.height, settings.width)
     rotation, translation = geometry.relative_pose(
         camera1.rotation, camera1.translation, camera2.rotation, camera2.translation
     )
@@ -58,4 +60,5 @@ def render_pair(rng: np.random.Generator, settings: SceneSettings) -> dict[str, 
         "translation": np.asarray(translation, np.float32),
         "gt_flow": gt_flow,
         "gt_flow_valid": gt_flow_valid,
+        "texture_kind1": raycast.texture_kinds(scene, surface1),
     }

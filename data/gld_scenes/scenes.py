@@ -10,6 +10,7 @@ handed in, so a draw is a pure function of the generator's seed.
 from __future__ import annotations
 
 import dataclasses
+import zlib
 
 import numpy as np
 
@@ -22,6 +23,8 @@ NOMINAL_INTRINSICS = (0.89115971, 1.18821287, 0.5, 0.5)
 
 SHAPES = ("box", "sphere", "cylinder")
 _NOISE_LATTICE = 8  # periodic value-noise lattice size per axis
+# The surface detail's largest relative change of the albedo (`raycast.SurfaceDetail`).
+DETAIL_CONTRAST = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,6 +45,10 @@ class SceneSettings:
         256x192) by shrinking the motion (varying intrinsics add their own flow).
       min_objects, max_objects: number of objects drawn (inclusive); an object that
         would come too close to the first camera is dropped.
+      surface_detail: every surface carries band-limited detail that flow can track
+        (`raycast.SurfaceDetail`); False renders the surfaces' textures alone (large
+        untextured areas). The detail draws nothing from the scene's generator, so
+        geometry, poses, depth and true flow are the same either way.
     """
 
     height: int = 192
@@ -54,6 +61,7 @@ class SceneSettings:
     max_flow_fraction: float = 40.0 / 256.0
     min_objects: int = 2
     max_objects: int = 8
+    surface_detail: bool = True
 
     def __post_init__(self):
         if self.height < 8 or self.width < 8:
@@ -80,10 +88,24 @@ def _unit_vector(rng: np.random.Generator) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
 
+def surface_detail(color: np.ndarray, offset: np.ndarray) -> raycast.SurfaceDetail:
+    """The detail of a material, seeded by its drawn colour and offset (so that adding it
+    draws nothing from the scene's generator and leaves the rest of the scene as it was)."""
+    seed = zlib.crc32(np.asarray(color, np.float32).tobytes() + np.asarray(offset).tobytes())
+    rng = np.random.default_rng(seed)
+    octaves = len(raycast.DETAIL_SPACINGS)
+    return raycast.SurfaceDetail(
+        lattice=rng.uniform(0.0, 1.0, (raycast.DETAIL_LATTICE,) * 3).astype(np.float32),
+        octave_offsets=rng.uniform(0.0, raycast.DETAIL_LATTICE, (octaves, 3)).astype(np.float32),
+        contrast=DETAIL_CONTRAST,
+    )
+
+
 def random_material(
-    rng: np.random.Generator, texture_probabilities: np.ndarray
+    rng: np.random.Generator, texture_probabilities: np.ndarray, detail: bool = True
 ) -> raycast.Material:
-    """A random solid texture; `texture_probabilities` [len(raycast.TEXTURES)] weights the kinds."""
+    """A random solid texture; `texture_probabilities` [len(raycast.TEXTURES)] weights the
+    kinds; `detail` adds its surface detail (`surface_detail`)."""
     kind = raycast.TEXTURES[rng.choice(len(raycast.TEXTURES), p=texture_probabilities)]
     color_a = _random_color(rng)
     color_b = _random_color(rng)
@@ -94,14 +116,17 @@ def random_material(
     lattice = (
         rng.uniform(0.0, 1.0, (_NOISE_LATTICE,) * 3).astype(np.float32) if kind == "noise" else None
     )
+    direction = _unit_vector(rng).astype(np.float32)
+    offset = rng.uniform(0.0, 10.0, 3).astype(np.float32)
     return raycast.Material(
         kind=kind,
         color_a=color_a,
         color_b=color_b,
         scale=scale,
-        direction=_unit_vector(rng).astype(np.float32),
-        offset=rng.uniform(0.0, 10.0, 3).astype(np.float32),
+        direction=direction,
+        offset=offset,
         lattice=lattice,
+        detail=surface_detail(color_a, offset) if detail else None,
     )
 
 
@@ -198,7 +223,7 @@ def sample_scene(
             center=np.zeros(3),
             rotation=object_rotation.astype(np.float32),
             size=size.astype(np.float32),
-            material=random_material(rng, _OBJECT_TEXTURES),
+            material=random_material(rng, _OBJECT_TEXTURES, settings.surface_detail),
         )
         radius = obj.bounding_radius
         position = center + depth * ray
@@ -214,7 +239,10 @@ def sample_scene(
         objects.append(dataclasses.replace(obj, center=position.astype(np.float32)))
 
     room_materials = tuple(
-        random_material(rng, _FLOOR_TEXTURES if face == 2 else _ROOM_TEXTURES) for face in range(6)
+        random_material(
+            rng, _FLOOR_TEXTURES if face == 2 else _ROOM_TEXTURES, settings.surface_detail
+        )
+        for face in range(6)
     )
     light = np.array(
         [
@@ -296,13 +324,14 @@ def sample_motion(
 
 def sample_pair(
     rng: np.random.Generator, settings: SceneSettings
-) -> tuple[raycast.Scene, raycast.Camera, raycast.Camera, np.ndarray, np.ndarray]:
+) -> tuple[raycast.Scene, raycast.Camera, raycast.Camera, np.ndarray, np.ndarray, np.ndarray]:
     """The scene and both cameras of one example, with view 1 already rendered.
 
     View 1 is rendered here because the motion is bounded by its flow.
 
     Returns:
-      scene, camera1, camera2, image1 [H, W, 3] uint8, depth1 [H, W] float32.
+      scene, camera1, camera2, image1 [H, W, 3] uint8, depth1 [H, W] float32, surface1
+      [H, W] int32 (view 1's surface ids, `raycast.cast`).
     """
     height, width = settings.height, settings.width
     scene, rotation1, center1 = sample_scene(rng, settings)
@@ -313,7 +342,7 @@ def sample_pair(
     intrinsics1 = sample_intrinsics(intrinsics_rng, settings)
     intrinsics2 = sample_intrinsics(intrinsics_rng, settings)
     camera1 = raycast.Camera(rotation1, -rotation1 @ center1, intrinsics1)
-    image1, depth1 = raycast.render_view(scene, camera1, height, width)
+    image1, depth1, surface1 = raycast.render_view(scene, camera1, height, width)
     # The motion is the nominal pair's: drawn and bounded with the nominal intrinsics, so
     # the varying pair differs from it by its cameras alone (their change adds its own
     # flow on top of the bound).
@@ -321,7 +350,7 @@ def sample_pair(
     depth_nominal = depth1
     if settings.intrinsics_jitter:
         nominal_camera = raycast.Camera(rotation1, camera1.translation, nominal)
-        _, depth_nominal = raycast.render_view(scene, nominal_camera, height, width)
+        _, depth_nominal, _ = raycast.render_view(scene, nominal_camera, height, width)
     for _ in range(20):
         rotation, translation = sample_motion(rng, settings, depth_nominal, nominal, nominal)
         camera2 = raycast.Camera(
@@ -336,4 +365,4 @@ def sample_pair(
         )
         if inside and clear:
             break
-    return scene, camera1, camera2, image1, depth1
+    return scene, camera1, camera2, image1, depth1, surface1

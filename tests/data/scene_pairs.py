@@ -19,7 +19,7 @@ def rendered_pairs() -> tuple[tuple[dict, raycast.Scene, raycast.Camera, raycast
     result = []
     for index in range(4):
         example = renderer.render_pair(renderer.example_rng(7, "test", index), SETTINGS)
-        scene, camera1, camera2, _, _ = scenes.sample_pair(
+        scene, camera1, camera2, _, _, _ = scenes.sample_pair(
             renderer.example_rng(7, "test", index), SETTINGS
         )
         result.append((example, scene, camera1, camera2))

@@ -1,12 +1,14 @@
 """Tests of the gld_scenes TFDS builder (data/gld_scenes/gld_scenes_dataset_builder.py)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 
 import data
 from data.gld_scenes import gld_scenes_dataset_builder as builder_module
+from data.gld_scenes import raycast
 from gld import geometry, records
 
 HEIGHT, WIDTH = 48, 64
@@ -188,7 +190,47 @@ def test_signal_of_a_pure_rotation_has_no_parallax():
     signal = builder_module.signal_statistics(example)
     assert signal["gt_flow_px_mean"] > 1.0
     assert signal["translational_flow_px_mean"] < 1e-4
-    assert all(np.isfinite(value) for value in signal.values())
+    # No translation: the classical pipeline's pose (and so its values) may be undefined.
+    assert all(
+        np.isfinite(value) for name, value in signal.items() if not name.startswith("sfm_flow")
+    )
+
+
+def test_signal_scores_the_classical_pipeline_on_the_estimated_flow():
+    rotation = geometry.rotation_matrix(np.radians([1.0, -2.0, 0.5]))
+    example = _moving_pair(rotation, np.array([0.3, 0.1, 0.05]))
+    exact = builder_module.signal_statistics({**example, "flow": example["gt_flow"]})
+    assert exact["sfm_flow_failed"] == 0.0
+    assert exact["sfm_flow_rotation_deg"] < 0.05
+    assert exact["sfm_flow_translation_deg"] < 0.5
+    assert exact["sfm_flow_abs_inv"] < 1e-3
+    # A flow that is off by a constant half pixel gives a worse pose and depth.
+    shifted = builder_module.signal_statistics(example)
+    assert shifted["sfm_flow_translation_deg"] > 10 * exact["sfm_flow_translation_deg"]
+    assert shifted["sfm_flow_abs_inv"] > 10 * exact["sfm_flow_abs_inv"]
+    # No motion: no pose, counted as a failure and not scored.
+    still = builder_module.signal_statistics({**example, "flow": np.zeros_like(example["gt_flow"])})
+    assert still["sfm_flow_failed"] == 1.0
+    assert np.isnan(still["sfm_flow_abs_inv"]) and np.isnan(still["sfm_flow_rotation_deg"])
+
+
+def test_flow_error_by_texture_sums_each_kind_over_valid_pixels():
+    gt_flow = np.zeros((2, 3, 2), np.float32)
+    flow = gt_flow.copy()
+    flow[..., 0] = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
+    valid = np.array([[True, True, True], [True, True, False]])
+    kinds = np.array([[0, 0, 1], [1, 4, 4]])  # plain, plain, checker / checker, noise, noise
+    errors = builder_module.flow_error_by_texture(
+        {"flow": flow, "gt_flow": gt_flow, "gt_flow_valid": valid, "texture_kind1": kinds}
+    )
+    assert errors["plain"] == (3.0, 2)
+    assert errors["checker"] == (7.0, 2)
+    assert errors["noise"] == (5.0, 1)  # the invalid pixel is left out
+    assert errors["stripes"] == (0.0, 0)
+    summary = builder_module.summarise_texture_errors([errors, errors])
+    assert summary["plain"] == {"epe_px": 1.5, "pixel_share": 0.4}
+    assert summary["noise"] == {"epe_px": 5.0, "pixel_share": 0.2}
+    assert summary["stripes"] == {"epe_px": None, "pixel_share": 0.0}
 
 
 def test_signal_summary_counts_pairs_and_skips_pairs_without_flow():
@@ -265,6 +307,44 @@ def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
         > 100 * signal["triangulation_abs_inv_gt_flow"]
     )
 
+    # The classical pipeline's numbers are the sfm_flow baseline's on the pairs where it
+    # finds a pose (the card counts the others; the evaluation predicts the mean there).
+    sfm = classical.SfMFlow(fallback_inv_depth=1.0)
+    per_example, _ = evaluation.evaluate_predictor(sfm.predict, source)
+    failed = [
+        not sfm.estimate_pose(
+            example["flow"].astype(np.float64),
+            geometry.intrinsics_matrix(example["intrinsics1"].astype(float), HEIGHT, WIDTH),
+            geometry.intrinsics_matrix(example["intrinsics2"].astype(float), HEIGHT, WIDTH),
+        )[2]
+        for example in tiny_test_split
+    ]
+    failed = np.asarray(failed)
+    assert signal["sfm_flow_failed"] == pytest.approx(failed.mean())
+    if not failed.all():
+        assert signal["sfm_flow_abs_inv"] == pytest.approx(
+            per_example["abs_inv"][: len(failed)][~failed].mean(), rel=1e-3
+        )
+
+    # The error by texture kind, weighted by each kind's share, is the pixel-weighted
+    # error over every valid pixel of the split.
+    by_texture = metadata["flow_epe_by_texture_test"]
+    assert by_texture["pairs"] == 16
+    shares = [by_texture[kind]["pixel_share"] for kind in raycast.TEXTURES]
+    assert sum(shares) == pytest.approx(1.0)
+    weighted = sum(
+        by_texture[kind]["epe_px"] * by_texture[kind]["pixel_share"]
+        for kind in raycast.TEXTURES
+        if by_texture[kind]["epe_px"] is not None
+    )
+    valid_errors = np.concatenate(
+        [
+            np.linalg.norm(e["flow"] - e["gt_flow"], axis=-1)[e["gt_flow_valid"]]
+            for e in tiny_test_split
+        ]
+    )
+    assert weighted == pytest.approx(valid_errors.mean(), rel=1e-3)
+
 
 def test_card_signal_uses_the_first_card_pairs_of_a_split(tmp_path, monkeypatch):
     monkeypatch.setattr(builder_module, "CARD_PAIRS", 2)
@@ -281,3 +361,38 @@ def test_card_signal_uses_the_first_card_pairs_of_a_split(tmp_path, monkeypatch)
     assert signal["gt_flow_px_mean"] == pytest.approx(
         np.mean([pair["gt_flow_px_mean"] for pair in first_two]), rel=1e-5
     )
+
+
+def test_a_version_1_build_is_never_read_as_version_2(tiny, tiny_test_split, tmp_path):
+    # Version 1.0.0's records are the untextured config's: build those, and lay them out
+    # as a 1.0.0 build of `tiny` would be.
+    untextured = data.prepare("gld_scenes/tiny_untextured", tmp_path / "untextured")
+    old = tmp_path / "data" / "gld_scenes" / "tiny" / "1.0.0"
+    shutil.copytree(untextured.data_path, old)
+    for path in old.iterdir():
+        if "tiny_untextured" in path.name:
+            path.rename(old / path.name.replace("tiny_untextured", "tiny"))
+    info = json.loads((old / "dataset_info.json").read_text())
+    info.update(version="1.0.0", configName="tiny")
+    (old / "dataset_info.json").write_text(json.dumps(info))
+    old_files = sorted((path.name, path.read_bytes()) for path in old.iterdir())
+
+    builder = data.prepare("gld_scenes/tiny", tmp_path / "data")
+    assert str(builder.version) == "2.0.0" == str(builder_module.Builder.VERSION)
+    assert builder.data_path.name == "2.0.0" and builder.data_path != old
+    assert "2.0.0" in builder.info.release_notes
+    assert sorted((path.name, path.read_bytes()) for path in old.iterdir()) == old_files
+    # The new build's images are version 2's (textured); its geometry is the old one's.
+    source = builder.as_data_source()["test"]
+    old_source = untextured.as_data_source()["test"]
+    old_by_index = {}
+    for index in range(len(old_source)):
+        before = records.decode(old_source[index])
+        old_by_index[before["id"].rsplit("/", 1)[1]] = before
+    for index in range(3):
+        new = records.decode(source[index])
+        before = old_by_index[new["id"].rsplit("/", 1)[1]]
+        np.testing.assert_array_equal(new["image1"], tiny_test_split[index]["image1"])
+        assert not np.array_equal(new["image1"], before["image1"])
+        np.testing.assert_array_equal(new["depth1"], before["depth1"])
+        np.testing.assert_array_equal(new["gt_flow"], before["gt_flow"])

@@ -1,5 +1,7 @@
 """Tests of ray casting (data/gld_scenes/raycast.py) on hand-made scenes and tiny renders."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scene_pairs import HEIGHT, WIDTH, rendered_pairs
@@ -79,3 +81,93 @@ def test_screen_culling_matches_brute_force():
         depth, surface = raycast.cast(scene, camera1, HEIGHT, WIDTH, pixels=grid)
         np.testing.assert_array_equal(culled_surface, surface)
         np.testing.assert_allclose(culled_depth, depth, rtol=1e-6)
+
+
+def _detailed(material: raycast.Material) -> raycast.Material:
+    return dataclasses.replace(
+        material, detail=scenes.surface_detail(material.color_a, np.array([1.0, 2.0, 3.0]))
+    )
+
+
+def test_detail_fades_out_below_two_pixels_and_is_full_above_four():
+    detail = scenes.surface_detail(np.array([0.2, 0.4, 0.6]), np.zeros(3))
+    points = np.random.default_rng(0).uniform(0.0, 3.0, (2000, 3)).astype(np.float32)
+    finest = min(raycast.DETAIL_SPACINGS)
+    coarsest = max(raycast.DETAIL_SPACINGS)
+    # Every octave under two pixels: no detail at all.
+    blurred = detail.factor(points, np.full(len(points), coarsest / 1.9, np.float32))
+    np.testing.assert_array_equal(blurred, 1.0)
+    # Every octave over four pixels: the full pattern, within [1 - contrast, 1 + contrast].
+    sharp = detail.factor(points, np.full(len(points), finest / 4.1, np.float32))
+    assert sharp.std() > 0.1 * detail.contrast
+    assert np.all(np.abs(sharp - 1.0) <= detail.contrast)
+    # In between, only the coarse octaves remain: the pattern is smoother.
+    coarse_only = detail.factor(points, np.full(len(points), coarsest / 8.0, np.float32))
+    nearby = points + np.float32(finest / 2.0)
+    assert (
+        np.abs(
+            detail.factor(nearby, np.full(len(points), coarsest / 8.0, np.float32)) - coarse_only
+        ).mean()
+        < np.abs(
+            detail.factor(nearby, np.full(len(points), finest / 4.1, np.float32)) - sharp
+        ).mean()
+    )
+
+
+def test_detail_moves_with_its_object_and_stays_with_the_room():
+    # The same scene moved by an offset (object, camera, light): the object's pixels are the
+    # same (its detail is fixed to the object), the room's are not (its detail is fixed to
+    # the world, which did not move).
+    camera_center = np.array([3.0, 1.5, 2.0])
+    offset = np.array([0.37, 0.11, 0.23])
+    room_materials = tuple(_detailed(_plain((0.5, 0.6, 0.4))) for _ in range(6))
+    obj = dataclasses.replace(
+        _shape("box", camera_center + [0.0, 0.0, 3.0], [0.8, 0.6, 0.5]),
+        material=_detailed(_plain((0.7, 0.3, 0.2))),
+    )
+
+    def render(shift):
+        scene = dataclasses.replace(
+            _room_with([dataclasses.replace(obj, center=obj.center + shift)]),
+            room_materials=room_materials,
+            light_position=np.array([3.0, 2.9, 5.0], np.float32) + shift,
+        )
+        image, _, surface = raycast.render_view(
+            scene, _forward_camera(camera_center + shift), 49, 65
+        )
+        return image.astype(np.float32), surface
+
+    image, surface = render(np.zeros(3))
+    moved, moved_surface = render(offset)
+    on_object = surface == raycast.ROOM_SURFACES
+    np.testing.assert_array_equal(on_object, moved_surface == raycast.ROOM_SURFACES)
+    assert on_object.mean() > 0.2 and (~on_object).mean() > 0.2
+    assert image[on_object].std() > 5.0  # the plain box has a pattern
+    assert np.abs(moved - image)[on_object].max() <= 1.0  # rounding only
+    assert np.abs(moved - image)[~on_object].mean() > 5.0
+
+
+def test_surface_detail_adds_nothing_to_the_scene_draws():
+    settings = scenes.SceneSettings(height=HEIGHT, width=WIDTH)
+    plain = dataclasses.replace(settings, surface_detail=False)
+    detailed_pair = scenes.sample_pair(np.random.default_rng(3), settings)
+    plain_pair = scenes.sample_pair(np.random.default_rng(3), plain)
+    (scene, camera1, camera2, image1, depth1, surface1) = detailed_pair
+    (scene_p, camera1_p, camera2_p, image1_p, depth1_p, surface1_p) = plain_pair
+    np.testing.assert_array_equal(depth1, depth1_p)
+    np.testing.assert_array_equal(surface1, surface1_p)
+    np.testing.assert_array_equal(camera2.rotation, camera2_p.rotation)
+    np.testing.assert_array_equal(camera2.translation, camera2_p.translation)
+    assert all(m.detail is not None for m in scene.room_materials)
+    assert all(m.detail is None for m in scene_p.room_materials)
+    assert not np.array_equal(image1, image1_p)
+
+
+def test_texture_kinds_name_each_pixels_material():
+    for example, scene, camera1, _ in rendered_pairs():
+        _, _, surface = raycast.render_view(scene, camera1, HEIGHT, WIDTH)
+        kinds = raycast.texture_kinds(scene, surface)
+        np.testing.assert_array_equal(kinds, example["texture_kind1"])
+        materials = scene.room_materials + tuple(obj.material for obj in scene.objects)
+        row, col = np.unravel_index(np.argmax(surface), surface.shape)
+        assert raycast.TEXTURES[kinds[row, col]] == materials[surface[row, col]].kind

@@ -47,7 +47,7 @@ def test_varying_intrinsics_keep_the_scene_and_the_motion_of_the_nominal_pair():
             scenes.sample_pair(renderer.example_rng(0, "train", index), settings)
             for settings in (nominal, varying)
         ]
-        (scene, camera1, camera2, _, _), (scene_v, camera1_v, camera2_v, _, _) = pairs
+        (scene, camera1, camera2, *_), (scene_v, camera1_v, camera2_v, *_) = pairs
         assert scene.room_size.tolist() == scene_v.room_size.tolist()
         assert [o.center.tolist() for o in scene.objects] == [
             o.center.tolist() for o in scene_v.objects
