@@ -2,6 +2,7 @@
 the rows not run yet, and the figures."""
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -728,6 +729,39 @@ def test_a_discussion_number_that_would_not_follow_the_results_is_an_error(tmp_p
         _write(tmp_path, results)
     # Nothing is written.
     assert [p.name for p in (tmp_path / "report").iterdir()] == [paper_report.DISCUSSION]
+
+
+@pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
+def test_the_committed_reports_were_made_at_a_clean_commit(report_dir):
+    """A report made at a clean commit reports no result of uncommitted code."""
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[2] / report_dir / "README.md").read_text()
+    made = re.search(r"^Made by `[^`]*` at commit (\S+);", readme, flags=re.MULTILINE)
+    assert made and not made.group(1).endswith(paper_report.UNCOMMITTED), made
+
+
+@pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
+def test_the_committed_discussions_agree_with_their_results(report_dir):
+    """Each discussion of the repository's reports fills in from the results beside it,
+    and the README there carries it as the report writes it now."""
+    import json
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / report_dir
+    results = {}
+    for path in (root / "results").glob("*.json"):
+        result = json.loads(path.read_text())
+        results[result["task"]] = result
+    scale = SUITES["cpu" if report_dir == "report" else "cpu_full"]
+    report = paper_report.Report(scale, results, root / "results")
+    discussion = paper_report.read_discussion(root / paper_report.DISCUSSION)
+    filled = report.fill_discussion(discussion, root / paper_report.DISCUSSION)
+    readme = (root / "README.md").read_text()
+    shown = re.findall(r"^\*\*.*\*\* \(`(\w+)`\)\. (.*)$", readme, flags=re.MULTILINE)
+    assert shown, "the README shows no discussion"
+    for key, paragraph in shown:
+        assert paragraph == filled[key].split("\n")[0], key
 
 
 def test_the_flow_experiments_prose_comes_from_the_suite_and_its_runs(tmp_path):
