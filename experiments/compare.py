@@ -12,8 +12,9 @@ flow, and writes <workdir>/compare/:
                 Abs-Inv as a multiple of the dataset mean's, the protocol stamp, and each
                 method's parameters, training and failures;
   results.json  the same numbers (every per-example metric's mean, std and count).
-The references, the dataset mean and the per-pair oracle constant (which sees the
-truth), are in every comparison, listed in `--classical` or not.
+The references, the dataset mean, the per-pair oracle constant (which sees the truth)
+and sfm_flow (the classical pipeline on the same flow: essential matrix + triangulation,
+no training), are in every comparison, listed in `--classical` or not.
 """
 
 from __future__ import annotations
@@ -32,8 +33,6 @@ FLAGS = flags.FLAGS
 
 LEARNED_DEFAULT = ["global_local", "eigen", "dispnet", "fcrn", "small_encdec"]
 CLASSICAL_DEFAULT = ["dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow"]
-# Evaluated in every comparison, whatever `--classical` says: a table carries its references.
-REFERENCES = ["dataset_mean", "oracle_pair_median"]
 
 flags.DEFINE_string("workdir", "runs/compare", "Holds one run per model and compare/.")
 flags.DEFINE_list("models", LEARNED_DEFAULT, "Learned models to train and compare.")
@@ -78,8 +77,9 @@ def run_comparison(
       workdir: <workdir>/<model> holds each model's run, <workdir>/compare the results.
       builder: the dataset's TFDS builder (built).
       models: names in gld.model.MODELS.
-      classical_methods: names in gld.baselines.CLASSICAL; the REFERENCES are evaluated
-        (first among them) whether listed or not.
+      classical_methods: names in gld.baselines.CLASSICAL; the references of every
+        evaluation (`gld.evaluation.REFERENCES`) are evaluated, first among them, whether
+        listed or not: a table carries its references.
       train_config: gld.config.TrainConfig fields shared by every model (budget, seed,
         loss weights, supervision, flow, ...); `model`, dataset and size are set here.
       split: the evaluation split.
@@ -103,7 +103,8 @@ def run_comparison(
     for name in classical_methods:
         if name not in CLASSICAL:
             raise ValueError(f"unknown classical method {name!r}; valid: {sorted(CLASSICAL)}")
-    classical_methods = [*REFERENCES, *(m for m in classical_methods if m not in REFERENCES)]
+    references = list(evaluation.REFERENCES)
+    classical_methods = [*references, *(m for m in classical_methods if m not in references)]
     workdir = Path(workdir)
     height, width = common.dataset_resolution(builder)
     train_source = common.data_source(builder, "train")

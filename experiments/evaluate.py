@@ -27,8 +27,11 @@ a folder holding an evaluation of something else is refused. Each holds metrics.
 table.md (mean ± std per metric, Abs-Inv as a multiple of the dataset mean's, protocol
 stamp), per_example_<method>.csv and figures/ (image 1, ground truth, prediction,
 error, the supervised pixel circled; one colour scale for all). The references (the
-dataset mean and the per-pair oracle constant, which sees the truth) are evaluated
-alongside on the same examples.
+dataset mean, the per-pair oracle constant, which sees the truth, and sfm_flow, the
+classical pipeline: pose from the essential matrix of the flow, then triangulation, no
+training) are evaluated alongside on the same examples with the same flow; --nodataset_mean,
+--nooracle and --nosfm_flow leave one out. A folder holding the same evaluation is
+rewritten with this run's rows.
 """
 
 from __future__ import annotations
@@ -83,6 +86,12 @@ flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 =
 flags.DEFINE_bool("dataset_mean", True, "Also evaluate the dataset-mean baseline.")
 flags.DEFINE_bool(
     "oracle", True, "Also evaluate the per-pair oracle constant (each pair's median truth)."
+)
+flags.DEFINE_bool(
+    "sfm_flow",
+    True,
+    "Also evaluate the classical pipeline on the same flow (essential matrix + "
+    "triangulation, no training).",
 )
 flags.DEFINE_integer("step", None, "Checkpoint step to evaluate (default: latest).")
 common.define_data_flags(default_dataset=None)
@@ -146,8 +155,14 @@ def main(argv):
             f"--method=dataset_mean is fitted on the train split, which "
             f"{builder.info.full_name} lacks"
         )
-    elif FLAGS.dataset_mean:
-        print(f"{builder.info.full_name} has no training split: no dataset-mean row")
+    else:
+        if FLAGS.dataset_mean:
+            print(f"{builder.info.full_name} has no training split: no dataset-mean row")
+        if FLAGS.sfm_flow or FLAGS.method == "sfm_flow":
+            print(
+                f"{builder.info.full_name} has no training split: sfm_flow's failed pairs "
+                f"are predicted as a fixed inverse depth, not the training mean"
+            )
     evaluation.evaluate_workdir(
         FLAGS.workdir,
         common.data_source(builder, FLAGS.split),
@@ -158,8 +173,9 @@ def main(argv):
         split=FLAGS.split,
         print_fn=print,
         num_figures=FLAGS.num_figures,
-        with_dataset_mean=FLAGS.dataset_mean and FLAGS.method != "dataset_mean",
+        with_dataset_mean=FLAGS.dataset_mean,
         with_oracle=FLAGS.oracle,
+        with_sfm_flow=FLAGS.sfm_flow,
         batch_size=FLAGS.batch_size,
         max_examples=FLAGS.max_examples,
         step=FLAGS.step,

@@ -2,7 +2,9 @@ r"""Trains a depth model and evaluates it: `python -m experiments.train [--flagf
 
 With no flags this is the demo: it builds the embedded benchmark `gld_scenes/small` on
 first use, trains the global-local model with ONE supervised pixel per image, evaluates
-it and the dataset-mean baseline on the test split and leaves everything in runs/demo.
+it with its references (the dataset mean, the per-pair oracle constant and sfm_flow, the
+classical pipeline on the same flow) on the test split, prints the table and leaves
+everything in runs/demo.
 Re-running the same command resumes from the last checkpoint.
 """
 

@@ -7,8 +7,9 @@ one loop, and score with `score_batch`, the one rule for which rows count. Train
 periodic evaluation, `experiments.evaluate`, `experiments.compare` and
 `experiments.inspect_filters` read splits through `split_batches`. `evaluate_workdir`
 evaluates a trained workdir (or a classical method, or depth maps another system stored,
-`gld.stored_predictions`) with its references on the same examples: the dataset mean and
-the per-pair oracle constant (`gld.reports` writes it).
+`gld.stored_predictions`) with its `REFERENCES` on the same examples and the same flow:
+the dataset mean, the per-pair oracle constant and the classical pipeline (essential
+matrix from the flow + triangulation) (`gld.reports` writes it).
 
 The ground truth is the records' (`score_batch`) unless a `Truth` is given: then each
 example is scored against the truth it looks up by id, at that truth's resolution, the
@@ -35,6 +36,11 @@ from gld import workdir as workdir_lib
 
 # The per-pair oracle constant reported next to every method (`classical.OraclePairMedian`).
 ORACLE = "oracle_pair_median"
+# The classical pipeline on the same flow, reported next to every method: pose from the
+# essential matrix of the flow, then triangulation; no training (`classical.SfMFlow`).
+SFM = "sfm_flow"
+# Every evaluation's references, in the order of its rows (after the evaluated method).
+REFERENCES = ("dataset_mean", ORACLE, SFM)
 # The table's name for depth maps another system stored.
 STORED = "stored_predictions"
 
@@ -309,13 +315,19 @@ def summarise_examples(per_example: dict[str, np.ndarray]) -> tuple[dict[str, di
 
 
 def fit_classical(name: str, train_source, flow_source: str = "estimated"):
-    """A classical baseline by name, fitted on the training split when it needs to be."""
+    """A classical baseline by name, fitted on the training split when it needs to be.
+
+    Raises:
+      ValueError: an unknown name, or a method that needs the training split without one.
+    """
     from gld.baselines import classical
 
     if name not in classical.CLASSICAL:
         raise ValueError(f"unknown classical method {name!r}; valid: {sorted(classical.CLASSICAL)}")
     method = classical.CLASSICAL[name]()
     if method.needs_training_data:
+        if train_source is None:
+            raise ValueError(f"{name} is fitted on the training split, and none was given")
         # Only the truth is read: the other fields are neither flipped nor batched.
         fit_keys = ("depth", "depth_valid")
         batches = split_batches(
@@ -329,6 +341,20 @@ def fit_classical(name: str, train_source, flow_source: str = "estimated"):
             {key: batch[key][batch["example_mask"]] for key in fit_keys} for batch in batches
         )
     return method
+
+
+def _fit_reference(name: str, train_source, flow_source: str, fitted: dict[str, Any]):
+    """A reference (or the evaluated classical method), fitted once: the classical
+    pipeline's fallback for failed pairs is the dataset mean's value when that is fitted
+    already (`SfMFlow.fit` computes the same mean), and the fixed
+    `layers.INITIAL_INV_DEPTH` when there is no training split."""
+    from gld.baselines import classical
+
+    if name == SFM and "dataset_mean" in fitted:
+        return classical.SfMFlow(fallback_inv_depth=fitted["dataset_mean"].inv_depth)
+    if name == SFM and train_source is None:
+        return classical.SfMFlow(fallback_inv_depth=layers.INITIAL_INV_DEPTH)
+    return fit_classical(name, train_source, flow_source)
 
 
 def on_truth(predict: Callable[[dict], dict], truth: Truth) -> Callable[[dict], dict]:
@@ -435,6 +461,7 @@ def evaluate_workdir(
     num_figures: int = 8,
     with_dataset_mean: bool = True,
     with_oracle: bool = True,
+    with_sfm_flow: bool = True,
     batch_size: int = 16,
     max_examples: int = 0,
     step: int | None = None,
@@ -447,11 +474,18 @@ def evaluate_workdir(
     """Evaluates a workdir's trained model (or a classical method, or stored predictions)
     on `source`.
 
-    Writes <workdir>/eval (`gld.reports`). The references are
-    evaluated alongside on the same examples with the same flow, when asked: the dataset
-    mean (fitted on `train_source`, so only when it is given) and the per-pair oracle
-    constant, with the workdir's flow unless `flow_source` is given. Rows: the method
-    (`STORED` for `predictions`), then dataset_mean, then oracle_pair_median.
+    Writes <workdir>/eval (`gld.reports`). The `REFERENCES` are evaluated alongside on
+    the same examples with the same flow (the workdir's unless `flow_source` is given),
+    each when asked and unless it is the evaluated method itself: the dataset mean
+    (fitted on `train_source`, so only when it is given), the per-pair oracle constant
+    and the classical pipeline `sfm_flow` (pose and depth from the flow alone; its
+    failed pairs fall back to the dataset mean, or to `layers.INITIAL_INV_DEPTH` without
+    `train_source`, which metrics.json records). Rows: the method (`STORED` for
+    `predictions`), then dataset_mean, oracle_pair_median, sfm_flow. The references are
+    host-side methods: process 0 evaluates them, on every example.
+
+    A folder already holding this evaluation (same `EVALUATION_IDENTITY`, whatever its
+    references) is rewritten with this run's rows only (`reports.write_report`).
 
     Every method is scored against the records' ground truth at (height, width), or,
     with `truth`, against the truth it looks up by id (`score_against_truth`; stored
@@ -464,6 +498,7 @@ def evaluate_workdir(
         evaluated or written.
     """
     results = {}
+    fitted: dict[str, Any] = {}
     examples_count = min(max_examples, len(source)) if max_examples else len(source)
     info = {"dataset": dataset, "split": split, "examples": examples_count}
     protocol_note = ""
@@ -498,7 +533,8 @@ def evaluate_workdir(
             protocol_note = predictions.protocol_note()
             info.update(predictions.summary())
         else:
-            method = fit_classical(classical_method, train_source, flow_source)
+            method = _fit_reference(classical_method, train_source, flow_source, fitted)
+            fitted[classical_method] = method
             name = classical_method
         out_dir = evaluation_dir(
             workdir,
@@ -561,23 +597,31 @@ def evaluate_workdir(
             flow_source=flow_source,
             step=int(restored_step),
         )
-    references = []
-    if with_dataset_mean and train_source is not None:
-        references.append("dataset_mean")
-    if with_oracle and classical_method != ORACLE:
-        references.append(ORACLE)
+    wanted = {
+        "dataset_mean": with_dataset_mean and train_source is not None,
+        ORACLE: with_oracle,
+        SFM: with_sfm_flow,
+    }
+    references = [name for name in REFERENCES if wanted[name] and name != info["model"]]
     for reference in references if jax.process_index() == 0 else []:
-        fitted = fit_classical(reference, train_source, flow_source)
+        fitted[reference] = _fit_reference(reference, train_source, flow_source, fitted)
         results[reference] = evaluate_predictor(
-            host_predictor(reference, fitted.predict),
+            host_predictor(reference, fitted[reference].predict),
             source,
             batch_size=batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
             truth=truth,
         )
-        if reference == "dataset_mean":
-            info["dataset_mean_inv_depth"] = fitted.inv_depth
+    if "dataset_mean" in results:
+        info["dataset_mean_inv_depth"] = fitted["dataset_mean"].inv_depth
+    if SFM in results:
+        info["sfm_flow_fallback_inv_depth"] = fitted[SFM].fallback_inv_depth
+        info["sfm_flow_fallback"] = (
+            "the training split's mean inverse depth"
+            if train_source is not None
+            else "a fixed constant (no training split)"
+        )
     if jax.process_index() != 0:
         return {}
     report = reports.write_report(

@@ -1,9 +1,11 @@
 """Evaluation reports: metrics.json, table.md, per-example CSVs and example figures.
 
 `write_report` writes the numbers of several methods evaluated on the same examples
-(`gld.evaluation`), with the references' labels, each method's Abs-Inv as a multiple
-of the dataset mean's and the pixels its predictions had excluded; `render_examples`
-draws image, truth, prediction and error with one colour scale for all.
+(`gld.evaluation`), with the references' labels (the oracle sees the truth; the
+classical pipeline runs on the same flow, with no training), each method's Abs-Inv as a
+multiple of the dataset mean's, the pixels its predictions had excluded and the pairs a
+method failed on; `render_examples` draws image, truth, prediction and error with one
+colour scale for all.
 """
 
 from __future__ import annotations
@@ -53,11 +55,16 @@ def write_report(
 ) -> dict[str, Any]:
     """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
 
-    Methods appear in the order of `results`; references that see the ground truth are
-    labelled (`gld.baselines.classical.LABELS`) in the table and in metrics.json, which
-    also holds each method's Abs-Inv as a multiple of the dataset mean's when the
-    dataset mean is among the methods, and the pixels each method's predictions had
-    excluded (`metrics.excluded_pixels`; table.md says so under the table).
+    Methods appear in the order of `results`; the references are labelled
+    (`gld.baselines.classical.LABELS`: the oracle sees the ground truth, the classical
+    pipeline is untrained) in the table and in metrics.json, which also holds each
+    method's Abs-Inv as a multiple of the dataset mean's when the dataset mean is among
+    the methods, and the pixels each method's predictions had excluded
+    (`metrics.excluded_pixels`). Under the table, table.md says which pixels were
+    excluded and, for a method with a per-example "failed" value (the classical
+    pipeline), on how many pairs it failed. A per_example_<method>.csv of a method not
+    in `results` (left by an earlier evaluation in `out_dir`) is removed, so that the
+    folder holds the rows of one evaluation only.
 
     Args:
       out_dir: the directory (created).
@@ -75,6 +82,9 @@ def write_report(
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.glob("per_example_*.csv"):
+        if stale.stem.removeprefix("per_example_") not in results:
+            stale.unlink()
     summaries = {}
     num_examples = 0
     for method, (per_example, ids) in results.items():
@@ -111,8 +121,26 @@ def write_report(
     }
     (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
     table = metrics.markdown_table(summaries.items(), stamp, labels=labels)
+    failures = failure_note(summaries)
+    if failures:
+        table += f"\n{failures}\n"
     (out_dir / "table.md").write_text(table)
     return report
+
+
+def failure_note(summaries: dict[str, dict[str, dict]]) -> str:
+    """One line giving, for each method with a per-example "failed" value (1 where the
+    method gave up on a pair and predicted its fallback constant), its failed pairs ("" if
+    no method has one)."""
+    parts = [
+        f"{method} {round(summary['failed']['mean'] * summary['failed']['count'])} of "
+        f"{summary['failed']['count']}"
+        for method, summary in summaries.items()
+        if summary.get("failed", {}).get("count")
+    ]
+    if not parts:
+        return ""
+    return "Failed pairs (predicted as the method's fallback constant): " + "; ".join(parts) + "."
 
 
 def render_examples(

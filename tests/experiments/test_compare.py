@@ -8,6 +8,10 @@ import sys
 import pytest
 from conftest import REPO_ROOT, run_python
 
+REFERENCES = ["dataset_mean", "oracle_pair_median", "sfm_flow"]
+ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
+SFM_ROW = "| sfm_flow — classical pipeline on the same flow (no training) |"
+
 
 def _run_compare(data_dir, workdir, *flags):
     """Runs `experiments.compare` on gld_scenes/tiny with true flow; asserts it succeeds."""
@@ -50,10 +54,10 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
     first = launch()
     assert "small_encdec: training 2 steps" in first.stdout
     table = (workdir / "compare" / "table.md").read_text()
-    for row in ("small_encdec", "dataset_mean", "triangulation_gt_pose", "sfm_flow"):
+    for row in ("small_encdec", "dataset_mean", "triangulation_gt_pose"):
         assert f"| {row} |" in table
-    # The oracle is a reference in every comparison, labelled as one, listed or not.
-    assert "| oracle_pair_median — per-pair oracle constant (sees the truth) |" in table
+    # The references are labelled as such, listed or not.
+    assert ORACLE_ROW in table and SFM_ROW in table
     assert "Abs-Inv ÷ dataset_mean" in table
     assert "Abs-Inv" in table and "protocol:" in table and "2 steps at batch 4" in table
     assert "| small_encdec | 384,367 | 2 |" in table
@@ -83,7 +87,7 @@ def test_compare_writes_table_and_reuses_finished_runs(tiny_scenes_dir, tmp_path
     assert "small_encdec: reusing the finished run" in second.stdout
     again = json.loads((workdir / "compare" / "results.json").read_text())
     assert again["methods"]["small_encdec"] == methods["small_encdec"]
-    assert list(again["methods"]) == ["small_encdec", "dataset_mean", "oracle_pair_median"]
+    assert list(again["methods"]) == ["small_encdec", *REFERENCES]
     assert (
         "| small_encdec | 384,367 | 2 | reused |" in (workdir / "compare" / "table.md").read_text()
     )
@@ -95,8 +99,16 @@ def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tm
     _run_compare(tiny_scenes_dir, workdir, "--models=", "--classical=triangulation_gt_pose")
     results = json.loads((workdir / "compare" / "results.json").read_text())
     methods = results["methods"]
-    assert list(methods) == ["dataset_mean", "oracle_pair_median", "triangulation_gt_pose"]
-    assert results["labels"] == {"oracle_pair_median": "per-pair oracle constant (sees the truth)"}
+    assert list(methods) == [*REFERENCES, "triangulation_gt_pose"]
+    assert results["labels"] == {
+        "oracle_pair_median": "per-pair oracle constant (sees the truth)",
+        "sfm_flow": "classical pipeline on the same flow (no training)",
+    }
+    # Every reference is scored on the same examples; the classical pipeline says how
+    # many pairs it failed on, and they stay in its mean.
+    for name, summary in methods.items():
+        assert summary["abs_inv"]["count"] == 16, name
+    assert methods["sfm_flow"]["failed"]["count"] == 16
     ratios = results["abs_inv_vs_dataset_mean"]
     mean = methods["dataset_mean"]["abs_inv"]["mean"]
     for name, summary in methods.items():
@@ -106,11 +118,13 @@ def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tm
     lines = (workdir / "compare" / "table.md").read_text().splitlines()
     assert lines[0].endswith("| Abs-Inv ÷ dataset_mean |")
     assert lines[2].startswith("| dataset_mean |") and lines[2].endswith("| 1.00× |")
-    oracle_row = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
-    assert lines[3].startswith(oracle_row)
+    assert lines[3].startswith(ORACLE_ROW)
     assert lines[3].endswith(f"| {ratios['oracle_pair_median']:.2f}× |")
-    # The runs table names the oracle the same way.
-    assert f"{oracle_row} 0 | 0 | none | — |" in lines
+    assert lines[4].startswith(SFM_ROW) and lines[4].endswith(f"| {ratios['sfm_flow']:.2f}× |")
+    # The runs table names the references the same way.
+    assert f"{ORACLE_ROW} 0 | 0 | none | — |" in lines
+    failed = results["runs"]["sfm_flow"]["failed_pairs"]
+    assert f"{SFM_ROW} 0 | 0 | none | {failed} |" in lines
 
 
 def test_compare_flagfiles_parse_with_the_compare_flags():

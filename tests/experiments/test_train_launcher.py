@@ -65,14 +65,23 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
         "6",
     ]
     report = json.loads((workdir / "eval" / "metrics.json").read_text())
-    assert list(report["methods"]) == ["global_local", "dataset_mean", "oracle_pair_median"]
-    assert report["methods"]["global_local"]["abs_inv"]["count"] == 16
-    assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 16
+    # The final table carries the references, on the same 16 pairs and the same flow.
+    methods = ["global_local", "dataset_mean", "oracle_pair_median", "sfm_flow"]
+    assert list(report["methods"]) == methods
+    for name in methods:
+        assert report["methods"][name]["abs_inv"]["count"] == 16, name
+    assert report["flow_source"] == "estimated"
     assert report["abs_inv_vs_dataset_mean"]["dataset_mean"] == 1.0
     assert "||t|| = 1" in report["protocol"] and report["step"] == 6
     table = (workdir / "eval" / "table.md").read_text()
     assert "| global_local |" in table and "| dataset_mean |" in table
     assert "| oracle_pair_median — per-pair oracle constant (sees the truth) |" in table
+    (sfm_row,) = [
+        line
+        for line in table.splitlines()
+        if line.startswith("| sfm_flow — classical pipeline on the same flow (no training) |")
+    ]
+    assert sfm_row.endswith(f"| {report['abs_inv_vs_dataset_mean']['sfm_flow']:.2f}× |")
     assert "Abs-Inv ÷ dataset_mean" in table
     rows = (workdir / "eval" / "per_example_global_local.csv").read_text().splitlines()
     assert rows[0].startswith("id,") and len(rows) == 17
@@ -264,11 +273,13 @@ def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
             f"--workdir={workdir}",
             "--flow_source=gt",
             "--num_figures=1",
+            "--nosfm_flow",
         ],
         tiny_scenes_dir,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((workdir / "eval_flow-gt" / "metrics.json").read_text())
+    assert list(report["methods"]) == [method, "dataset_mean", "oracle_pair_median"]
     exact = report["methods"][method]["abs_inv"]["mean"]
     mean_baseline = report["methods"]["dataset_mean"]["abs_inv"]["mean"]
     # ground-truth flow and pose: triangulation is near exact, far better than the mean
@@ -291,7 +302,12 @@ def test_evaluate_scores_stored_predictions_and_refuses_a_folder_missing_one(
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((workdir / "eval" / "metrics.json").read_text())
-    assert list(report["methods"]) == ["stored_predictions", "dataset_mean", "oracle_pair_median"]
+    assert list(report["methods"]) == [
+        "stored_predictions",
+        "dataset_mean",
+        "oracle_pair_median",
+        "sfm_flow",
+    ]
     assert report["methods"]["stored_predictions"]["abs_inv"]["mean"] == 0.0
     assert report["methods"]["dataset_mean"]["abs_inv"]["mean"] > 0.01
     assert "| stored_predictions | 0.0000 ± 0.0000 |" in result.stdout
@@ -371,6 +387,10 @@ def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
     assert oracle.returncode == 0, oracle.stderr[-3000:]
     report = json.loads((tmp_path / "oracle" / "eval" / "metrics.json").read_text())
     assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 2
+    # No training split: the classical pipeline's failed pairs fall back to a fixed constant.
+    assert report["methods"]["sfm_flow"]["abs_inv"]["count"] == 2
+    assert report["sfm_flow_fallback"] == "a fixed constant (no training split)"
+    assert "no training split: no dataset-mean row" in oracle.stdout
     mean = launch(["experiments.evaluate", "--method=dataset_mean"], test_only, tmp_path / "mean")
     assert mean.returncode != 0
     assert "--method=dataset_mean is fitted on the train split" in mean.stderr

@@ -10,12 +10,15 @@ import numpy as np
 import pytest
 from conftest import run_python, tiny_train_config
 
-from gld import evaluation, input_pipeline, records, stored_predictions
+from gld import evaluation, input_pipeline, layers, records, stored_predictions
 from gld import model as model_lib
 from gld import state as state_lib
 from gld import workdir as workdir_lib
+from gld.baselines import classical
 
 ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
+SFM_ROW = "| sfm_flow — classical pipeline on the same flow (no training) |"
+REFERENCES = ["dataset_mean", "oracle_pair_median", "sfm_flow"]
 
 
 def _oracle_abs_inv_by_hand(source) -> list[float]:
@@ -31,7 +34,7 @@ def _oracle_abs_inv_by_hand(source) -> list[float]:
     return errors
 
 
-def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tiny_scenes, tmp_path):
+def test_a_classical_method_is_reported_with_the_references(tiny_scenes, tmp_path):
     source = tiny_scenes.as_data_source("test")
     printed = []
     report = evaluation.evaluate_workdir(
@@ -46,9 +49,13 @@ def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tin
         print_fn=printed.append,
     )
     methods = report["methods"]
-    assert list(methods) == ["triangulation_gt_pose", "dataset_mean", "oracle_pair_median"]
+    assert list(methods) == ["triangulation_gt_pose", *REFERENCES]
     for name, summary in methods.items():
         assert summary["abs_inv"]["count"] == 16, name
+    # The classical pipeline runs on the same (true) flow, which fixes the pose: it is
+    # near exact, far from what it gets from the estimated flow.
+    assert methods["sfm_flow"]["abs_inv"]["mean"] < 0.1 * methods["dataset_mean"]["abs_inv"]["mean"]
+    assert report["sfm_flow_fallback_inv_depth"] == report["dataset_mean_inv_depth"]
 
     # The oracle is each pair's median truth: its per-pair errors follow by hand.
     with (tmp_path / "eval_flow-gt" / "per_example_oracle_pair_median.csv").open() as stream:
@@ -62,6 +69,7 @@ def test_a_classical_method_is_reported_with_the_dataset_mean_and_the_oracle(tin
     table = (tmp_path / "eval_flow-gt" / "table.md").read_text()
     assert printed == [table]
     assert ORACLE_ROW in table and "| dataset_mean |" in table and "1.00×" in table
+    assert SFM_ROW in table and "Failed pairs (predicted as the method's fallback" in table
 
 
 def test_the_oracle_alone_is_evaluated_once(tiny_scenes, tmp_path):
@@ -75,11 +83,16 @@ def test_the_oracle_alone_is_evaluated_once(tiny_scenes, tmp_path):
         max_examples=4,
         print_fn=lambda _: None,
     )
-    # No training split given: no dataset mean, hence no ratio column.
-    assert list(report["methods"]) == ["oracle_pair_median"]
-    assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 4
+    # No training split given: no dataset mean, hence no ratio column; the classical
+    # pipeline's failed pairs fall back to a fixed constant, which metrics.json says.
+    assert list(report["methods"]) == ["oracle_pair_median", "sfm_flow"]
+    for summary in report["methods"].values():
+        assert summary["abs_inv"]["count"] == 4
     assert report["abs_inv_vs_dataset_mean"] == {}
-    assert ORACLE_ROW in (tmp_path / "eval_first4" / "table.md").read_text()
+    assert report["sfm_flow_fallback"] == "a fixed constant (no training split)"
+    assert report["sfm_flow_fallback_inv_depth"] == layers.INITIAL_INV_DEPTH
+    table = (tmp_path / "eval_first4" / "table.md").read_text()
+    assert ORACLE_ROW in table and SFM_ROW in table
 
 
 @pytest.fixture
@@ -105,7 +118,7 @@ def untrained_workdir(tiny_scenes, tmp_path):
     return workdir
 
 
-def test_a_model_is_reported_with_the_dataset_mean_and_the_oracle(tiny_scenes, untrained_workdir):
+def test_a_model_is_reported_with_the_references(tiny_scenes, untrained_workdir):
     report = evaluation.evaluate_workdir(
         untrained_workdir,
         tiny_scenes.as_data_source("test"),
@@ -115,18 +128,104 @@ def test_a_model_is_reported_with_the_dataset_mean_and_the_oracle(tiny_scenes, u
         num_figures=0,
         print_fn=lambda _: None,
     )
-    assert list(report["methods"]) == ["global_local", "dataset_mean", "oracle_pair_median"]
+    assert list(report["methods"]) == ["global_local", *REFERENCES]
     assert report["step"] == 0
     ratios = report["abs_inv_vs_dataset_mean"]
     assert set(ratios) == set(report["methods"]) and ratios["dataset_mean"] == 1.0
     means = {name: summary["abs_inv"]["mean"] for name, summary in report["methods"].items()}
-    for name in ("global_local", "oracle_pair_median"):
+    for name in ("global_local", "oracle_pair_median", "sfm_flow"):
         assert ratios[name] == pytest.approx(means[name] / means["dataset_mean"]), name
-    assert report["methods"]["global_local"]["abs_inv"]["count"] == 16
+    for name, summary in report["methods"].items():
+        assert summary["abs_inv"]["count"] == 16, name
+    assert report["labels"]["sfm_flow"] == "classical pipeline on the same flow (no training)"
     lines = (untrained_workdir / "eval" / "table.md").read_text().splitlines()
     assert lines[2].startswith("| global_local |")
     assert lines[2].endswith(f"| {ratios['global_local']:.2f}× |")
     assert lines[4].startswith(ORACLE_ROW)
+    assert lines[5].startswith(SFM_ROW) and lines[5].endswith(f"| {ratios['sfm_flow']:.2f}× |")
+    failed = report["methods"]["sfm_flow"]["failed"]
+    assert f"sfm_flow {round(failed['mean'] * 16)} of 16." in lines[-1]
+
+
+def _ids_and_abs_inv(path: Path) -> dict[str, float]:
+    with path.open() as stream:
+        return {row["id"]: float(row["abs_inv"]) for row in csv.DictReader(stream)}
+
+
+@pytest.mark.parametrize("flow_source", ["gt", "estimated"])
+def test_the_classical_pipeline_sees_the_examples_and_the_flow_of_the_model(
+    tiny_scenes, untrained_workdir, flow_source
+):
+    source, train_source = (tiny_scenes.as_data_source(split) for split in ("test", "train"))
+    report = evaluation.evaluate_workdir(
+        untrained_workdir,
+        source,
+        train_source=train_source,
+        height=48,
+        width=64,
+        num_figures=0,
+        max_examples=6,
+        flow_source=flow_source,
+        with_dataset_mean=False,
+        with_oracle=False,
+        print_fn=lambda _: None,
+    )
+    assert list(report["methods"]) == ["global_local", "sfm_flow"]
+    assert report["flow_source"] == flow_source
+    # Without the dataset-mean row, the classical pipeline still falls back to its value.
+    mean = evaluation.fit_classical("dataset_mean", train_source).inv_depth
+    assert report["sfm_flow_fallback_inv_depth"] == mean
+    folder = evaluation.evaluation_dir(
+        untrained_workdir, max_examples=6, flow_source=None if flow_source == "estimated" else "gt"
+    )
+    model_rows = _ids_and_abs_inv(folder / "per_example_global_local.csv")
+    sfm_rows = _ids_and_abs_inv(folder / "per_example_sfm_flow.csv")
+    assert list(sfm_rows) == list(model_rows) and len(model_rows) == 6
+    # Scored as SfMFlow on this flow scores, not as on the other one.
+    expected = {}
+    for flow in ("gt", "estimated"):
+        method = classical.SfMFlow(fallback_inv_depth=mean)
+        per_example, ids = evaluation.evaluate_predictor(
+            method.predict, source, max_examples=6, flow_source=flow
+        )
+        expected[flow] = dict(zip(ids[:6], per_example["abs_inv"][:6], strict=True))
+    assert sfm_rows == pytest.approx(expected[flow_source], rel=1e-5)
+    other = "estimated" if flow_source == "gt" else "gt"
+    assert sfm_rows != pytest.approx(expected[other], rel=1e-3)
+
+
+def test_an_evaluation_without_the_classical_row_is_rewritten_with_it(
+    tiny_scenes, untrained_workdir
+):
+    def evaluate(**references):
+        return evaluation.evaluate_workdir(
+            untrained_workdir,
+            tiny_scenes.as_data_source("test"),
+            height=48,
+            width=64,
+            num_figures=0,
+            max_examples=3,
+            print_fn=lambda _: None,
+            **references,
+        )
+
+    folder = untrained_workdir / "eval_first3"
+    # As written before the classical pipeline was a reference: no sfm_flow row.
+    before = evaluate(with_sfm_flow=False)
+    assert list(before["methods"]) == ["global_local", "oracle_pair_median"]
+    assert "sfm_flow_fallback" not in before
+    # The same evaluation again is not refused: it is rewritten, the new row included.
+    after = evaluate()
+    assert list(after["methods"]) == ["global_local", "oracle_pair_median", "sfm_flow"]
+    assert after["methods"]["global_local"] == before["methods"]["global_local"]
+    assert SFM_ROW in (folder / "table.md").read_text()
+    assert (folder / "per_example_sfm_flow.csv").exists()
+    # Asked without it again, no file of the row is left behind to be mixed in.
+    evaluate(with_sfm_flow=False, with_oracle=False)
+    assert sorted(path.name for path in folder.glob("per_example_*.csv")) == [
+        "per_example_global_local.csv"
+    ]
+    assert json.loads((folder / "metrics.json").read_text())["methods"].keys() == {"global_local"}
 
 
 def test_a_learned_model_and_a_host_predictor_go_through_the_same_loop(
@@ -267,7 +366,7 @@ def test_stored_predictions_are_scored_with_the_references(tiny_scenes, tmp_path
         predictions=stored_predictions.StoredPredictions(folder),
         print_fn=lambda _: None,
     )
-    assert list(report["methods"]) == ["stored_predictions", "dataset_mean", "oracle_pair_median"]
+    assert list(report["methods"]) == ["stored_predictions", *REFERENCES]
     stored = report["methods"]["stored_predictions"]
     assert stored["abs_inv"] == {"mean": 0.0, "std": 0.0, "count": 16}
     assert stored["abs_rel"]["mean"] == 0.0 and stored["excluded_pixels"]["mean"] == 0.0
@@ -423,3 +522,26 @@ def test_any_evaluation_batch_size_runs_on_any_number_of_devices(tiny_scenes_dir
     result = run_python(THREE_DEVICE_SCRIPT, str(tiny_scenes_dir), device_count=3)
     counted = json.loads(result.stdout.strip().splitlines()[-1])
     assert counted == {"rows": 18, "examples": 16, "ids": 16}
+
+
+THREE_DEVICE_WORKDIR_SCRIPT = """
+import json, sys
+import data
+from gld import evaluation
+builder = data.get_builder("gld_scenes/tiny", sys.argv[1])
+report = evaluation.evaluate_workdir(
+    sys.argv[2], builder.as_data_source("test"), train_source=builder.as_data_source("train"),
+    height=48, width=64, num_figures=0, batch_size=4, print_fn=lambda _: None)
+print(json.dumps({name: s["abs_inv"]["count"] for name, s in report["methods"].items()}))
+"""
+
+
+@pytest.mark.slow
+def test_the_references_count_the_examples_the_devices_count(tiny_scenes_dir, untrained_workdir):
+    # On 3 devices the model's batches are padded differently from the host-side
+    # references'; every row is still over the same 16 pairs.
+    result = run_python(
+        THREE_DEVICE_WORKDIR_SCRIPT, str(tiny_scenes_dir), str(untrained_workdir), device_count=3
+    )
+    counts = json.loads(result.stdout.strip().splitlines()[-1])
+    assert counts == {name: 16 for name in ["global_local", *REFERENCES]}

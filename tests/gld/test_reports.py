@@ -10,6 +10,7 @@ import pytest
 from gld import reports
 
 ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
+SFM_ROW = "| sfm_flow — classical pipeline on the same flow (no training) |"
 
 
 def _per_example(abs_inv, mask):
@@ -110,6 +111,29 @@ def test_report_counts_the_pixels_each_method_had_excluded(tmp_path):
         rows = list(csv.DictReader(stream))
     assert [row["abs_inv"] for row in rows] == ["0.02", "0.04", "nan"]
     assert [row["excluded_pixels"] for row in rows] == ["0", "30", "100"]
+
+
+def test_report_counts_failed_pairs_and_keeps_no_row_of_an_earlier_report(tmp_path):
+    mean, mean_ids = _per_example([0.04, 0.04, 9.0], [True, True, False])
+    sfm, sfm_ids = _per_example([0.01, 0.04, 9.0], [True, True, False])
+    # The classical pipeline failed on the second pair (and on the padding row).
+    sfm["failed"] = np.array([0.0, 1.0, 1.0])
+    results = {"dataset_mean": (mean, mean_ids), "sfm_flow": (sfm, sfm_ids)}
+    report = reports.write_report(tmp_path, results, height=48, width=64)
+    assert report["labels"] == {"sfm_flow": "classical pipeline on the same flow (no training)"}
+    assert report["abs_inv_vs_dataset_mean"]["sfm_flow"] == pytest.approx(0.625)
+    lines = (tmp_path / "table.md").read_text().splitlines()
+    assert lines[3].startswith(SFM_ROW) and lines[3].endswith("| 0.62× |")
+    assert lines[-1] == (
+        "Failed pairs (predicted as the method's fallback constant): sfm_flow 1 of 2."
+    )
+
+    # Rewritten without the row: its per-example file goes with it.
+    reports.write_report(tmp_path, {"dataset_mean": (mean, mean_ids)}, height=48, width=64)
+    assert [path.name for path in tmp_path.glob("per_example_*.csv")] == [
+        "per_example_dataset_mean.csv"
+    ]
+    assert "Failed pairs" not in (tmp_path / "table.md").read_text()
 
 
 def test_example_figures_are_written_one_per_example(tmp_path):

@@ -200,9 +200,11 @@ def test_oracle_without_depth_valid_uses_valid_depth_and_falls_back_on_empty_pai
     assert np.all(np.isfinite(outputs["depth"]))
 
 
-def test_oracle_is_labelled_as_seeing_the_truth():
+def test_the_references_are_labelled_as_references():
     assert "oracle" in classical.LABELS["oracle_pair_median"]
     assert "sees the truth" in classical.LABELS["oracle_pair_median"]
+    assert "same flow" in classical.LABELS["sfm_flow"]
+    assert "no training" in classical.LABELS["sfm_flow"]
     assert set(classical.LABELS) <= set(classical.CLASSICAL)
 
 
