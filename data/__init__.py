@@ -68,6 +68,14 @@ def parse_name(dataset: str) -> tuple[str, str]:
     return name, config
 
 
+def version(dataset: str) -> str:
+    """The version a build of `dataset` ('name/config') has with this code, e.g. "2.0.0"
+    (the config's own version, else its builder's)."""
+    name, config = parse_name(dataset)
+    cls = builder_class(name)
+    return str(cls.builder_configs[config].version or cls.VERSION)
+
+
 def get_builder(
     dataset: str, data_dir: str | os.PathLike | None = None, **builder_kwargs
 ) -> tfds.core.GeneratorBasedBuilder:

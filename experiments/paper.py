@@ -82,8 +82,15 @@ def main(argv):
         )
 
     results_dir = Path(FLAGS.results_dir or report_dir / "results")
+    import data as datasets
+
     runner = paper_runner.SuiteRunner(
-        scale, workdir, data, results_dir=results_dir, progress=FLAGS.progress
+        scale,
+        workdir,
+        data,
+        results_dir=results_dir,
+        progress=FLAGS.progress,
+        dataset_version=datasets.version,
     )
     try:
         runner.selected(FLAGS.only)

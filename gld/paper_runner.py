@@ -178,6 +178,9 @@ class SuiteRunner:
       results_dir: where the results go (default: <workdir>/results).
       print_fn: progress messages.
       progress: training progress bars.
+      dataset_version: the version of a dataset by name (e.g. "2.0.0"), which then enters
+        the identity of every task that reads it: a result made on another version of the
+        data is redone, never reused (None leaves versions out of the identities).
     """
 
     def __init__(
@@ -189,8 +192,10 @@ class SuiteRunner:
         results_dir: str | Path | None = None,
         print_fn: Callable[[str], None] = print,
         progress: bool = True,
+        dataset_version: Callable[[str], str] | None = None,
     ):
         self.scale = scale
+        self._dataset_version = dataset_version
         self.workdir = Path(workdir)
         self.results_dir = (
             Path(results_dir) if results_dir is not None else self.workdir / "results"
@@ -206,6 +211,13 @@ class SuiteRunner:
         if dataset not in self._loaded:
             self._loaded[dataset] = self._data(dataset)
         return self._loaded[dataset]
+
+    def _version_of(self, dataset: str) -> dict[str, str]:
+        """{"dataset_version": ...} of a dataset when the runner was told versions: a
+        result of another version of the data is not this suite's (empty otherwise)."""
+        if self._dataset_version is None:
+            return {}
+        return {"dataset_version": self._dataset_version(dataset)}
 
     def run_dir(self, name: str) -> Path:
         return self.workdir / "runs" / name
@@ -273,7 +285,7 @@ class SuiteRunner:
                 config = paper_suite.run_config(
                     self.scale, rated or run, height=0, width=0, flow_net_workdir="<flow_net>"
                 )
-                identity = _config_identity(config)
+                identity = {**_config_identity(config), **self._version_of(config.dataset)}
                 inputs = list(needs)
                 if run.rate_of is not None:
                     # Its rate is its model's compared one: the check's runs come first,
@@ -295,7 +307,8 @@ class SuiteRunner:
             add(
                 f"classical/{dataset.split('/')[-1]}",
                 lambda dataset=dataset: analyses.classical(self, dataset, analyses.CLASSICAL),
-                {"dataset": dataset, "methods": list(analyses.CLASSICAL)},
+                {"dataset": dataset, "methods": list(analyses.CLASSICAL)}
+                | self._version_of(dataset),
                 60,
             )
         probe = {

@@ -378,7 +378,7 @@ def test_a_version_1_build_is_never_read_as_version_2(tiny, tiny_test_split, tmp
     old_files = sorted((path.name, path.read_bytes()) for path in old.iterdir())
 
     builder = data.prepare("gld_scenes/tiny", tmp_path / "data")
-    assert str(builder.version) == "2.0.0" == str(builder_module.Builder.VERSION)
+    assert str(builder.version) == "2.0.0" == data.version("gld_scenes/tiny")
     assert builder.data_path.name == "2.0.0" and builder.data_path != old
     assert "2.0.0" in builder.info.release_notes
     assert sorted((path.name, path.read_bytes()) for path in old.iterdir()) == old_files

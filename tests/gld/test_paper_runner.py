@@ -76,6 +76,37 @@ def test_a_result_is_reused_only_with_the_same_identity(tmp_path):
     assert not runner._done(task) and runner.finished() == {}
 
 
+def test_a_result_made_on_another_version_of_the_data_is_redone(tmp_path):
+    def no_data(dataset):
+        raise AssertionError(f"{dataset} must not be loaded to list tasks")
+
+    def runner(versions):
+        return paper_runner.SuiteRunner(
+            SUITES["cpu"],
+            tmp_path,
+            no_data,
+            print_fn=lambda _: None,
+            dataset_version=versions.__getitem__,
+        )
+
+    old = runner({"gld_scenes/small": "1.0.0", "gld_scenes/small_varying": "1.2.0"})
+    new = runner({"gld_scenes/small": "2.0.0", "gld_scenes/small_varying": "2.0.0"})
+    names = ("classical/small", "classical/small_varying", "train/global_local_1px")
+    old_tasks = {task.name: task for task in old.tasks()}
+    for name in names:
+        path = paper_runner.result_path(tmp_path / "results", name)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"identity": old_tasks[name].identity}))
+    assert set(old.finished()) == set(names)
+    # The training runs and classical methods read the data: none is reused.
+    assert new.finished() == {}
+    new_tasks = {task.name: task for task in new.tasks()}
+    assert new_tasks["train/global_local_1px"].identity["dataset_version"] == "2.0.0"
+    assert new_tasks["classical/small_varying"].identity["dataset_version"] == "2.0.0"
+    # An analysis reads its runs' identities, versions included.
+    assert new_tasks["filters"].identity != old_tasks["filters"].identity
+
+
 def test_the_flow_networks_runs_depend_on_the_flow_network_not_its_path(tmp_path):
     import dataclasses
 
