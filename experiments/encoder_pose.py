@@ -1,6 +1,7 @@
 r"""Trains the global encoder directly on the true relative pose: how fast can it learn it?
 
     python -m experiments.encoder_pose [--encoder_norm=instance] [--nouse_image_pair]
+        [--encoder_coordinates]
         [--steps=600] [--flow_source=gt] [--out=runs/encoder_pose/<name>.json]
 
 A capacity check of the global module, not a depth model (`gld.probes.
@@ -30,6 +31,7 @@ flags.DEFINE_integer("warmup_steps", 50, "Linear warm-up steps.", lower_bound=0)
 flags.DEFINE_integer("seed", 0, "Seed of initialisation and data order.", lower_bound=0)
 flags.DEFINE_enum("encoder_norm", "none", list(ENCODER_NORMS), "Normalisation in the encoder.")
 flags.DEFINE_bool("use_image_pair", True, "Feed the image pair besides the flow.")
+flags.DEFINE_bool("encoder_coordinates", False, "Feed pixel coordinates (x, y) too.")
 flags.DEFINE_float("flow_scale", 10.0, "Factor on the normalised flow.", lower_bound=0)
 flags.DEFINE_string("out", None, "JSON file for the errors (default: not written).")
 flags.DEFINE_enum("flow_source", "gt", list(FLOW_SOURCES), "Which flow the encoder is given.")
@@ -52,6 +54,7 @@ def main(argv):
         steps=FLAGS.steps,
         encoder_norm=FLAGS.encoder_norm,
         use_image_pair=FLAGS.use_image_pair,
+        encoder_coordinates=FLAGS.encoder_coordinates,
         flow_source=FLAGS.flow_source,
         flow_scale=FLAGS.flow_scale,
         batch_size=FLAGS.batch_size,

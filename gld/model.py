@@ -155,6 +155,10 @@ class GlobalLocal(nn.Module):
       encoder_norm: "instance" standardises each hidden channel of the global encoder
         over the image, per example, before its activation; "none" (the paper's) does
         not (`GlobalEncoder`).
+      encoder_coordinates: append x, y in [-1, 1] to the global encoder's input
+        (CoordConv for G). The flow of a rotation or a translation depends on where the
+        pixel is; a conv encoder that pools globally otherwise sees position only
+        through its zero padding. The paper's encoder has none (False).
       global_norm: "batch" standardises each global parameter over the batch (running
         statistics at test time), so that g varies across pairs from the first step
         (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
@@ -180,6 +184,7 @@ class GlobalLocal(nn.Module):
     pose_rotation_error: float = 0.0
     pose_translation_error: float = 0.0
     encoder_norm: str = "none"
+    encoder_coordinates: bool = False
     global_norm: str = "none"
     modulation_scale: float = MODULATION_SCALE
     filter_formulation: str | None = None
@@ -239,10 +244,13 @@ class GlobalLocal(nn.Module):
         else:
             local_inputs = image_pair
             global_inputs = image_pair
+        coordinates = geometry.normalised_coordinates(height, width, jnp)
+        coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
+        coordinates = coordinates.astype(flow.dtype)
         if self.use_coordinates:
-            coordinates = geometry.normalised_coordinates(height, width, jnp)
-            coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
-            local_inputs = jnp.concatenate([local_inputs, coordinates.astype(flow.dtype)], -1)
+            local_inputs = jnp.concatenate([local_inputs, coordinates], -1)
+        if self.encoder_coordinates:
+            global_inputs = jnp.concatenate([global_inputs, coordinates], -1)
 
         bank_kwargs = dict(
             in_channels=self.local_in_channels,
@@ -370,6 +378,7 @@ ARCHITECTURE_FLAGS = {
     "pose_translation_error": "With global_source=pose: the given translation direction's "
     "error, degrees (0-180; fixed per pair and augmented copy).",
     "encoder_norm": "Normalisation inside the global encoder.",
+    "encoder_coordinates": "CoordConv channels (x, y) into the global encoder.",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
     "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
@@ -401,6 +410,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "modulation_scale": 0.2,
         "global_source": "encoder",
         "encoder_norm": "none",
+        "encoder_coordinates": False,
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
     },

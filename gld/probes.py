@@ -319,6 +319,7 @@ ENCODER_OPTIONS = (
     "kernel_size",
     "encoder_norm",
     "use_image_pair",
+    "encoder_coordinates",
     "flow_scale",
 )
 
@@ -341,7 +342,7 @@ def pretrained_global_encoder(model: nn.Module, variables: dict) -> dict[str, An
     Returns:
       {"encoder_channels": tuple[int, ...], "encoder_strides": tuple[int, ...],
        "global_dim": int, "kernel_size": int, "encoder_norm": str,
-       "use_image_pair": bool, "flow_scale": float,
+       "use_image_pair": bool, "encoder_coordinates": bool, "flow_scale": float,
        "encoder_params": the encoder's parameters, variables["params"]["global_encoder"]}:
       `fit_pose_probe(train, test, steps=..., **options)` rebuilds the same encoder and
       feeds it the same inputs, so that its g is the model's. The model's `global_norm`
@@ -378,6 +379,7 @@ def pretrained_global_encoder(model: nn.Module, variables: dict) -> dict[str, An
         "kernel_size": model.kernel_size,
         "encoder_norm": model.encoder_norm,
         "use_image_pair": model.use_image_pair,
+        "encoder_coordinates": model.encoder_coordinates,
         "flow_scale": model.flow_scale,
         "encoder_params": encoder_params,
     }
@@ -413,6 +415,7 @@ def _pose_probe_fitter(
     kernel_size: int = 3,
     encoder_norm: str = "none",
     use_image_pair: bool = True,
+    encoder_coordinates: bool = False,
     flow_scale: float = 10.0,
     flow_source: str = "gt",
     batch_size: int = 16,
@@ -445,7 +448,13 @@ def _pose_probe_fitter(
     def inputs(batch):
         flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
         image1, image2 = batch.get("image1"), batch.get("image2")  # absent without the pair
-        return layers.global_module_inputs(image1, image2, flow, use_image_pair)
+        stacked = layers.global_module_inputs(image1, image2, flow, use_image_pair)
+        if not encoder_coordinates:
+            return stacked
+        batch_size, height, width, _ = flow.shape
+        coordinates = geometry.normalised_coordinates(height, width, jnp).astype(flow.dtype)
+        coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
+        return jnp.concatenate([stacked, coordinates], -1)
 
     def targets(batch):
         rotation = rotation_vector(np.asarray(batch["rotation"])) * scale
@@ -593,8 +602,8 @@ def fit_pose_probe(
         g as it is, as `train_encoder_on_pose` does).
       statistics_batches: training batches the standardisation's statistics come from.
       encoder_channels, encoder_strides, global_dim, kernel_size, encoder_norm,
-        use_image_pair, flow_scale: the encoder and its inputs, as the GlobalLocal
-        options of the same names.
+        use_image_pair, encoder_coordinates, flow_scale: the encoder and its inputs, as
+        the GlobalLocal options of the same names.
       flow_source: the flow the encoder is given ("gt" or "estimated").
       batch_size: training and evaluation batch size.
       learning_rate, warmup_steps: the peak Adam rate and its linear warm-up.
@@ -691,6 +700,7 @@ def train_encoder_on_pose(
     steps: int,
     encoder_norm: str = "none",
     use_image_pair: bool = True,
+    encoder_coordinates: bool = False,
     flow_source: str = "gt",
     flow_scale: float = 10.0,
     batch_size: int = 16,
@@ -718,6 +728,7 @@ def train_encoder_on_pose(
         encoder_channels=encoder_channels,
         encoder_norm=encoder_norm,
         use_image_pair=use_image_pair,
+        encoder_coordinates=encoder_coordinates,
         flow_scale=flow_scale,
         flow_source=flow_source,
         batch_size=batch_size,

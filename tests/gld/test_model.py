@@ -377,3 +377,33 @@ def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnorma
     assert model_lib.complete_stored_config("global_local", {})["encoder_norm"] == "none"
     with pytest.raises(ValueError, match="encoder_norm must be one of"):
         model_lib.check_config("global_local", {"encoder_norm": "layer"})
+
+
+def test_encoder_coordinates_reach_the_global_encoder_alone():
+    from gld import geometry
+
+    image1, image2, flow = _inputs()
+    with_coordinates = model_lib.GlobalLocal(use_image_pair=False, encoder_coordinates=True)
+    variables = with_coordinates.init(jax.random.key(0), image1, image2, flow)
+    # The flow (2 channels) and x, y: the encoder's first kernel reads 4 channels.
+    assert variables["params"]["global_encoder"]["conv0"]["kernel"].shape[2] == 4
+    outputs = with_coordinates.apply(variables, image1, image2, flow)
+    # The encoder's output is its own applied to the flow with the coordinates appended.
+    coordinates = jnp.broadcast_to(
+        geometry.normalised_coordinates(24, 32, jnp), (2, 24, 32, 2)
+    ).astype(jnp.float32)
+    encoder_inputs = jnp.concatenate([layers.normalise_flow(flow) * 10.0, coordinates], -1)
+    expected = model_lib.GlobalEncoder().apply(
+        {"params": variables["params"]["global_encoder"]}, encoder_inputs
+    )
+    np.testing.assert_allclose(outputs["global_params"], expected, rtol=1e-5, atol=1e-7)
+    # The local network's input is unchanged: flow and coordinates.
+    plain = model_lib.GlobalLocal(use_image_pair=False).init(
+        jax.random.key(0), image1, image2, flow
+    )
+    assert plain["params"]["global_encoder"]["conv0"]["kernel"].shape[2] == 2
+    assert jax.tree_util.tree_map(jnp.shape, plain["params"]["hypernet"]) == jax.tree_util.tree_map(
+        jnp.shape, variables["params"]["hypernet"]
+    )
+    # A stored config written before the option had no coordinates in the encoder.
+    assert model_lib.complete_stored_config("global_local", {})["encoder_coordinates"] is False
