@@ -184,6 +184,23 @@ def _configs() -> list[SceneConfig]:
     return configs
 
 
+def texture_card(surface_detail: bool) -> dict[str, Any]:
+    """What the card says of the surfaces' texture: the kinds and, with surface detail,
+    its settings (`raycast.SurfaceDetail`)."""
+    card: dict[str, Any] = {"kinds": list(raycast.TEXTURES), "surface_detail": surface_detail}
+    if surface_detail:
+        card.update(
+            detail_spacings_m=list(raycast.DETAIL_SPACINGS),
+            detail_persistence=raycast.DETAIL_PERSISTENCE,
+            detail_contrast=scenes.DETAIL_CONTRAST,
+            detail_fade_pixels=list(raycast.DETAIL_FADE_PIXELS),
+            note="value noise fixed to each surface multiplies its albedo by 1 + contrast * "
+            "d (d in [-1, 1]); an octave of lattice spacing s fades out as s shrinks from "
+            "the second to the first fade value in pixels on the surface",
+        )
+    return card
+
+
 def render_example(
     config: SceneConfig, split: str, index: int, flow_estimator: str | None = None
 ) -> tuple[str, dict[str, Any], float, float]:
@@ -463,6 +480,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             num_train=config.num_train,
             num_test=config.num_test,
             flow_estimator=self.flow_estimator,
+            texture=texture_card(config.surface_detail),
         )
         return self.dataset_info_from_configs(
             description=_DESCRIPTION,
@@ -517,7 +535,6 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         self.info.metadata[f"flow_epe_by_texture_{split}"] = summarise_texture_errors(
             [texture_errors for _, texture_errors in card]
         )
-        self.info.metadata["surface_detail"] = self.builder_config.surface_detail
         self.info.metadata.setdefault("build_options", {})[split] = self.build_options(split)
         self.info.metadata["flow_estimator_source"] = flow_lib.describe(estimator)
 

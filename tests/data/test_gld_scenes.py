@@ -8,7 +8,7 @@ import pytest
 
 import data
 from data.gld_scenes import gld_scenes_dataset_builder as builder_module
-from data.gld_scenes import raycast
+from data.gld_scenes import raycast, scenes
 from gld import geometry, records
 
 HEIGHT, WIDTH = 48, 64
@@ -93,6 +93,14 @@ def test_metadata_records_settings_and_flow_epe(tiny, tiny_test_split):
     metadata = json.loads(metadata_path.read_text())
     assert metadata["flow_estimator"] == "dis"
     assert metadata["generator"]["height"] == HEIGHT
+    assert metadata["generator"]["surface_detail"] is True
+    assert metadata["texture"]["surface_detail"] is True
+    assert metadata["texture"]["detail_contrast"] == scenes.DETAIL_CONTRAST
+    assert metadata["texture"]["kinds"] == list(raycast.TEXTURES)
+    assert builder_module.texture_card(False) == {
+        "kinds": list(raycast.TEXTURES),
+        "surface_detail": False,
+    }
     assert metadata["generator"]["width"] == WIDTH
     errors = [
         np.linalg.norm(e["flow"] - e["gt_flow"], axis=-1)[e["gt_flow_valid"]].mean()
