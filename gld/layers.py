@@ -7,6 +7,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from gld import geometry
+
 # LeakyReLU slope of every network (the paper uses LeakyReLU throughout; baselines too).
 NEGATIVE_SLOPE = 0.2
 # Networks start out predicting this inverse depth everywhere (scale-normalised scenes
@@ -35,6 +37,15 @@ def input_keys(model) -> tuple[str, ...]:
     """The example-contract keys a depth model reads: `MODEL_INPUTS`, then the keys it
     declares in `extra_inputs` (e.g. the given relative pose), passed by keyword."""
     return MODEL_INPUTS + tuple(getattr(model, "extra_inputs", ()))
+
+
+def with_coordinates(inputs: jax.Array) -> jax.Array:
+    """`inputs` [B, H, W, C] with x, y in [-1, 1] appended as two channels (CoordConv),
+    in the inputs' dtype: [B, H, W, C + 2]."""
+    batch_size, height, width, _ = inputs.shape
+    coordinates = geometry.normalised_coordinates(height, width, jnp).astype(inputs.dtype)
+    coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
+    return jnp.concatenate([inputs, coordinates], -1)
 
 
 def global_module_inputs(

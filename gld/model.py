@@ -244,13 +244,10 @@ class GlobalLocal(nn.Module):
         else:
             local_inputs = image_pair
             global_inputs = image_pair
-        coordinates = geometry.normalised_coordinates(height, width, jnp)
-        coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
-        coordinates = coordinates.astype(flow.dtype)
         if self.use_coordinates:
-            local_inputs = jnp.concatenate([local_inputs, coordinates], -1)
+            local_inputs = layers.with_coordinates(local_inputs)
         if self.encoder_coordinates:
-            global_inputs = jnp.concatenate([global_inputs, coordinates], -1)
+            global_inputs = layers.with_coordinates(global_inputs)
 
         bank_kwargs = dict(
             in_channels=self.local_in_channels,

@@ -285,7 +285,7 @@ class SuiteRunner:
                 config = paper_suite.run_config(
                     self.scale, rated or run, height=0, width=0, flow_net_workdir="<flow_net>"
                 )
-                identity = {**_config_identity(config), **self._version_of(config.dataset)}
+                identity = _config_identity(config) | self._version_of(config.dataset)
                 inputs = list(needs)
                 if run.rate_of is not None:
                     # Its rate is its model's compared one: the check's runs come first,

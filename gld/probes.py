@@ -449,12 +449,7 @@ def _pose_probe_fitter(
         flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
         image1, image2 = batch.get("image1"), batch.get("image2")  # absent without the pair
         stacked = layers.global_module_inputs(image1, image2, flow, use_image_pair)
-        if not encoder_coordinates:
-            return stacked
-        batch_size, height, width, _ = flow.shape
-        coordinates = geometry.normalised_coordinates(height, width, jnp).astype(flow.dtype)
-        coordinates = jnp.broadcast_to(coordinates, (batch_size, height, width, 2))
-        return jnp.concatenate([stacked, coordinates], -1)
+        return layers.with_coordinates(stacked) if encoder_coordinates else stacked
 
     def targets(batch):
         rotation = rotation_vector(np.asarray(batch["rotation"])) * scale

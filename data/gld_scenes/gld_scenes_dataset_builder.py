@@ -279,21 +279,17 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
     translation = np.asarray(example["translation"], np.float64)
     gt_flow = np.asarray(example["gt_flow"], np.float64)
     flow_valid = np.asarray(example["gt_flow_valid"], bool)
+    camera_matrix1 = geometry.intrinsics_matrix(intrinsics1, height, width)
+    camera_matrix2 = geometry.intrinsics_matrix(intrinsics2, height, width)
 
     rotational_flow, _ = geometry.depth_to_flow(
-        np.ones_like(depth),
-        geometry.intrinsics_matrix(intrinsics1, height, width),
-        geometry.intrinsics_matrix(intrinsics2, height, width),
-        rotation,
-        np.zeros(3),
+        np.ones_like(depth), camera_matrix1, camera_matrix2, rotation, np.zeros(3)
     )
     magnitude = np.linalg.norm(gt_flow, axis=-1)[flow_valid]
     parallax = np.linalg.norm(gt_flow - rotational_flow, axis=-1)[flow_valid]
 
     sfm_rotation, sfm_translation, sfm_found = _SFM_FLOW.estimate_pose(
-        np.asarray(example["flow"], np.float64),
-        geometry.intrinsics_matrix(intrinsics1, height, width),
-        geometry.intrinsics_matrix(intrinsics2, height, width),
+        np.asarray(example["flow"], np.float64), camera_matrix1, camera_matrix2
     )
 
     def thrice(value):
@@ -317,9 +313,9 @@ def signal_statistics(example: Mapping[str, Any]) -> dict[str, float]:
     scale_log_error = np.log(np.median(predicted[0][depth_valid]) / true_median)
     has_flow = bool(flow_valid.any())
     return {
-        "gt_flow_px_mean": float(magnitude.mean()) if has_flow else float("nan"),
-        "gt_flow_px_median": float(np.median(magnitude)) if has_flow else float("nan"),
-        "translational_flow_px_mean": float(parallax.mean()) if has_flow else float("nan"),
+        "gt_flow_px_mean": float(magnitude.mean()) if has_flow else nan,
+        "gt_flow_px_median": float(np.median(magnitude)) if has_flow else nan,
+        "translational_flow_px_mean": float(parallax.mean()) if has_flow else nan,
         "triangulation_abs_inv_estimated_flow": float(abs_inv[0]),
         "triangulation_abs_inv_gt_flow": float(abs_inv[1]),
         "triangulation_scale_log_error_estimated_flow": float(scale_log_error),
