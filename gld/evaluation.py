@@ -383,6 +383,8 @@ def _figure_examples(source, count: int, gt_pixels: int, seed: int, flow_source:
             flow_source=flow_source,
             augment=False,
             fixed_sparse_pixels=True,
+            # Every field, the derived pose from the flow too (a model may read it).
+            keys=[key for key in input_pipeline.CONTRACT_KEYS if key != "id"],
             where=f"{split}[{index}]",
         )
         for index in range(min(count, len(source)))

@@ -29,7 +29,7 @@ import cv2
 import grain
 import numpy as np
 
-from gld import geometry, records
+from gld import flow_pose, geometry, records
 
 FLOW_SOURCES = ("estimated", "gt")
 # The fields of an example (the example contract of the design notes).
@@ -46,8 +46,13 @@ CONTRACT_KEYS = (
     "translation",
     "gt_flow",
     "gt_flow_valid",
+    "flow_rotation",
+    "flow_translation",
     "id",
 )
+# Fields derived from others, made only when a consumer names them in `keys`: the
+# relative pose the essential matrix gets from the input flow (`gld.flow_pose`).
+DERIVED_KEYS = flow_pose.FLOW_POSE_KEYS
 # Stored fields no example of the contract is made from.
 UNUSED_RECORD_KEYS = ("depth2",)
 # Maps with the image's spatial layout; vector fields are listed separately.
@@ -188,9 +193,11 @@ def _flip_frame(example: dict[str, Any], axes: tuple[int, ...]) -> dict[str, Any
             intrinsics[principal_index] = 1.0 - intrinsics[principal_index]
         flipped[key] = intrinsics
     flip = np.diag(frame_signs)
-    if "rotation" in example:
-        flipped["rotation"] = (flip @ example["rotation"] @ flip).astype(np.float32)
-    flipped["translation"] = (frame_signs * example["translation"]).astype(np.float32)
+    for rotation_key, translation_key in (("rotation", "translation"), DERIVED_KEYS):
+        if rotation_key in example:
+            flipped[rotation_key] = (flip @ example[rotation_key] @ flip).astype(np.float32)
+        if translation_key in example:
+            flipped[translation_key] = (frame_signs * example[translation_key]).astype(np.float32)
     return flipped
 
 
@@ -295,7 +302,10 @@ def prepare_example(
       fixed_sparse_pixels: draw the same supervised pixels in every epoch (the epoch is
         dropped from their seed), as for a robot that measured each frame once.
       keys: the contract's fields the consumer reads ("id" is always kept); the others
-        are dropped after decoding, before augmentation and batching. None keeps all.
+        are dropped after decoding, before augmentation and batching. None keeps all
+        the stored ones. `DERIVED_KEYS` are made only when named here: the pose from
+        the input flow is estimated before augmentation (once per pair and process,
+        `gld.flow_pose.pose_of_example`) and flipped with the example.
       where: names the record in errors.
 
     Returns:
@@ -308,7 +318,14 @@ def prepare_example(
             raise ValueError(f"unknown example keys {unknown}; valid: {CONTRACT_KEYS}")
         # The pipeline itself reads depth, its validity and the translation.
         needed = {*keys, "id", "depth", "depth_valid", "translation"}
+        if set(keys) & set(DERIVED_KEYS):
+            needed |= {"flow", "intrinsics1", "intrinsics2"}
         example = {key: value for key, value in example.items() if key in needed}
+        if set(keys) & set(DERIVED_KEYS):
+            rotation, translation, _ = flow_pose.pose_of_example(
+                example["flow"], example["intrinsics1"], example["intrinsics2"]
+            )
+            example["flow_rotation"], example["flow_translation"] = rotation, translation
     if augment:
         augment_rng = example_rng(seed, example["id"], epoch, _AUGMENT_STREAM)
         do_rotate, do_mirror = augment_rng.random(2) < 0.5

@@ -22,14 +22,17 @@ import numpy as np
 from gld import baselines, geometry, layers
 from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
 from gld.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
+from gld.flow_pose import FLOW_POSE_KEYS
 from gld.global_encoder import ENCODER_NORMS, GlobalEncoder
 from gld.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
-GLOBAL_SOURCES = ("encoder", "pose")
-# The example-contract keys a model with `global_source="pose"` reads.
+GLOBAL_SOURCES = ("encoder", "pose", "flow_pose")
+# The example-contract keys a model reads for each given pose: the true relative pose
+# (a robot's odometry at deployment), or the essential matrix's from the input flow.
 POSE_INPUTS = ("rotation", "translation")
+GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
 # Factor on the rotation's vector part in the given-pose global parameters: rotations of
 # a few degrees (sin 3.65 deg ~ 0.064) then vary on the scale of the unit translation.
 POSE_ROTATION_SCALE = 10.0
@@ -148,7 +151,10 @@ class GlobalLocal(nn.Module):
         the model the true relative pose instead (the paper's "GT Pose" variant):
         g = `pose_parameters(rotation, translation)`, which the call then needs as
         keyword arguments (the contract's "rotation" and "translation"), and the
-        global encoder is not built. Needs global_dim 6.
+        global encoder is not built. Needs global_dim 6. "flow_pose" gives it the pose
+        the essential matrix gets from the input flow (`gld.flow_pose`, the contract's
+        "flow_rotation" and "flow_translation"): the classical pipeline's motion, no
+        label and no odometry needed; a failed estimate gives g = 0.
       pose_rotation_error, pose_translation_error: with global_source="pose", the given
         pose is off by these angles in degrees (`perturbed_pose`): how accurate a pose
         the model needs. 0 (the default) gives the true pose.
@@ -197,7 +203,9 @@ class GlobalLocal(nn.Module):
     @property
     def extra_inputs(self) -> tuple[str, ...]:
         """Contract keys the call reads by keyword besides the images and flow."""
-        return POSE_INPUTS if self.use_global_module and self.global_source == "pose" else ()
+        if not self.use_global_module:
+            return ()
+        return GIVEN_POSE_INPUTS.get(self.global_source, ())
 
     @nn.compact
     def __call__(
@@ -208,6 +216,8 @@ class GlobalLocal(nn.Module):
         *,
         rotation: jax.Array | None = None,
         translation: jax.Array | None = None,
+        flow_rotation: jax.Array | None = None,
+        flow_translation: jax.Array | None = None,
         train: bool = False,
     ) -> dict[str, jax.Array]:
         """Predicts inverse depth for view 1.
@@ -217,6 +227,8 @@ class GlobalLocal(nn.Module):
           flow: [B, H, W, 2] pixels, I1 -> I2.
           rotation, translation: [B, 3, 3] and [B, 3], the relative pose; read only
             with global_source="pose".
+          flow_rotation, flow_translation: the same, estimated from the input flow;
+            read only with global_source="flow_pose".
           train: batch statistics (global_norm="batch") come from the batch and are
             recorded when True, from the running averages when False.
 
@@ -258,16 +270,19 @@ class GlobalLocal(nn.Module):
             raise ValueError(
                 f"global_source must be one of {GLOBAL_SOURCES}, got {self.global_source!r}"
             )
-        if self.use_global_module and self.global_source == "pose":
+        if self.use_global_module and self.global_source in GIVEN_POSE_INPUTS:
+            rotation_key, translation_key = GIVEN_POSE_INPUTS[self.global_source]
+            if self.global_source == "flow_pose":
+                rotation, translation = flow_rotation, flow_translation
             if rotation is None or translation is None:
                 raise ValueError(
-                    'global_source="pose" needs the relative pose: call with rotation= '
-                    "[B, 3, 3] and translation= [B, 3]"
+                    f'global_source="{self.global_source}" needs the relative pose: call with '
+                    f"{rotation_key}= [B, 3, 3] and {translation_key}= [B, 3]"
                 )
             if self.global_dim != 6:
                 raise ValueError(
-                    'global_source="pose" gives 6 global parameters; global_dim is '
-                    f"{self.global_dim}"
+                    f'global_source="{self.global_source}" gives 6 global parameters; '
+                    f"global_dim is {self.global_dim}"
                 )
             if rotation.shape[0] != batch_size or translation.shape[0] != batch_size:
                 raise ValueError(
@@ -369,7 +384,8 @@ ARCHITECTURE_FLAGS = {
     "use_flow": "Ablation switch: optical flow as the local input.",
     "local_flow_units": "Units of the local network's flow.",
     "flow_scale": "Factor on the normalised flow fed to both modules.",
-    "global_source": "Where g comes from: the global encoder, or the true relative pose.",
+    "global_source": "Where g comes from: the global encoder, the true relative pose "
+    "(odometry), or the essential matrix's pose from the input flow.",
     "pose_rotation_error": "With global_source=pose: the given rotation's error, degrees "
     "(0-180; fixed per pair and augmented copy).",
     "pose_translation_error": "With global_source=pose: the given translation direction's "
@@ -491,9 +507,10 @@ def check_config(name: str, config: dict) -> None:
                 f"{option} is the error of a given pose: it needs global_source pose (and the "
                 "global module)"
             )
-    if values["global_source"] == "pose" and values["global_dim"] != 6:
+    if values["global_source"] in GIVEN_POSE_INPUTS and values["global_dim"] != 6:
         raise ValueError(
-            f'global_source="pose" gives 6 global parameters; global_dim is {values["global_dim"]}'
+            f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
+            f"is {values['global_dim']}"
         )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(

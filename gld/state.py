@@ -18,6 +18,7 @@ import optax
 
 from gld import config as config_lib
 from gld import layers
+from gld import model as model_lib
 from gld.config import LR_SCHEDULES
 
 
@@ -40,14 +41,19 @@ class TrainState:
 
 def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarray]:
     """Zero inputs of the right shapes, for `model.init` and shape checks."""
-    return {
+    batch = {
         "image1": np.zeros((batch_size, height, width, 3), np.float32),
         "image2": np.zeros((batch_size, height, width, 3), np.float32),
         "flow": np.zeros((batch_size, height, width, 2), np.float32),
-        # The relative pose, for models given it (`GlobalLocal.global_source="pose"`).
-        "rotation": np.broadcast_to(np.eye(3, dtype=np.float32), (batch_size, 3, 3)).copy(),
-        "translation": np.tile(np.array([0.0, 0.0, 1.0], np.float32), (batch_size, 1)),
     }
+    # The relative pose, for models given it (`GlobalLocal.global_source` "pose": the
+    # true one; "flow_pose": the one estimated from the flow).
+    for rotation_key, translation_key in model_lib.GIVEN_POSE_INPUTS.values():
+        batch[rotation_key] = np.broadcast_to(
+            np.eye(3, dtype=np.float32), (batch_size, 3, 3)
+        ).copy()
+        batch[translation_key] = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (batch_size, 1))
+    return batch
 
 
 def init_variables(model: nn.Module, height: int, width: int, seed: int) -> dict[str, Any]:

@@ -22,17 +22,15 @@ the classical pipeline on the evaluated flow.
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import geometry, layers
+from gld import flow_pose, geometry, layers
 
 Batch = Mapping[str, Any]
 Array = Any  # np.ndarray | jax.Array
@@ -261,20 +259,13 @@ class TriangulationGtPose:
 class SfMFlow:
     """Two-view structure from motion on the flow: essential matrix, pose, triangulation.
 
-    Correspondences are the pixels of a regular grid (at most `max_correspondences`)
-    and their flow targets inside image 2. The essential matrix comes from
-    `cv2.findEssentialMat` (USAC_ACCURATE: RANSAC with local optimisation and a final
-    refinement on all inliers) on normalised camera coordinates, so the two views
-    may have different intrinsics; `cv2.recoverPose` picks R, t by cheirality. t has
-    unit norm, which is exactly the evaluation scale (the true ||t|| = 1), so the depth
-    is directly comparable with the ground truth.
-
-    A pair fails when it has too few correspondences, too little parallax (median flow
-    below `min_parallax_pixels`: the pose is then undetermined), no essential matrix, or
-    fewer than `min_inliers` cheirality inliers. A failed pair is flagged in 'failed'
-    and predicted as the constant `fallback_inv_depth` (by default the training set's
-    mean inverse depth, the Dataset-Mean prediction, computed by `fit`), so it stays in
-    every mean.
+    The pose is the essential matrix's from the flow (`gld.flow_pose`: RANSAC on a
+    grid of correspondences, cheirality); t has unit norm, which is exactly the
+    evaluation scale (the true ||t|| = 1), so the depth is directly comparable with the
+    ground truth. A pair whose pose fails (`gld.flow_pose` says when) is flagged in
+    'failed' and predicted as the constant `fallback_inv_depth` (by default the training
+    set's mean inverse depth, the Dataset-Mean prediction, computed by `fit`), so it
+    stays in every mean.
 
     It learns nothing and reads no ground truth of the pair it predicts (only the
     fallback comes from the training split), so every evaluation shows it on the same
@@ -302,6 +293,13 @@ class SfMFlow:
         self.max_correspondences = max_correspondences
         self.min_inliers = min_inliers
         self.min_parallax_pixels = min_parallax_pixels
+        self.settings = flow_pose.PoseSettings(
+            ransac_threshold_pixels=ransac_threshold_pixels,
+            confidence=confidence,
+            max_correspondences=max_correspondences,
+            min_inliers=min_inliers,
+            min_parallax_pixels=min_parallax_pixels,
+        )
         self.min_depth = min_depth
         self.fallback_inv_depth = fallback_inv_depth
         self._triangulate = jax.jit(
@@ -317,70 +315,10 @@ class SfMFlow:
     def estimate_pose(
         self, flow: np.ndarray, camera_matrix1: np.ndarray, camera_matrix2: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, bool]:
-        """Relative pose of one pair from its flow.
-
-        Args:
-          flow: [H, W, 2] pixels, I1 -> I2.
-          camera_matrix1, camera_matrix2: [3, 3] pixel-index K.
-
-        Returns:
-          rotation [3, 3], unit translation [3] (X2 = R X1 + t), and whether it succeeded
-          (identity and zero translation when not).
-        """
-        failure = np.eye(3), np.zeros(3), False
-        height, width = flow.shape[:2]
-        step = max(1, math.ceil(math.sqrt(height * width / self.max_correspondences)))
-        grid = geometry.pixel_grid(height, width)[step // 2 :: step, step // 2 :: step]
-        grid_flow = np.asarray(flow, np.float64)[step // 2 :: step, step // 2 :: step]
-        targets = grid + grid_flow
-        usable = (
-            np.all(np.isfinite(grid_flow), axis=-1)
-            & (targets[..., 0] >= -0.5)
-            & (targets[..., 0] <= width - 0.5)
-            & (targets[..., 1] >= -0.5)
-            & (targets[..., 1] <= height - 0.5)
-        )
-        if usable.sum() < max(self.min_inliers, 5):
-            return failure
-        if np.median(np.linalg.norm(grid_flow[usable], axis=-1)) < self.min_parallax_pixels:
-            return failure
-
-        def normalised(pixels, camera_matrix):
-            homogeneous = np.concatenate([pixels, np.ones_like(pixels[:, :1])], axis=-1)
-            rays = homogeneous @ np.linalg.inv(camera_matrix).T
-            return np.ascontiguousarray(rays[:, :2] / rays[:, 2:])
-
-        points1 = normalised(grid[usable].astype(np.float64), camera_matrix1)
-        points2 = normalised(targets[usable], camera_matrix2)
-        mean_focal = 0.25 * (
-            camera_matrix1[0, 0]
-            + camera_matrix1[1, 1]
-            + camera_matrix2[0, 0]
-            + camera_matrix2[1, 1]
-        )
-        identity = np.eye(3)
-        essential, ransac_mask = cv2.findEssentialMat(
-            points1,
-            points2,
-            identity,
-            method=cv2.USAC_ACCURATE,
-            prob=self.confidence,
-            threshold=self.ransac_threshold_pixels / mean_focal,
-        )
-        if essential is None or essential.shape[0] < 3 or not np.all(np.isfinite(essential)):
-            return failure
-        # Several solutions come stacked as [3k, 3]; take the best-supported (first).
-        inlier_count, rotation, translation, _ = cv2.recoverPose(
-            essential[:3], points1, points2, identity, mask=ransac_mask
-        )
-        translation = translation[:, 0]
-        if (
-            inlier_count < self.min_inliers
-            or not np.all(np.isfinite(rotation))
-            or not np.all(np.isfinite(translation))
-        ):
-            return failure
-        return rotation, translation / np.linalg.norm(translation), True
+        """Relative pose of one pair from its flow (`gld.flow_pose.estimate_pose` with
+        this pipeline's settings): rotation [3, 3], unit translation [3] (X2 = R X1 + t),
+        and whether it succeeded (identity and zero translation when not)."""
+        return flow_pose.estimate_pose(flow, camera_matrix1, camera_matrix2, self.settings)
 
     def predict(self, batch: Batch) -> dict[str, np.ndarray]:
         """{'inv_depth', 'depth', 'triangulated' [B, H, W], 'untriangulated' [B],

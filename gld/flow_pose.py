@@ -1,0 +1,166 @@
+"""The relative camera motion from a flow field: the classical essential-matrix pose.
+
+    rotation, translation, succeeded = estimate_pose(flow, camera_matrix1, camera_matrix2)
+    rotation, translation, succeeded = pose_of_example(flow, intrinsics1, intrinsics2)
+
+Correspondences are the pixels of a regular grid (at most `max_correspondences`) and
+their flow targets inside image 2. The essential matrix comes from
+`cv2.findEssentialMat` (USAC_ACCURATE: RANSAC with local optimisation and a final
+refinement on all inliers, from a fixed random state, so a flow field always gives the
+same pose) on normalised camera coordinates, so the two views may have different
+intrinsics; `cv2.recoverPose` picks R, t by cheirality. t has unit norm.
+
+A pair fails when it has too few correspondences, too little parallax (median flow
+below `min_parallax_pixels`: the pose is then undetermined), no essential matrix, or
+fewer than `min_inliers` cheirality inliers; a failed pair gets the identity rotation
+and a zero translation.
+
+The classical pipeline (`gld.baselines.classical.SfMFlow`) triangulates on this pose;
+a global-local model with `global_source="flow_pose"` takes it as its global
+parameters (`gld.model.pose_parameters`), so a robot gets the motion from its own
+flow without odometry, and the learned part is only the depth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+
+import cv2
+import numpy as np
+
+from gld import geometry
+
+# The example-contract keys of the pose estimated from the input flow.
+FLOW_POSE_KEYS = ("flow_rotation", "flow_translation")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseSettings:
+    """The estimator's settings (the defaults are `SfMFlow`'s and `flow_pose`'s)."""
+
+    ransac_threshold_pixels: float = 0.5
+    confidence: float = 0.999
+    max_correspondences: int = 5000
+    min_inliers: int = 20
+    min_parallax_pixels: float = 0.5
+
+
+DEFAULT_SETTINGS = PoseSettings()
+
+
+def _normalised(pixels: np.ndarray, camera_matrix: np.ndarray) -> np.ndarray:
+    homogeneous = np.concatenate([pixels, np.ones_like(pixels[:, :1])], axis=-1)
+    rays = homogeneous @ np.linalg.inv(camera_matrix).T
+    return np.ascontiguousarray(rays[:, :2] / rays[:, 2:])
+
+
+def estimate_pose(
+    flow: np.ndarray,
+    camera_matrix1: np.ndarray,
+    camera_matrix2: np.ndarray,
+    settings: PoseSettings = DEFAULT_SETTINGS,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Relative pose of one pair from its flow.
+
+    Args:
+      flow: [H, W, 2] pixels, I1 -> I2.
+      camera_matrix1, camera_matrix2: [3, 3] pixel-index K.
+      settings: the estimator's thresholds.
+
+    Returns:
+      rotation [3, 3] float64, unit translation [3] float64 (X2 = R X1 + t), and whether
+      it succeeded (identity and zero translation when not).
+    """
+    failure = np.eye(3), np.zeros(3), False
+    flow = np.asarray(flow)
+    if flow.ndim != 3 or flow.shape[-1] != 2:
+        raise ValueError(f"flow must be [H, W, 2], got shape {flow.shape}")
+    height, width = flow.shape[:2]
+    step = max(1, math.ceil(math.sqrt(height * width / settings.max_correspondences)))
+    grid = geometry.pixel_grid(height, width)[step // 2 :: step, step // 2 :: step]
+    grid_flow = np.asarray(flow, np.float64)[step // 2 :: step, step // 2 :: step]
+    targets = grid + grid_flow
+    usable = (
+        np.all(np.isfinite(grid_flow), axis=-1)
+        & (targets[..., 0] >= -0.5)
+        & (targets[..., 0] <= width - 0.5)
+        & (targets[..., 1] >= -0.5)
+        & (targets[..., 1] <= height - 0.5)
+    )
+    if usable.sum() < max(settings.min_inliers, 5):
+        return failure
+    if np.median(np.linalg.norm(grid_flow[usable], axis=-1)) < settings.min_parallax_pixels:
+        return failure
+    points1 = _normalised(grid[usable].astype(np.float64), camera_matrix1)
+    points2 = _normalised(targets[usable], camera_matrix2)
+    mean_focal = 0.25 * (
+        camera_matrix1[0, 0] + camera_matrix1[1, 1] + camera_matrix2[0, 0] + camera_matrix2[1, 1]
+    )
+    identity = np.eye(3)
+    essential, ransac_mask = cv2.findEssentialMat(
+        points1,
+        points2,
+        identity,
+        method=cv2.USAC_ACCURATE,
+        prob=settings.confidence,
+        threshold=settings.ransac_threshold_pixels / mean_focal,
+    )
+    if essential is None or essential.shape[0] < 3 or not np.all(np.isfinite(essential)):
+        return failure
+    # Several solutions come stacked as [3k, 3]; take the best-supported (first).
+    inlier_count, rotation, translation, _ = cv2.recoverPose(
+        essential[:3], points1, points2, identity, mask=ransac_mask
+    )
+    translation = translation[:, 0]
+    if (
+        inlier_count < settings.min_inliers
+        or not np.all(np.isfinite(rotation))
+        or not np.all(np.isfinite(translation))
+    ):
+        return failure
+    return rotation, translation / np.linalg.norm(translation), True
+
+
+# Poses already estimated in this process, by a digest of the flow and intrinsics: the
+# pipeline sees every training pair once per epoch, and its flow never changes.
+_CACHE: dict[bytes, tuple[np.ndarray, np.ndarray, bool]] = {}
+_CACHE_LIMIT = 200_000
+
+
+def pose_of_example(
+    flow: np.ndarray, intrinsics1: np.ndarray, intrinsics2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """`estimate_pose` for the example contract's fields, cached by their content.
+
+    Args:
+      flow: [H, W, 2] pixels, I1 -> I2.
+      intrinsics1, intrinsics2: [4] normalised (fx/W, fy/H, cx/W, cy/H).
+
+    Returns:
+      rotation [3, 3] float32, translation [3] float32 (unit, or zero on failure),
+      whether the estimate succeeded.
+    """
+    flow = np.ascontiguousarray(flow, np.float32)
+    intrinsics1 = np.ascontiguousarray(intrinsics1, np.float32)
+    intrinsics2 = np.ascontiguousarray(intrinsics2, np.float32)
+    digest = hashlib.blake2b(digest_size=16)
+    for value in (flow, intrinsics1, intrinsics2):
+        digest.update(str(value.shape).encode())
+        digest.update(value.tobytes())
+    key = digest.digest()
+    cached = _CACHE.get(key)
+    if cached is None:
+        height, width = flow.shape[:2]
+        rotation, translation, succeeded = estimate_pose(
+            flow,
+            geometry.intrinsics_matrix(intrinsics1.astype(np.float64), height, width),
+            geometry.intrinsics_matrix(intrinsics2.astype(np.float64), height, width),
+        )
+        cached = rotation.astype(np.float32), translation.astype(np.float32), succeeded
+        if len(_CACHE) >= _CACHE_LIMIT:
+            _CACHE.clear()
+        _CACHE[key] = cached
+    rotation, translation, succeeded = cached
+    return rotation.copy(), translation.copy(), succeeded
