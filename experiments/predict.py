@@ -19,7 +19,10 @@ Scale: `--ranges`, the range CSV of `data.demon.convert` (`frame,u,v,depth`, dep
 its first frame's readings (the median ratio of reading to predicted depth). `--poses`, a
 TUM trajectory (`timestamp tx ty tz qx qy qz qw`; images named by time stamp are
 matched by time, otherwise the i-th pose is the i-th frame): each pair is scaled by the
-distance between its frames' positions. Pairs without a reading on the first frame, or
+distance between its frames' positions, and a model trained given the relative pose
+(`--global_source=pose`) is given the pair's relative pose from the trajectory (it
+needs `--poses`); a model trained on the pose from its flow (`--global_source=flow_pose`)
+needs `--intrinsics`. Pairs without a reading on the first frame, or
 with a baseline not above `--min_baseline`, are skipped and counted. With neither,
 depth is in units of the (unknown) baseline and written as .npy.
 
@@ -114,8 +117,8 @@ def _frames():
         raise _usage("video", error) from None
 
 
-def _positions(image_paths, names) -> object:
-    """[F, 3] camera centres of the frames from the --poses trajectory."""
+def _camera_poses(image_paths, names) -> object:
+    """[F, 4, 4] camera-to-world poses of the frames from the --poses trajectory."""
     from data.demon import recordings
 
     try:
@@ -128,7 +131,24 @@ def _positions(image_paths, names) -> object:
         )
     except (FileNotFoundError, ValueError) as error:
         raise _usage("poses", error) from None
-    return camera_to_world[indices, :3, 3]
+    return camera_to_world[indices]
+
+
+def _given_pose() -> str | None:
+    """The pose the workdir's model was trained given ("pose", "flow_pose"), or None."""
+    from gld import model as model_lib
+    from gld import workdir as workdir_lib
+
+    try:
+        config = workdir_lib.load_run_config(FLAGS.workdir)
+    except (FileNotFoundError, ValueError) as error:
+        raise _usage("workdir", error) from None
+    if config.model != "global_local":
+        return None
+    full = model_lib.full_config(config.model, config.model_config)
+    if not full["use_global_module"] or full["global_source"] not in model_lib.GIVEN_POSE_INPUTS:
+        return None
+    return full["global_source"]
 
 
 def _measure_scale() -> None:
@@ -234,7 +254,7 @@ def main(argv):
             pairs = predict.frame_pairs(len(frames), FLAGS.frame_gap)
     except (FileNotFoundError, ValueError) as error:
         raise _usage("pairs" if FLAGS.pairs else "frame_gap", error) from None
-    ranges = positions = None
+    ranges = camera_to_world = None
     if FLAGS.ranges:
         try:
             ranges = predict.read_range_readings(
@@ -250,10 +270,27 @@ def main(argv):
                     readings[:, :2], readings[:, 2], camera_matrix
                 )
     if FLAGS.poses:
-        positions = _positions(image_paths, frames.names)
+        camera_to_world = _camera_poses(image_paths, frames.names)
+    given_pose = _given_pose()
+    if given_pose == "pose" and camera_to_world is None:
+        raise _usage(
+            "poses",
+            ValueError(
+                "the model was trained given the relative pose: give the recording's "
+                "odometry as a TUM trajectory"
+            ),
+        )
+    if given_pose == "flow_pose" and camera_matrix is None:
+        raise _usage(
+            "intrinsics",
+            ValueError("the model takes the camera motion from its flow, which needs the camera"),
+        )
     try:
         plan = predict.plan_recording(
-            pairs, ranges=ranges, positions=positions, min_baseline=FLAGS.min_baseline
+            pairs,
+            ranges=ranges,
+            camera_to_world=camera_to_world,
+            min_baseline=FLAGS.min_baseline,
         )
     except ValueError as error:
         raise _usage("ranges" if FLAGS.ranges else "poses", error) from None

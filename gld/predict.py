@@ -76,10 +76,11 @@ import cv2
 import jax
 import numpy as np
 
-from gld import depth_io, geometry
+from gld import depth_io, flow_pose, geometry
 from gld import flow as flow_lib
 from gld import scale as scale_lib
 from gld import workdir as workdir_lib
+from gld.model import GIVEN_POSE_INPUTS
 
 ASPECT_MODES = ("resize", "crop")
 # Aspect ratios closer than this are the same shape at another resolution.
@@ -230,17 +231,21 @@ class DepthPredictor:
     ):
         if aspect not in ASPECT_MODES:
             raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
-        if getattr(model, "extra_inputs", ()):
-            raise ValueError(
-                f"the model also reads {list(model.extra_inputs)} (it was trained given the "
-                "true relative pose), which a predictor of images does not have"
-            )
+        extra_inputs = tuple(getattr(model, "extra_inputs", ()))
+        given = {keys: source for source, keys in GIVEN_POSE_INPUTS.items()}
+        if extra_inputs and extra_inputs not in given:
+            raise ValueError(f"the model also reads {list(extra_inputs)}, which a predictor lacks")
+        # "pose": the model was trained given the true relative pose (odometry here);
+        # "flow_pose": the essential matrix's pose from its input flow; None: neither.
+        self.given_pose = given.get(extra_inputs)
         self.model, self.variables = model, variables
         self.height, self.width = height, width
         self.flow_method = flow_method
         self.aspect = aspect
         self._apply = jax.jit(
-            lambda variables, image1, image2, flow: model.apply(variables, image1, image2, flow)
+            lambda variables, image1, image2, flow, extra: model.apply(
+                variables, image1, image2, flow, **extra
+            )
         )
 
     @classmethod
@@ -317,6 +322,70 @@ class DepthPredictor:
             return np.asarray(scales, np.float32), "ranges"
         return np.ones(batch_size, np.float32), "none"
 
+    def _given_pose(
+        self,
+        rotation: Any,
+        translation: Any,
+        model_flow: np.ndarray,
+        camera_matrix: np.ndarray | None,
+        box: tuple[int, int, int, int],
+        single: bool,
+        baseline: Any,
+        ranges: Any,
+    ) -> tuple[dict[str, np.ndarray], Any]:
+        """The model's pose inputs by keyword, and the baseline (||t|| of a given
+        odometry when no other scale was given)."""
+        batch_size = len(model_flow)
+        if self.given_pose != "pose":
+            if rotation is not None or translation is not None:
+                raise ValueError(
+                    "rotation= and translation= are for models trained given the relative "
+                    f"pose; this one takes {self.given_pose or 'its global encoder'}'s"
+                )
+        if self.given_pose is None:
+            return {}, baseline
+        if self.given_pose == "flow_pose":
+            if camera_matrix is None:
+                raise ValueError(
+                    "the model takes the camera motion from its flow (global_source "
+                    "flow_pose), which needs the camera: give intrinsics="
+                )
+            camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
+            normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
+            poses = [flow_pose.pose_of_example(flow, normalised, normalised) for flow in model_flow]
+            return {
+                "flow_rotation": np.stack([pose[0] for pose in poses]),
+                "flow_translation": np.stack([pose[1] for pose in poses]),
+            }, baseline
+        if rotation is None or translation is None:
+            raise ValueError(
+                "the model was trained given the relative pose (global_source pose): give "
+                "the pair's odometry as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
+            )
+        rotation = np.asarray(rotation, np.float32)
+        translation = np.asarray(translation, np.float32)
+        if single:
+            rotation, translation = rotation[None], translation[None]
+        if rotation.shape != (batch_size, 3, 3) or translation.shape != (batch_size, 3):
+            raise ValueError(
+                f"rotation and translation must be [{'' if single else 'B, '}3, 3] and "
+                f"[{'' if single else 'B, '}3] for {batch_size} pair(s), got shapes "
+                f"{np.shape(rotation)} and {np.shape(translation)}"
+            )
+        if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+            raise ValueError("rotation or translation contains NaN or inf")
+        orthonormality = np.abs(rotation @ np.swapaxes(rotation, 1, 2) - np.eye(3)).max()
+        if orthonormality > 1e-3:
+            raise ValueError(
+                f"rotation is not a rotation matrix (R R^T is off by {orthonormality:.3g})"
+            )
+        norms = np.linalg.norm(translation, axis=-1)
+        if np.any(norms <= 0):
+            raise ValueError("translation is zero: a pair without motion has no depth")
+        if baseline is None and ranges is None:
+            baseline = norms if not single else float(norms[0])
+        return {"rotation": rotation, "translation": translation / norms[:, None]}, baseline
+
     def predict(
         self,
         image1: np.ndarray,
@@ -326,6 +395,8 @@ class DepthPredictor:
         baseline: float | Sequence[float] | np.ndarray | None = None,
         ranges: Any = None,
         intrinsics: Any = None,
+        rotation: Any = None,
+        translation: Any = None,
     ) -> dict[str, Any]:
         """Full model outputs at the model's resolution, plus depth at the input size.
 
@@ -336,7 +407,13 @@ class DepthPredictor:
           baseline: metres between the camera centres: one number, or [B].
           ranges: range readings (u, v, distance in metres) in pixels of the input: an
             [N, 3] array for one pair, a sequence of B such arrays for a batch.
-          intrinsics: the input camera's (fx, fy, cx, cy) in pixels or a 3x3 K.
+          intrinsics: the input camera's (fx, fy, cx, cy) in pixels or a 3x3 K. A model
+            trained on the pose from its flow (`given_pose == "flow_pose"`) needs them.
+          rotation, translation: the relative pose of the pair, [3, 3] and [3] (or [B, 3, 3]
+            and [B, 3]), X2 = R X1 + t in the camera frame (x right, y down, z forward;
+            `relative_pose` makes it from two camera-to-world poses): the odometry a
+            model trained given the true pose (`given_pose == "pose"`) needs. Without
+            `baseline=` or `ranges=`, ||t|| (metres) is the baseline.
 
         Returns:
           numpy arrays (batch axis dropped for a single pair): "depth" [H, W] at the input
@@ -392,7 +469,10 @@ class DepthPredictor:
         else:
             flow_scale = np.array([self.width / box[3], self.height / box[2]], np.float32)
             model_flow = self._prepare(flow, box) * flow_scale
-        outputs = self._apply(self.variables, resized1 - 0.5, resized2 - 0.5, model_flow)
+        extra, baseline = self._given_pose(
+            rotation, translation, model_flow, camera_matrix, box, single, baseline, ranges
+        )
+        outputs = self._apply(self.variables, resized1 - 0.5, resized2 - 0.5, model_flow, extra)
         # Per-pair arrays only: filter banks and the pose g stands for are training aids.
         outputs = jax.device_get({k: v for k, v in outputs.items() if isinstance(v, jax.Array)})
         outputs = {k: np.asarray(v) for k, v in outputs.items()}
@@ -426,13 +506,12 @@ class DepthPredictor:
         image1: np.ndarray,
         image2: np.ndarray,
         flow: np.ndarray | None = None,
-        *,
-        baseline: float | Sequence[float] | np.ndarray | None = None,
-        ranges: Any = None,
+        **options: Any,
     ) -> np.ndarray:
-        """Depth of view 1 at the input size, [H, W] or [B, H, W]: metres with baseline=
-        or ranges=, baseline units without."""
-        return self.predict(image1, image2, flow, baseline=baseline, ranges=ranges)["depth"]
+        """Depth of view 1 at the input size, [H, W] or [B, H, W]: metres with baseline=,
+        ranges= or an odometry translation=, baseline units without. `options` are
+        `predict`'s (baseline, ranges, intrinsics, rotation, translation)."""
+        return self.predict(image1, image2, flow, **options)["depth"]
 
 
 # ------------------------------------------------------- batch prediction over a recording
@@ -652,6 +731,24 @@ class RecordingPlan:
     ranges: list[np.ndarray] | None = None
     baselines: list[float] | None = None
     skipped: dict[str, int] = dataclasses.field(default_factory=dict)
+    # Each pair's relative pose (rotation [3, 3], translation [3] in metres), when the
+    # plan was made from full camera poses.
+    motions: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+
+def relative_motion(
+    camera_to_world1: np.ndarray, camera_to_world2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The relative pose of a pair from two camera-to-world poses ([4, 4] or [3, 4],
+    OpenCV camera axes): rotation [3, 3] and translation [3] with X2 = R X1 + t."""
+    poses = []
+    for pose in (camera_to_world1, camera_to_world2):
+        pose = np.asarray(pose, np.float64)
+        if pose.shape not in ((4, 4), (3, 4)):
+            raise ValueError(f"a camera pose must be [4, 4] or [3, 4], got shape {pose.shape}")
+        world_to_camera = pose[:3, :3].T
+        poses.append((world_to_camera, -world_to_camera @ pose[:3, 3]))
+    return geometry.relative_pose(*poses[0], *poses[1])
 
 
 def plan_recording(
@@ -659,6 +756,7 @@ def plan_recording(
     *,
     ranges: dict[int, np.ndarray] | None = None,
     positions: np.ndarray | None = None,
+    camera_to_world: np.ndarray | None = None,
     min_baseline: float = 0.0,
 ) -> RecordingPlan:
     """Attaches each pair's scale measurement and drops the pairs that have none.
@@ -669,14 +767,20 @@ def plan_recording(
         of its first frame.
       positions: [F, 3] camera centres of every frame, metres; a pair's baseline is the
         distance between its frames'.
+      camera_to_world: [F, 4, 4] camera poses of every frame (metres), instead of
+        positions: the baseline as from their centres, and each pair's relative pose
+        (`relative_motion`) for a model trained given it.
       min_baseline: pairs whose baseline is not above this are skipped.
 
     Raises:
       ValueError: when both sources are given, or when no pair keeps a measurement.
     """
-    if ranges is not None and positions is not None:
-        raise ValueError("give range readings or camera positions, not both")
+    if sum(source is not None for source in (ranges, positions, camera_to_world)) > 1:
+        raise ValueError("give one of range readings, camera positions or camera poses")
     pairs = list(pairs)
+    if camera_to_world is not None:
+        camera_to_world = np.asarray(camera_to_world, np.float64)
+        positions = camera_to_world[:, :3, 3]
     if ranges is not None:
         kept = [pair for pair in pairs if pair[0] in ranges]
         plan = RecordingPlan(kept, "ranges", ranges=[ranges[i] for i, _ in kept])
@@ -691,6 +795,10 @@ def plan_recording(
             baselines=[b for b, ok in zip(baselines, keep, strict=True) if ok],
         )
         plan.skipped = {f"baseline <= {min_baseline} m": len(pairs) - len(plan.pairs)}
+        if camera_to_world is not None:
+            plan.motions = [
+                relative_motion(camera_to_world[i], camera_to_world[j]) for i, j in plan.pairs
+            ]
     else:
         plan = RecordingPlan(pairs, "none")
     if not plan.pairs:
@@ -770,6 +878,21 @@ def predict_recording(
                 options["ranges"] = [plan.ranges[k] for k in padded]
             elif plan.scale_source == "baseline":
                 options["baseline"] = np.array([plan.baselines[k] for k in padded])
+            if getattr(predictor, "given_pose", None) == "pose":
+                if plan.motions is None:
+                    raise ValueError(
+                        "the model was trained given the relative pose: plan the recording "
+                        "with camera poses (camera_to_world=, --poses) to give it the odometry"
+                    )
+                options["rotation"] = np.stack([plan.motions[k][0] for k in padded])
+                options["translation"] = np.stack([plan.motions[k][1] for k in padded])
+            if getattr(predictor, "given_pose", None) == "flow_pose":
+                if camera_matrix is None:
+                    raise ValueError(
+                        "the model takes the camera motion from its flow: give the camera's "
+                        "intrinsics"
+                    )
+                options["intrinsics"] = camera_matrix
             try:
                 outputs = predictor.predict(np.stack(images1), np.stack(images2), **options)
             except ValueError as error:

@@ -346,3 +346,105 @@ def test_depth_files_round_trip(tmp_path):
     loaded = depth_io.read_ply(tmp_path / "p.ply")
     np.testing.assert_array_equal(loaded["points"], points)
     np.testing.assert_array_equal(loaded["colours"], colours)
+
+
+def _given_pose_predictor(global_source):
+    model = model_lib.make_model("global_local", **{**TINY_MODEL, "global_source": global_source})
+    shapes = jax.eval_shape(lambda: state_lib.init_variables(model, HEIGHT, WIDTH, 0))
+    rng = np.random.default_rng(1)
+    variables = jax.tree_util.tree_map(
+        lambda leaf: (0.1 * rng.standard_normal(leaf.shape)).astype(leaf.dtype), shapes
+    )
+    return DepthPredictor(model, variables, HEIGHT, WIDTH)
+
+
+def test_odometry_reaches_the_model_as_the_pose_it_was_trained_given():
+    from gld import geometry
+
+    predictor = _given_pose_predictor("pose")
+    assert predictor.given_pose == "pose"
+    # Two camera-to-world poses (a TUM trajectory's), the second moved and turned.
+    camera_to_world1 = np.eye(4)
+    camera_to_world1[:3, :3] = geometry.rotation_matrix(np.array([0.1, -0.2, 0.05]))
+    camera_to_world1[:3, 3] = [1.0, 2.0, 0.5]
+    camera_to_world2 = np.eye(4)
+    camera_to_world2[:3, :3] = geometry.rotation_matrix(np.array([0.12, -0.15, 0.02]))
+    camera_to_world2[:3, 3] = [1.3, 2.1, 0.4]
+    rotation, translation = predict.relative_motion(camera_to_world1, camera_to_world2)
+    # The training convention: a world point in camera 1's frame maps to camera 2's by
+    # X2 = R X1 + t.
+    point = np.array([0.3, -1.0, 4.0])
+    in_camera = [
+        np.linalg.inv(pose) @ np.append(point, 1.0) for pose in (camera_to_world1, camera_to_world2)
+    ]
+    np.testing.assert_allclose(
+        rotation @ in_camera[0][:3] + translation, in_camera[1][:3], atol=1e-12
+    )
+    image1, image2 = _pair(2 * HEIGHT, 2 * WIDTH)
+    outputs = predictor.predict(image1, image2, rotation=rotation, translation=translation)
+    expected = model_lib.pose_parameters(
+        rotation[None].astype(np.float32), (translation / np.linalg.norm(translation))[None]
+    )
+    np.testing.assert_allclose(outputs["global_params"], expected[0], atol=1e-5)
+    # The odometry's metres set the scale when nothing else does.
+    assert outputs["units"] == "metres"
+    assert outputs["scale"] == pytest.approx(np.linalg.norm(translation), rel=1e-5)
+    with pytest.raises(ValueError, match="give the pair's odometry"):
+        predictor.predict(image1, image2)
+    with pytest.raises(ValueError, match="not a rotation matrix"):
+        predictor.predict(image1, image2, rotation=2 * rotation, translation=translation)
+    with pytest.raises(ValueError, match="are for models trained given"):
+        _given_pose_predictor("encoder").predict(
+            image1, image2, rotation=rotation, translation=translation
+        )
+
+
+def test_a_model_on_the_pose_from_its_flow_gets_the_motion_at_its_own_resolution():
+    from gld import geometry
+
+    predictor = _given_pose_predictor("flow_pose")
+    height, width = 2 * HEIGHT, 2 * WIDTH
+    camera_matrix = np.array([[110.0, 0, 63.5], [0, 112.0, 47.5], [0, 0, 1]])
+    grid = geometry.pixel_grid(height, width).astype(np.float64)
+    depth = 3.0 + 0.01 * grid[..., 0] + 0.4 * np.sin(grid[..., 1] / 9.0)
+    rotation = geometry.rotation_matrix(np.array([0.01, 0.03, -0.01]))
+    translation = np.array([0.3, 0.05, 0.1])
+    flow, _ = geometry.depth_to_flow(depth, camera_matrix, camera_matrix, rotation, translation)
+    image1, image2 = _pair(height, width)
+    with pytest.raises(ValueError, match="give intrinsics="):
+        predictor.predict(image1, image2, flow.astype(np.float32))
+    outputs = predictor.predict(image1, image2, flow.astype(np.float32), intrinsics=camera_matrix)
+    pose = model_lib.global_params_pose(np.asarray(outputs["global_params"])[None])
+    assert geometry.rotation_error_degrees(np.asarray(pose["rotation"][0]), rotation) < 0.5
+    assert geometry.translation_error_degrees(np.asarray(pose["translation"][0]), translation) < 2.0
+
+
+def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_path):
+    predictor = _given_pose_predictor("pose")
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    image, _ = _pair(HEIGHT, WIDTH)
+    paths = [frames_dir / f"f{index}.png" for index in range(3)]
+    for index, path in enumerate(paths):
+        cv2.imwrite(str(path), np.roll(image, 2 * index, axis=1))
+    camera_to_world = np.tile(np.eye(4), (3, 1, 1))
+    camera_to_world[:, 0, 3] = [0.0, 0.2, 0.5]
+    plan = predict.plan_recording(predict.frame_pairs(3), camera_to_world=camera_to_world)
+    assert plan.baselines == pytest.approx([0.2, 0.3])
+    with pytest.raises(ValueError, match="with camera poses"):
+        predict.predict_recording(
+            predictor,
+            predict.ImageFolderFrames(paths),
+            predict.plan_recording(predict.frame_pairs(3), positions=camera_to_world[:, :3, 3]),
+            tmp_path / "refused",
+            depth_format="npy",
+        )
+    out = tmp_path / "out"
+    predict.predict_recording(
+        predictor, predict.ImageFolderFrames(paths), plan, out, depth_format="npy"
+    )
+    read = lambda path: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)  # noqa: E731
+    expected = predictor(
+        read(paths[1]), read(paths[2]), rotation=np.eye(3), translation=[-0.3, 0.0, 0.0]
+    )
+    np.testing.assert_allclose(np.load(out / "depth" / "f1__f2.npy"), expected, rtol=1e-5)
