@@ -86,6 +86,12 @@ class TrainConfig(LoopOptions):
         "paper's; 0 = off).",
         at_least=0,
     )
+    pose_teacher_weight: float = option(
+        0.0,
+        "Weight of the loss pulling the global parameters to the essential matrix's pose "
+        "from the input flow (a classical teacher; not the paper's; 0 = off).",
+        at_least=0,
+    )
     photometric_smoothness_weight: float = option(
         1e-3, "Smoothness weight of the self-supervised loss (struct2depth models).", at_least=0
     )
@@ -106,12 +112,13 @@ class TrainConfig(LoopOptions):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         model_lib.check_config(self.model, self.model_config)
-        if self.epipolar_weight > 0 and not infers_pose(self.model, self.model_config):
-            raise ValueError(
-                "epipolar_weight needs global parameters that the model infers and that "
-                "stand for a pose: global_local with its global module, global_source "
-                "encoder and global_dim 6"
-            )
+        for name in ("epipolar_weight", "pose_teacher_weight"):
+            if getattr(self, name) > 0 and not infers_pose(self.model, self.model_config):
+                raise ValueError(
+                    f"{name} needs global parameters that the model infers and that stand "
+                    "for a pose: global_local with its global module, global_source encoder "
+                    "and global_dim 6"
+                )
         return self
 
     def architecture(self) -> dict[str, Any]:
@@ -129,6 +136,7 @@ class TrainConfig(LoopOptions):
             depth=self.depth_weight,
             smoothness=self.smoothness_weight,
             epipolar=self.epipolar_weight,
+            pose_teacher=self.pose_teacher_weight,
         )
 
 

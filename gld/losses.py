@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from gld import geometry
+from gld import model as model_lib
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,6 +20,7 @@ class LossWeights:
     depth: float = 5.0
     smoothness: float = 2.0
     epipolar: float = 0.0
+    pose_teacher: float = 0.0
 
 
 def inverse_depth_target(depth: jax.Array, mask: jax.Array) -> jax.Array:
@@ -83,6 +85,24 @@ def epipolar_term(outputs: dict, batch: dict) -> jax.Array:
     return jnp.mean(distance)
 
 
+def pose_teacher_term(outputs: dict, batch: dict) -> jax.Array:
+    """Mean squared distance of the global parameters from the pose the essential matrix
+    gets from the input flow (`gld.flow_pose`, the contract's "flow_rotation" and
+    "flow_translation"), written as global parameters (`gld.model.pose_parameters`):
+    a classical teacher for the global module, no label needed. Pairs whose estimate
+    failed (zero translation) are left out.
+    """
+    if "global_pose" not in outputs:
+        raise ValueError(
+            "the pose-teacher loss needs a model whose six global parameters stand for a "
+            "pose (global_local with its global module and global_dim 6)"
+        )
+    target = model_lib.pose_parameters(batch["flow_rotation"], batch["flow_translation"])
+    valid = (jnp.linalg.norm(batch["flow_translation"], axis=-1) > 0.5).astype(target.dtype)
+    squared = jnp.sum((outputs["global_params"] - jax.lax.stop_gradient(target)) ** 2, axis=-1)
+    return jnp.sum(squared * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+
+
 def total_loss(
     outputs: dict[str, jax.Array],
     batch: dict[str, jax.Array],
@@ -97,11 +117,13 @@ def total_loss(
     Args:
       outputs: the model's outputs, with `inv_depth` [B, H, W].
       batch: the example contract (`depth`, `sparse_mask`, `image1` are used; `flow`,
-        `intrinsics1`, `intrinsics2` too with the epipolar term).
+        `intrinsics1`, `intrinsics2` too with the epipolar term; `flow_rotation`,
+        `flow_translation` with the pose teacher).
       weights: the loss weights.
 
     Returns:
-      (loss, {"loss", "depth_l1", "smoothness"} and "epipolar" when weighted) where the
+      (loss, {"loss", "depth_l1", "smoothness"} and "epipolar", "pose_teacher" when
+      weighted) where the
       terms are unweighted.
     """
     image = batch["image1"]
@@ -118,4 +140,7 @@ def total_loss(
     if weights.epipolar > 0:
         terms["epipolar"] = epipolar_term(outputs, batch)
         loss = loss + weights.epipolar * terms["epipolar"]
+    if weights.pose_teacher > 0:
+        terms["pose_teacher"] = pose_teacher_term(outputs, batch)
+        loss = loss + weights.pose_teacher * terms["pose_teacher"]
     return loss, {"loss": loss, **terms}

@@ -28,6 +28,7 @@ from gld import evaluation, input_pipeline, layers, losses, metrics, photometric
 from gld import model as model_lib
 from gld import workdir as workdir_lib
 from gld.config import TrainConfig
+from gld.flow_pose import FLOW_POSE_KEYS
 from gld.state import TrainState, config_optimizer, create_train_state
 
 # Keys of a batch that the train step reads (the rest, like "id", stay on the host).
@@ -48,10 +49,12 @@ def loss_name(model: nn.Module) -> str:
 
 def batch_keys(model: nn.Module, loss_weights=None) -> tuple[str, ...]:
     """The batch keys a model's train step reads: its loss's (the intrinsics too with an
-    epipolar term) and its own inputs."""
+    epipolar term, the pose from the flow with a pose teacher) and its own inputs."""
     keys = LOSS_KEYS[loss_name(model)]
     if getattr(loss_weights, "epipolar", 0) > 0:
         keys += ("intrinsics1", "intrinsics2")
+    if getattr(loss_weights, "pose_teacher", 0) > 0:
+        keys += FLOW_POSE_KEYS
     return layers.with_input_keys(model, keys)
 
 

@@ -1,3 +1,4 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -93,3 +94,31 @@ def test_epipolar_term_is_the_mean_epipolar_distance_of_the_pose_g_stands_for():
     assert "epipolar" not in plain_terms
     np.testing.assert_allclose(terms["epipolar"], expected, rtol=1e-6)
     np.testing.assert_allclose(weighted, plain + 0.5 * expected, rtol=1e-6)
+
+
+def test_pose_teacher_term_is_the_distance_of_g_from_the_flow_pose_over_pairs_it_holds_for():
+    from gld import geometry
+    from gld import model as model_lib
+
+    rotation = jnp.asarray(geometry.rotation_matrix(np.array([[0.0, 0.05, 0.0]] * 3)), jnp.float32)
+    translation = jnp.asarray([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, 0.0, 0.0]], jnp.float32)
+    target = model_lib.pose_parameters(rotation, translation)
+    global_params = target + jnp.asarray([[0.1, 0, 0, 0, 0, 0], [0, 0, 0, 0.2, 0, 0], [5.0] * 6])
+    batch = {"flow_rotation": rotation, "flow_translation": translation}
+    outputs = {"global_params": global_params, "global_pose": {}}
+    # The third pair's estimate failed (zero translation): it does not count.
+    np.testing.assert_allclose(
+        losses.pose_teacher_term(outputs, batch), (0.1**2 + 0.2**2) / 2, rtol=1e-5
+    )
+    exact = {"global_params": target[:2], "global_pose": {}}
+    two = {key: value[:2] for key, value in batch.items()}
+    np.testing.assert_allclose(losses.pose_teacher_term(exact, two), 0.0, atol=1e-10)
+    # The teacher is a target: no gradient flows into it.
+    gradient = jax.grad(
+        lambda r: losses.pose_teacher_term(
+            outputs, {"flow_rotation": r, "flow_translation": translation}
+        )
+    )(rotation)
+    np.testing.assert_array_equal(gradient, 0.0)
+    with pytest.raises(ValueError, match="six global parameters stand for a pose"):
+        losses.pose_teacher_term({"global_params": global_params}, batch)
