@@ -862,14 +862,22 @@ class Report:
         ]
         rows += [
             (n, self.run(n), (table, n))
-            for n in ("global_local_gt_flow", "global_local_gt_pose", "global_local_1px")
+            for n in (
+                "global_local_gt_flow",
+                "global_local_gt_pose",
+                "global_local_flow_pose",
+                "global_local_1px",
+            )
         ]
         text = "## 4. Given flow, given pose\n\n" + self._table(rows, table)
         return text + (
             "\nThe true pose enters the model as its global parameters: g = (10 x the "
             "rotation's vector part, the unit translation) replaces the global encoder's "
             "output (`--global_source=pose`, `gld.model.pose_parameters`); the local network "
-            "and the hypernetwork are trained as usual. Triangulation with the predicted pose "
+            "and the hypernetwork are trained as usual. With `--global_source=flow_pose`, g "
+            "is the pose the essential matrix gets from the model's own input flow "
+            "(`gld.flow_pose`, the pose of `sfm_flow`): no label and no odometry. "
+            "Triangulation with the predicted pose "
             "uses the pose the Pretrained-Full probe on the main run's encoder (section 6, "
             "first column) predicts for each test pair.\n\n"
         )

@@ -337,6 +337,12 @@ def suite_runs(scale: Scale) -> list[Run]:
             epipolar=False,
             model_config={"global_source": "pose"},
         ),
+        _global_local(
+            "global_local_flow_pose",
+            "global-local, its flow's essential-matrix pose given",
+            epipolar=False,
+            model_config={"global_source": "flow_pose"},
+        ),
     ]
     runs += [
         _global_local(

@@ -631,7 +631,8 @@ def test_results_made_by_uncommitted_code_are_listed_for_a_re_run_not_reported(t
     results["pose_probe"] = {"errors": {}, "commit": "def5678+changes"}
     readme = _write(tmp_path, results)
     head = readme.split("## Targets")[0]
-    assert "3 of 39 training runs finished (results made at commit abc1234)" in head
+    total = len(paper_suite.suite_runs(SUITES["cpu_full"]))
+    assert f"3 of {total} training runs finished (results made at commit abc1234)" in head
     assert (
         "2 results were made by uncommitted code and are not reported; each needs a re-run at "
         "a clean commit" in head

@@ -70,6 +70,10 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert differences("global_local_no_epipolar") == {"epipolar_weight": 0.0}
     assert differences("global_local_gt_flow") == {"flow_source": "gt"}
     assert differences("global_local_gt_pose") == {"global_source": "pose", "epipolar_weight": 0.0}
+    assert differences("global_local_flow_pose") == {
+        "global_source": "flow_pose",
+        "epipolar_weight": 0.0,
+    }
     assert differences("global_local_varying") == {"dataset": "gld_scenes/small_varying"}
     for gt_pixels in (4, 16, 64, 0):
         name = f"global_local_{paper_suite.density_name(gt_pixels)}"
