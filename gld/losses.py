@@ -74,7 +74,8 @@ def epipolar_term(outputs: dict, batch: dict) -> jax.Array:
             "the epipolar loss needs a model whose six global parameters stand for a pose "
             "(global_local with its global module and global_dim 6)"
         )
-    pose = outputs["global_pose"]
+    # With a refined g, the term trains what the encoder proposed.
+    pose = outputs.get("encoder_pose", outputs["global_pose"])
     distance = geometry.epipolar_distance(
         batch["flow"],
         pose["rotation"],
@@ -99,7 +100,8 @@ def pose_teacher_term(outputs: dict, batch: dict) -> jax.Array:
         )
     target = model_lib.pose_parameters(batch["flow_rotation"], batch["flow_translation"])
     valid = (jnp.linalg.norm(batch["flow_translation"], axis=-1) > 0.5).astype(target.dtype)
-    squared = jnp.sum((outputs["global_params"] - jax.lax.stop_gradient(target)) ** 2, axis=-1)
+    params = outputs.get("encoder_params", outputs["global_params"])
+    squared = jnp.sum((params - jax.lax.stop_gradient(target)) ** 2, axis=-1)
     return jnp.sum(squared * valid) / jnp.maximum(jnp.sum(valid), 1.0)
 
 

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import baselines, geometry, layers
+from gld import baselines, geometry, layers, pose_refinement
 from gld.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
 from gld.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
 from gld.flow_pose import FLOW_POSE_KEYS
@@ -33,6 +33,8 @@ GLOBAL_SOURCES = ("encoder", "pose", "flow_pose")
 # (a robot's odometry at deployment), or the essential matrix's from the input flow.
 POSE_INPUTS = ("rotation", "translation")
 GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
+# The keys a model that refines its encoder's pose on the flow reads (`pose_refinement`).
+CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
 # Factor on the rotation's vector part in the given-pose global parameters: rotations of
 # a few degrees (sin 3.65 deg ~ 0.064) then vary on the scale of the unit translation.
 POSE_ROTATION_SCALE = 10.0
@@ -165,6 +167,13 @@ class GlobalLocal(nn.Module):
         (CoordConv for G). The flow of a rotation or a translation depends on where the
         pixel is; a conv encoder that pools globally otherwise sees position only
         through its zero padding. The paper's encoder has none (False).
+      pose_refinement_steps: with the encoder as the source of g (global_dim 6), g is
+        not the encoder's output but the pose it stands for refined by this many robust
+        Gauss-Newton steps on the flow's epipolar geometry (`gld.pose_refinement`;
+        the call then needs the cameras' intrinsics1= and intrinsics2=). The encoder
+        proposes and geometry refines; no gradient flows through the refinement, so the
+        encoder's proposal ("encoder_params") is trained by the epipolar term or the
+        pose teacher. 0 (the paper's) uses the encoder's output as g.
       global_norm: "batch" standardises each global parameter over the batch (running
         statistics at test time), so that g varies across pairs from the first step
         (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
@@ -191,6 +200,7 @@ class GlobalLocal(nn.Module):
     pose_translation_error: float = 0.0
     encoder_norm: str = "none"
     encoder_coordinates: bool = False
+    pose_refinement_steps: int = 0
     global_norm: str = "none"
     modulation_scale: float = MODULATION_SCALE
     filter_formulation: str | None = None
@@ -205,6 +215,8 @@ class GlobalLocal(nn.Module):
         """Contract keys the call reads by keyword besides the images and flow."""
         if not self.use_global_module:
             return ()
+        if self.global_source == "encoder" and self.pose_refinement_steps:
+            return CAMERA_INPUTS
         return GIVEN_POSE_INPUTS.get(self.global_source, ())
 
     @nn.compact
@@ -218,6 +230,8 @@ class GlobalLocal(nn.Module):
         translation: jax.Array | None = None,
         flow_rotation: jax.Array | None = None,
         flow_translation: jax.Array | None = None,
+        intrinsics1: jax.Array | None = None,
+        intrinsics2: jax.Array | None = None,
         train: bool = False,
     ) -> dict[str, jax.Array]:
         """Predicts inverse depth for view 1.
@@ -229,6 +243,8 @@ class GlobalLocal(nn.Module):
             with global_source="pose".
           flow_rotation, flow_translation: the same, estimated from the input flow;
             read only with global_source="flow_pose".
+          intrinsics1, intrinsics2: [B, 4] normalised; read only with
+            pose_refinement_steps.
           train: batch statistics (global_norm="batch") come from the batch and are
             recorded when True, from the running averages when False.
 
@@ -303,6 +319,9 @@ class GlobalLocal(nn.Module):
                 norm=self.encoder_norm,
                 name="global_encoder",
             )(global_inputs)
+            encoder_params = global_params
+            if self.pose_refinement_steps:
+                global_params = self._refined(global_params, flow, intrinsics1, intrinsics2)
         if self.global_norm not in GLOBAL_NORMS:
             raise ValueError(f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}")
         if self.use_global_module:
@@ -336,8 +355,38 @@ class GlobalLocal(nn.Module):
         outputs["global_params"] = global_params
         if self.use_global_module and self.global_dim == 6:
             outputs["global_pose"] = global_params_pose(global_params)
+        if (
+            self.use_global_module
+            and self.global_source == "encoder"
+            and self.pose_refinement_steps
+        ):
+            outputs["encoder_params"] = encoder_params
+            outputs["encoder_pose"] = global_params_pose(encoder_params)
         outputs["filter_banks"] = list(filter_banks)
         return outputs
+
+    def _refined(self, proposal, flow, intrinsics1, intrinsics2):
+        """The global parameters of the encoder's pose refined on the flow."""
+        if intrinsics1 is None or intrinsics2 is None:
+            raise ValueError(
+                "pose_refinement_steps refines the pose on the flow's epipolar geometry, which "
+                "needs the cameras: call with intrinsics1= and intrinsics2= [B, 4]"
+            )
+        if self.global_dim != 6:
+            raise ValueError(
+                f"pose_refinement_steps needs 6 global parameters (a pose); global_dim is "
+                f"{self.global_dim}"
+            )
+        pose = global_params_pose(jax.lax.stop_gradient(proposal))
+        rotation, translation = pose_refinement.refine_pose(
+            jax.lax.stop_gradient(flow),
+            pose["rotation"],
+            pose["translation"],
+            intrinsics1,
+            intrinsics2,
+            iterations=self.pose_refinement_steps,
+        )
+        return jax.lax.stop_gradient(pose_parameters(rotation, translation)).astype(flow.dtype)
 
 
 class ConvParameters(nn.Module):
@@ -392,6 +441,8 @@ ARCHITECTURE_FLAGS = {
     "error, degrees (0-180; fixed per pair and augmented copy).",
     "encoder_norm": "Normalisation inside the global encoder.",
     "encoder_coordinates": "CoordConv channels (x, y) into the global encoder.",
+    "pose_refinement_steps": "Gauss-Newton steps refining the encoder's pose on the flow's "
+    "epipolar geometry into g (0 = the encoder's output is g).",
     "global_norm": "Normalisation of g.",
     "modulation_scale": "Initial modulation of the filters by g.",
     "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
@@ -424,6 +475,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "global_source": "encoder",
         "encoder_norm": "none",
         "encoder_coordinates": False,
+        "pose_refinement_steps": 0,
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
     },
@@ -469,6 +521,7 @@ ARCHITECTURE_MINIMA: dict[str, float] = {
     "modulation_scale": 0,
     "pose_rotation_error": 0,
     "pose_translation_error": 0,
+    "pose_refinement_steps": 0,
 }
 
 
@@ -511,6 +564,15 @@ def check_config(name: str, config: dict) -> None:
         raise ValueError(
             f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
             f"is {values['global_dim']}"
+        )
+    if values["pose_refinement_steps"] and not (
+        values["use_global_module"]
+        and values["global_source"] == "encoder"
+        and values["global_dim"] == 6
+    ):
+        raise ValueError(
+            "pose_refinement_steps refines the encoder's pose: it needs the global module, "
+            "global_source encoder and global_dim 6"
         )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(

@@ -1,0 +1,144 @@
+"""Refining a pose on the flow's epipolar geometry (`gld.pose_refinement`) and the model
+whose global parameters are its encoder's pose refined so (`pose_refinement_steps`)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gld import geometry, losses, pose_refinement, state
+from gld import model as model_lib
+
+HEIGHT, WIDTH = 48, 64
+INTRINSICS = np.array([[0.9, 1.2, 0.5, 0.5], [0.85, 1.1, 0.52, 0.47]], np.float32)
+
+
+def _pairs():
+    """Exact flow of two bumpy, slanted surfaces under known motions, and those motions."""
+    grid = geometry.pixel_grid(HEIGHT, WIDTH).astype(np.float64)
+    depths = [
+        3.0 + 0.02 * grid[..., 0] + 0.5 * np.sin(grid[..., 1] / 5.0),
+        2.0 + 1.5 * (grid[..., 1] / HEIGHT) + 0.3 * np.cos(grid[..., 0] / 7.0),
+    ]
+    rotations = geometry.rotation_matrix(np.array([[0.0, 0.03, 0.01], [0.02, -0.01, 0.005]]))
+    translations = np.array([[0.3, 0.05, 0.1], [-0.1, 0.2, 0.3]])
+    flows = []
+    for depth, intrinsics, rotation, translation in zip(
+        depths, INTRINSICS, rotations, translations, strict=True
+    ):
+        camera = geometry.intrinsics_matrix(intrinsics.astype(np.float64), HEIGHT, WIDTH)
+        flows.append(geometry.depth_to_flow(depth, camera, camera, rotation, translation)[0])
+    return np.stack(flows).astype(np.float32), rotations, translations
+
+
+def _turned(rotations, translations, rotation_degrees, translation_degrees):
+    """The poses off by the given angles (about fixed axes)."""
+    axis = np.array([0.6, -0.8, 0.0])
+    rotation = geometry.rotation_matrix(np.radians(rotation_degrees) * axis) @ rotations
+    turn = [
+        geometry.rotation_matrix(
+            np.radians(translation_degrees)
+            * np.cross(t, [0, 0, 1])
+            / np.linalg.norm(np.cross(t, [0, 0, 1]))
+        )
+        for t in translations
+    ]
+    translation = np.stack([r @ t for r, t in zip(turn, translations, strict=True)])
+    return rotation.astype(np.float32), translation.astype(np.float32)
+
+
+def _errors(rotation, translation, rotations, translations):
+    return (
+        geometry.rotation_error_degrees(np.asarray(rotation, np.float64), rotations),
+        geometry.translation_error_degrees(np.asarray(translation, np.float64), translations),
+    )
+
+
+def test_refinement_brings_a_proposal_off_by_degrees_to_the_true_motion():
+    flow, rotations, translations = _pairs()
+    proposal = _turned(rotations, translations, 2.0, 20.0)
+    before = _errors(*proposal, rotations, translations)
+    assert np.all(before[0] > 1.9) and np.all(before[1] > 15)
+    rotation, translation = pose_refinement.refine_pose(
+        jnp.asarray(flow),
+        *map(jnp.asarray, proposal),
+        jnp.asarray(INTRINSICS),
+        jnp.asarray(INTRINSICS),
+    )
+    after = _errors(rotation, translation, rotations, translations)
+    assert np.all(after[0] < 0.05) and np.all(after[1] < 0.5), after
+    np.testing.assert_allclose(np.linalg.norm(translation, axis=-1), 1.0, atol=1e-5)
+    # Zero steps return the proposal (the translation at unit norm).
+    same = pose_refinement.refine_pose(
+        jnp.asarray(flow),
+        *map(jnp.asarray, proposal),
+        jnp.asarray(INTRINSICS),
+        jnp.asarray(INTRINSICS),
+        iterations=0,
+    )
+    np.testing.assert_allclose(same[0], proposal[0], atol=1e-6)
+    with pytest.raises(ValueError, match="stride >= 1"):
+        pose_refinement.refine_pose(
+            jnp.asarray(flow),
+            *map(jnp.asarray, proposal),
+            jnp.asarray(INTRINSICS),
+            jnp.asarray(INTRINSICS),
+            stride=0,
+        )
+
+
+def test_a_model_refining_its_encoder_pose_gives_the_refined_pose_as_g_and_trains_the_proposal():
+    flow, rotations, translations = _pairs()
+    model = model_lib.GlobalLocal(encoder_channels=(4, 8, 8, 8, 8), pose_refinement_steps=10)
+    assert model.extra_inputs == ("intrinsics1", "intrinsics2")
+    variables = state.init_variables(model, HEIGHT, WIDTH, seed=0)
+    # Point the proposal at the true motion off by 2 / 20 degrees: the encoder's last conv
+    # gives it through its bias (its kernel zeroed).
+    proposal = model_lib.pose_parameters(
+        *map(jnp.asarray, _turned(rotations, translations, 2.0, 20.0))
+    )
+    params = jax.tree_util.tree_map(lambda x: x, variables["params"])
+    to_global = params["global_encoder"]["to_global"]
+    to_global["kernel"] = jnp.zeros_like(to_global["kernel"])
+    images = jnp.zeros((2, HEIGHT, WIDTH, 3))
+    cameras = dict(intrinsics1=jnp.asarray(INTRINSICS), intrinsics2=jnp.asarray(INTRINSICS))
+    errors = []
+    for index in range(2):
+        to_global["bias"] = proposal[index]
+        outputs = model.apply({"params": params}, images, images, jnp.asarray(flow), **cameras)
+        np.testing.assert_allclose(outputs["encoder_params"][index], proposal[index], atol=1e-5)
+        pose = outputs["global_pose"]
+        errors.append(
+            _errors(
+                pose["rotation"][index],
+                pose["translation"][index],
+                rotations[index],
+                translations[index],
+            )
+        )
+    assert all(r < 0.1 and t < 1.0 for r, t in errors), errors
+    with pytest.raises(ValueError, match="intrinsics1= and intrinsics2="):
+        model.apply({"params": params}, images, images, jnp.asarray(flow))
+    with pytest.raises(ValueError, match="global_source encoder and global_dim 6"):
+        model_lib.check_config(
+            "global_local", {"pose_refinement_steps": 5, "global_source": "pose"}
+        )
+    # The losses on g's pose train the encoder's proposal, not the refined pose: the
+    # teacher is at the true pose, so the refined g would score ~0, the proposal does not.
+    batch = {
+        "flow_rotation": jnp.asarray(rotations, jnp.float32),
+        "flow_translation": jnp.asarray(
+            translations / np.linalg.norm(translations, axis=-1, keepdims=True), jnp.float32
+        ),
+    }
+    to_global["bias"] = proposal[0]
+    outputs = model.apply({"params": params}, images, images, jnp.asarray(flow), **cameras)
+    assert float(losses.pose_teacher_term(outputs, batch)) > 0.05
+    gradient = jax.grad(
+        lambda p: losses.pose_teacher_term(
+            model.apply({"params": p}, images, images, jnp.asarray(flow), **cameras), batch
+        )
+    )(params)
+    assert float(jnp.abs(gradient["global_encoder"]["to_global"]["bias"]).max()) > 0
