@@ -22,7 +22,8 @@ matched by time, otherwise the i-th pose is the i-th frame): each pair is scaled
 distance between its frames' positions, and a model trained given the relative pose
 (`--global_source=pose`) is given the pair's relative pose from the trajectory (it
 needs `--poses`); a model trained on the pose from its flow (`--global_source=flow_pose`)
-needs `--intrinsics`. Pairs without a reading on the first frame, or
+needs `--intrinsics`, as does one that refines its encoder's pose on the flow
+(`--pose_refinement_steps`). Pairs without a reading on the first frame, or
 with a baseline not above `--min_baseline`, are skipped and counted. With neither,
 depth is in units of the (unknown) baseline and written as .npy.
 
@@ -134,8 +135,9 @@ def _camera_poses(image_paths, names) -> object:
     return camera_to_world[indices]
 
 
-def _given_pose() -> str | None:
-    """The pose the workdir's model was trained given ("pose", "flow_pose"), or None."""
+def _model_inputs() -> tuple[str, ...]:
+    """The inputs the workdir's model reads besides the images and flow (its
+    `extra_inputs`: a given pose, or the cameras), from its stored config."""
     from gld import model as model_lib
     from gld import workdir as workdir_lib
 
@@ -143,12 +145,9 @@ def _given_pose() -> str | None:
         config = workdir_lib.load_run_config(FLAGS.workdir)
     except (FileNotFoundError, ValueError) as error:
         raise _usage("workdir", error) from None
-    if config.model != "global_local":
-        return None
-    full = model_lib.full_config(config.model, config.model_config)
-    if not full["use_global_module"] or full["global_source"] not in model_lib.GIVEN_POSE_INPUTS:
-        return None
-    return full["global_source"]
+    return tuple(
+        getattr(model_lib.make_model(config.model, **config.model_config), "extra_inputs", ())
+    )
 
 
 def _measure_scale() -> None:
@@ -271,8 +270,10 @@ def main(argv):
                 )
     if FLAGS.poses:
         camera_to_world = _camera_poses(image_paths, frames.names)
-    given_pose = _given_pose()
-    if given_pose == "pose" and camera_to_world is None:
+    from gld import model as model_lib
+
+    model_inputs = _model_inputs()
+    if model_inputs == model_lib.POSE_INPUTS and camera_to_world is None:
         raise _usage(
             "poses",
             ValueError(
@@ -280,10 +281,12 @@ def main(argv):
                 "odometry as a TUM trajectory"
             ),
         )
-    if given_pose == "flow_pose" and camera_matrix is None:
+    if set(model_inputs) - set(model_lib.POSE_INPUTS) and camera_matrix is None:
         raise _usage(
             "intrinsics",
-            ValueError("the model takes the camera motion from its flow, which needs the camera"),
+            ValueError(
+                "the model takes the camera motion from its flow's geometry, which needs the camera"
+            ),
         )
     try:
         plan = predict.plan_recording(

@@ -80,7 +80,8 @@ from gld import depth_io, flow_pose, geometry
 from gld import flow as flow_lib
 from gld import scale as scale_lib
 from gld import workdir as workdir_lib
-from gld.model import GIVEN_POSE_INPUTS
+from gld.flow_pose import FLOW_POSE_KEYS
+from gld.model import CAMERA_INPUTS, GIVEN_POSE_INPUTS
 
 ASPECT_MODES = ("resize", "crop")
 # Aspect ratios closer than this are the same shape at another resolution.
@@ -233,11 +234,14 @@ class DepthPredictor:
             raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
         extra_inputs = tuple(getattr(model, "extra_inputs", ()))
         given = {keys: source for source, keys in GIVEN_POSE_INPUTS.items()}
-        if extra_inputs and extra_inputs not in given:
+        if extra_inputs and extra_inputs not in given and extra_inputs != CAMERA_INPUTS:
             raise ValueError(f"the model also reads {list(extra_inputs)}, which a predictor lacks")
         # "pose": the model was trained given the true relative pose (odometry here);
         # "flow_pose": the essential matrix's pose from its input flow; None: neither.
         self.given_pose = given.get(extra_inputs)
+        # Models that take the motion from the flow's geometry need the camera.
+        self.needs_camera = extra_inputs in (FLOW_POSE_KEYS, CAMERA_INPUTS)
+        self._reads_cameras = extra_inputs == CAMERA_INPUTS
         self.model, self.variables = model, variables
         self.height, self.width = height, width
         self.flow_method = flow_method
@@ -342,16 +346,21 @@ class DepthPredictor:
                     "rotation= and translation= are for models trained given the relative "
                     f"pose; this one takes {self.given_pose or 'its global encoder'}'s"
                 )
-        if self.given_pose is None:
+        if not self.needs_camera and self.given_pose is None:
             return {}, baseline
-        if self.given_pose == "flow_pose":
+        if self.needs_camera:
             if camera_matrix is None:
                 raise ValueError(
-                    "the model takes the camera motion from its flow (global_source "
-                    "flow_pose), which needs the camera: give intrinsics="
+                    "the model takes the camera motion from its flow's geometry, which needs "
+                    "the camera: give intrinsics="
                 )
             camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
             normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
+            normalised = normalised.astype(np.float32)
+        if self._reads_cameras:
+            cameras = np.tile(normalised, (batch_size, 1))
+            return {"intrinsics1": cameras, "intrinsics2": cameras}, baseline
+        if self.given_pose == "flow_pose":
             poses = [flow_pose.pose_of_example(flow, normalised, normalised) for flow in model_flow]
             return {
                 "flow_rotation": np.stack([pose[0] for pose in poses]),
@@ -408,7 +417,8 @@ class DepthPredictor:
           ranges: range readings (u, v, distance in metres) in pixels of the input: an
             [N, 3] array for one pair, a sequence of B such arrays for a batch.
           intrinsics: the input camera's (fx, fy, cx, cy) in pixels or a 3x3 K. A model
-            trained on the pose from its flow (`given_pose == "flow_pose"`) needs them.
+            that takes the motion from its flow's geometry (`needs_camera`: trained on
+            the pose from its flow, or refining its encoder's pose on it) needs them.
           rotation, translation: the relative pose of the pair, [3, 3] and [3] (or [B, 3, 3]
             and [B, 3]), X2 = R X1 + t in the camera frame (x right, y down, z forward;
             `relative_pose` makes it from two camera-to-world poses): the odometry a
@@ -886,7 +896,7 @@ def predict_recording(
                     )
                 options["rotation"] = np.stack([plan.motions[k][0] for k in padded])
                 options["translation"] = np.stack([plan.motions[k][1] for k in padded])
-            if getattr(predictor, "given_pose", None) == "flow_pose":
+            if getattr(predictor, "needs_camera", False):
                 if camera_matrix is None:
                     raise ValueError(
                         "the model takes the camera motion from its flow: give the camera's "

@@ -348,8 +348,10 @@ def test_depth_files_round_trip(tmp_path):
     np.testing.assert_array_equal(loaded["colours"], colours)
 
 
-def _given_pose_predictor(global_source):
-    model = model_lib.make_model("global_local", **{**TINY_MODEL, "global_source": global_source})
+def _given_pose_predictor(global_source, **options):
+    model = model_lib.make_model(
+        "global_local", **{**TINY_MODEL, "global_source": global_source, **options}
+    )
     shapes = jax.eval_shape(lambda: state_lib.init_variables(model, HEIGHT, WIDTH, 0))
     rng = np.random.default_rng(1)
     variables = jax.tree_util.tree_map(
@@ -448,3 +450,16 @@ def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_
         read(paths[1]), read(paths[2]), rotation=np.eye(3), translation=[-0.3, 0.0, 0.0]
     )
     np.testing.assert_allclose(np.load(out / "depth" / "f1__f2.npy"), expected, rtol=1e-5)
+
+
+def test_a_model_refining_its_pose_on_the_flow_is_given_the_camera_it_saw():
+    predictor = _given_pose_predictor("encoder", pose_refinement_steps=2)
+    assert predictor.needs_camera and predictor.given_pose is None
+    image1, image2 = _pair(2 * HEIGHT, 2 * WIDTH)
+    with pytest.raises(ValueError, match="give intrinsics="):
+        predictor.predict(image1, image2)
+    camera_matrix = np.array([[110.0, 0, 63.5], [0, 112.0, 47.5], [0, 0, 1]])
+    outputs = predictor.predict(image1, image2, intrinsics=camera_matrix)
+    assert np.isfinite(outputs["depth"]).all()
+    # The model saw the camera of its own resolution: half the focal length here.
+    np.testing.assert_allclose(outputs["model_camera_matrix"][0, 0], 55.0)
