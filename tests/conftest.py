@@ -16,27 +16,39 @@ if str(REPO_ROOT) not in sys.path:
 import pytest  # noqa: E402
 
 
-def run_python(
-    script: str, *args: str, device_count: int = 1, timeout: int = 300
-) -> subprocess.CompletedProcess:
-    """Runs `script` with `args` in a fresh interpreter on `device_count` CPU devices,
-    from the repository root, and asserts that it exits cleanly."""
-    env = dict(
-        os.environ,
-        XLA_FLAGS=f"--xla_force_host_platform_device_count={device_count}",
-        JAX_PLATFORMS="cpu",
-        PYTHONPATH=str(REPO_ROOT),
-    )
-    result = subprocess.run(
-        [sys.executable, "-c", script, *args],
+def _interpreter(arguments, *, timeout: int, env=None, **options) -> subprocess.CompletedProcess:
+    """A fresh Python interpreter with `arguments`, on the CPU, from the repository root."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT), **(env or {}))
+    return subprocess.run(
+        [sys.executable, *arguments],
         capture_output=True,
         text=True,
         env=env,
         cwd=REPO_ROOT,
         timeout=timeout,
+        **options,
+    )
+
+
+def run_python(
+    script: str, *args: str, device_count: int = 1, timeout: int = 300
+) -> subprocess.CompletedProcess:
+    """Runs `script` with `args` in a fresh interpreter on `device_count` CPU devices,
+    from the repository root, and asserts that it exits cleanly."""
+    result = _interpreter(
+        ["-c", script, *args],
+        timeout=timeout,
+        env={"XLA_FLAGS": f"--xla_force_host_platform_device_count={device_count}"},
     )
     assert result.returncode == 0, result.stderr[-3000:]
     return result
+
+
+def launch(module: str, *args: str, timeout: int = 300, **options) -> subprocess.CompletedProcess:
+    """Runs `python -m module args` on the CPU from the repository root and returns the
+    finished process (its exit status is the caller's to check); `options` go to
+    `subprocess.run`."""
+    return _interpreter(["-m", module, *args], timeout=timeout, **options)
 
 
 def run_on_cpu_devices(script: str, device_count: int) -> dict:

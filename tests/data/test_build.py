@@ -1,29 +1,18 @@
 import importlib.util
 import json
-import os
-import subprocess
-import sys
 
 import demon_files
 import h5py
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, run_python
+from conftest import launch, run_python
 
 import data
 from gld import records
 
 
 def _build(*args):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    return subprocess.run(
-        [sys.executable, "-m", "data.build", *args],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=300,
-    )
+    return launch("data.build", *args, timeout=300)
 
 
 def test_build_command_builds_and_reports(tmp_path):

@@ -1,14 +1,12 @@
 """The export launcher (python -m experiments.export) on a tiny trained workdir."""
 
 import json
-import os
 import subprocess
-import sys
 import zipfile
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import launch
 
 from gld import export
 from gld import workdir as workdir_lib
@@ -16,14 +14,7 @@ from gld.deploy import DeployedModel
 
 
 def _launch(*flags: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "experiments.export", *flags],
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, JAX_PLATFORMS="cpu"),
-        timeout=300,
-    )
+    return launch("experiments.export", *flags)
 
 
 def test_exports_the_latest_checkpoint_at_the_training_resolution(trained_workdir, tmp_path):

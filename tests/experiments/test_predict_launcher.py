@@ -4,15 +4,12 @@ are refused by name before anything is written; --measure_scale on the tiny benc
 
 import csv
 import json
-import os
 import re
-import subprocess
-import sys
 
 import cv2
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import launch
 
 from gld import depth_io, stored_predictions
 
@@ -21,15 +18,7 @@ FX, FY, CX, CY = 80.0, 82.0, 47.0, 35.5
 
 
 def _launch(*args):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    return subprocess.run(
-        [sys.executable, "-m", "experiments.predict", *args],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=600,
-    )
+    return launch("experiments.predict", *args, timeout=600)
 
 
 def _recording(folder):

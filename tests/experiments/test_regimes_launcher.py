@@ -3,28 +3,17 @@ hand-written evaluation: per-pair CSV, summary and figure; bad input named in on
 
 import csv
 import json
-import os
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, tiny_train_config
+from conftest import launch, tiny_train_config
 
 from gld import input_pipeline
 
 
 def _launch(*args):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    return subprocess.run(
-        [sys.executable, "-m", "experiments.regimes", *args],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=300,
-    )
+    return launch("experiments.regimes", *args, timeout=300)
 
 
 @pytest.fixture

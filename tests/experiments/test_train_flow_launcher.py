@@ -1,14 +1,11 @@
 """experiments.train_flow runs end to end in a subprocess on the tiny benchmark."""
 
 import json
-import os
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
 import pytest
-from conftest import REPO_ROOT
+from conftest import launch
 
 from gld import flow_training
 
@@ -27,17 +24,12 @@ TINY_FLAGS = [
 
 
 def _launch(args, data_dir):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    command = [
-        sys.executable,
-        "-m",
+    return launch(
         "experiments.train_flow",
         "--dataset=gld_scenes/tiny",
         f"--data_dir={data_dir}",
         *args,
-    ]
-    return subprocess.run(
-        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
+        timeout=600,
     )
 
 

@@ -11,7 +11,7 @@ import h5py
 import jax
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, launch
 
 from gld import input_pipeline, stored_predictions
 from gld import workdir as workdir_lib
@@ -21,10 +21,9 @@ TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2",
 
 
 def _launch(args, data_dir, dataset="gld_scenes/tiny", **kwargs):
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-    command = [sys.executable, "-m", *args, f"--dataset={dataset}", f"--data_dir={data_dir}"]
-    return subprocess.run(
-        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600, **kwargs
+    module, *flags = args
+    return launch(
+        module, *flags, f"--dataset={dataset}", f"--data_dir={data_dir}", timeout=600, **kwargs
     )
 
 
