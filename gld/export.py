@@ -145,8 +145,8 @@ def _checked(
     name = model_name(model)
     if getattr(model, "extra_inputs", ()):
         raise ValueError(
-            f"model {name!r} also reads {list(model.extra_inputs)} (it is given the relative "
-            "pose); only models of the images and flow can be exported"
+            f"model {name!r} also reads {list(model.extra_inputs)} (a given pose or the "
+            "cameras); only models of the images and flow can be exported"
         )
     if hasattr(model, "filter_formulation"):
         formulation = choose_formulation(formulation, platforms, batch_size)

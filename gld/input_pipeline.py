@@ -15,7 +15,9 @@ Randomness is explicit: augmentation and sparse sampling draw from numpy
 streams, so an example gets the same treatment whatever the shard, shuffle or
 worker count. Examples follow the example contract of the design notes
 (`image1`, `image2`, `flow`, `depth`, `depth_valid`, `sparse_mask`, `intrinsics1`,
-`intrinsics2`, `rotation`, `translation`, `gt_flow`, `gt_flow_valid`, `id`).
+`intrinsics2`, `rotation`, `translation`, `gt_flow`, `gt_flow_valid`, `id`), and on
+request the pose the essential matrix gets from the input flow (`flow_rotation`,
+`flow_translation`; `DERIVED_KEYS`).
 """
 
 from __future__ import annotations
