@@ -357,7 +357,7 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
     tiny_scenes, tmp_path
 ):
     """The pose reaches the model in training (augmented with the images) and in
-    evaluation; a predictor of images alone and the exporter refuse such a model."""
+    evaluation; a predictor asks for odometry and the exporter refuses such a model."""
     from gld import evaluation, export, predict
 
     config = tiny_train_config(
@@ -383,9 +383,13 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
     flipped = [dict(test_source[i], translation=-test_source[i]["translation"]) for i in range(4)]
     per_pair_flipped, _ = evaluation.evaluate_source(model, variables, flipped, batch_size=4)
     assert not np.allclose(per_pair["abs_inv"][:4], per_pair_flipped["abs_inv"])
-    with pytest.raises(ValueError, match="relative pose"):
-        predict.DepthPredictor(model, variables, 48, 64)
-    with pytest.raises(ValueError, match="relative pose"):
+    # A predictor takes the pose from odometry, and refuses to predict without it.
+    predictor = predict.DepthPredictor(model, variables, 48, 64)
+    assert predictor.given_pose == "pose"
+    image = np.zeros((48, 64, 3), np.uint8)
+    with pytest.raises(ValueError, match="give the pair's odometry"):
+        predictor(image, image)
+    with pytest.raises(ValueError, match="a given pose or the cameras"):
         export.export_model(model, variables, tmp_path / "model.gld", height=48, width=64)
 
 
