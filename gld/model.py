@@ -574,6 +574,11 @@ def check_config(name: str, config: dict) -> None:
             "pose_refinement_steps refines the encoder's pose: it needs the global module, "
             "global_source encoder and global_dim 6"
         )
+    if values["pose_refinement_steps"] and not values["use_flow"]:
+        raise ValueError(
+            "pose_refinement_steps refines the pose on the flow, which a model without the "
+            "flow (use_flow false) must not read"
+        )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
             f"encoder_channels {values['encoder_channels']} and encoder_strides "

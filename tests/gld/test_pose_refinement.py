@@ -121,6 +121,8 @@ def test_a_model_refining_its_encoder_pose_gives_the_refined_pose_as_g_and_train
     assert all(r < 0.1 and t < 1.0 for r, t in errors), errors
     with pytest.raises(ValueError, match="intrinsics1= and intrinsics2="):
         model.apply({"params": params}, images, images, jnp.asarray(flow))
+    with pytest.raises(ValueError, match="must not read"):
+        model_lib.check_config("global_local", {"pose_refinement_steps": 5, "use_flow": False})
     with pytest.raises(ValueError, match="global_source encoder and global_dim 6"):
         model_lib.check_config(
             "global_local", {"pose_refinement_steps": 5, "global_source": "pose"}
