@@ -8,8 +8,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from gld import geometry
-from gld import model as model_lib
+from gld import geometry, global_pose
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,7 +97,7 @@ def pose_teacher_term(outputs: dict, batch: dict) -> jax.Array:
             "the pose-teacher loss needs a model whose six global parameters stand for a "
             "pose (global_local with its global module and global_dim 6)"
         )
-    target = model_lib.pose_parameters(batch["flow_rotation"], batch["flow_translation"])
+    target = global_pose.pose_parameters(batch["flow_rotation"], batch["flow_translation"])
     valid = (jnp.linalg.norm(batch["flow_translation"], axis=-1) > 0.5).astype(target.dtype)
     params = outputs.get("encoder_params", outputs["global_params"])
     squared = jnp.sum((params - jax.lax.stop_gradient(target)) ** 2, axis=-1)
