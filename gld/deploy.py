@@ -4,6 +4,7 @@
     model = DeployedModel.load("runs/demo/model.gldx")
     depth = model(image1, image2, flow)        # [B, H, W] (or [H, W] for one pair)
     outputs = model.predict(image1, image2, flow)   # + inv_depth, global_params
+    depth = model(image1, image2, flow, intrinsics1=k, intrinsics2=k)  # model.extra_inputs
 
 This module imports nothing but JAX, numpy and the standard library (not flax, optax,
 orbax, TFDS, grain, OpenCV, nor any gld module that does), so a robot can run a model
@@ -13,7 +14,11 @@ without the training stack: copy this file and the exported file, `pip install j
 Inputs are at the exported resolution (`model.height` x `model.width`, the training
 resolution; nothing is resized here): images uint8 [0, 255] or float32 in [-0.5, 0.5]
 (uint8 / 255 - 0.5), [B, H, W, 3] or one pair [H, W, 3]; flow float32 pixels, image1 ->
-image2, [B, H, W, 2] or [H, W, 2]. Depth is in units of the pair's baseline (the
+image2, [B, H, W, 2] or [H, W, 2]. A model trained to read more (`extra_inputs`: the
+odometry's relative pose, the flow's essential-matrix pose, or the cameras, normalised at
+the exported resolution, for a model that refines its pose on the flow) takes them by
+keyword, float32, with or without the batch axis as the images; the metadata's "inputs"
+say what each is. Depth is in units of the pair's baseline (the
 distance between the camera centres): metric depth = depth * baseline.
 """
 
@@ -30,7 +35,8 @@ import numpy as np
 
 # The file layout written by gld.export (kept in step with it; this module may not import it).
 FORMAT = "gld-exported-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # version 1: no extra inputs
 METADATA_MEMBER = "metadata.json"
 EXPORTED_MEMBER = "model.jaxexport"
 WEIGHTS_MEMBER = "weights.npz"
@@ -61,10 +67,10 @@ def _read_archive(path: Path) -> tuple[dict[str, Any], bytes, bytes]:
         weights = archive.read(WEIGHTS_MEMBER)
     if metadata.get("format") != FORMAT:
         raise ValueError(f"{path}: format {metadata.get('format')!r} is not {FORMAT!r}")
-    if metadata.get("format_version") != FORMAT_VERSION:
+    if metadata.get("format_version") not in READABLE_VERSIONS:
         raise ValueError(
             f"{path} has format version {metadata.get('format_version')}; this gld.deploy "
-            f"reads version {FORMAT_VERSION}: export the model again with this gld"
+            f"reads versions {list(READABLE_VERSIONS)}: export the model again with this gld"
         )
     return metadata, serialized, weights
 
@@ -77,6 +83,8 @@ class DeployedModel:
       height, width: the image size the model takes (its training resolution).
       batch_size: the fixed batch size, or None when any batch size is accepted.
       platforms: the platforms the file was lowered for.
+      extra_inputs: what the model reads by keyword besides the images and flow, in the
+        exported order (empty for most models).
     """
 
     def __init__(self, metadata: dict[str, Any], exported: jax.export.Exported, weights: list):
@@ -84,6 +92,9 @@ class DeployedModel:
         self.height, self.width = int(metadata["height"]), int(metadata["width"])
         self.batch_size = metadata["batch_size"]
         self.platforms = tuple(exported.platforms)
+        self.extra_inputs = tuple(metadata.get("extra_inputs", ()))
+        described = {entry["name"]: entry for entry in metadata.get("inputs", ())}
+        self._extra_shapes = {key: tuple(described[key]["shape"][1:]) for key in self.extra_inputs}
         self._exported = exported
         # On the device once: each call passes only the images and the flow.
         self._weights = jax.device_put(weights)
@@ -105,10 +116,15 @@ class DeployedModel:
             weights = [stored[f"{index:05d}"] for index in range(len(stored.files))]
         expected = metadata["weights"]
         avals = exported.in_avals[: len(expected)]
-        if len(weights) != len(expected) or len(exported.in_avals) != len(expected) + 3:
+        inputs = 3 + len(metadata.get("extra_inputs", ()))
+        described = {entry.get("name") for entry in metadata.get("inputs", ())}
+        undescribed = [key for key in metadata.get("extra_inputs", ()) if key not in described]
+        if undescribed:
+            raise ValueError(f"{path}: the metadata lists no shape for inputs {undescribed}")
+        if len(weights) != len(expected) or len(exported.in_avals) != len(expected) + inputs:
             raise ValueError(
                 f"{path}: {len(weights)} stored weights, {len(expected)} listed in the "
-                f"metadata and {len(exported.in_avals) - 3} taken by the model"
+                f"metadata and {len(exported.in_avals) - inputs} taken by the model"
             )
         for weight, entry, aval in zip(weights, expected, avals, strict=True):
             if list(weight.shape) != entry["shape"] or weight.shape != aval.shape:
@@ -148,14 +164,46 @@ class DeployedModel:
             )
         return image
 
+    def _extra(self, given: dict[str, Any], batch_size: int, single: bool) -> list[np.ndarray]:
+        """The extra inputs in the exported order, checked, with a batch axis."""
+        unexpected = sorted(set(given) - set(self.extra_inputs))
+        if unexpected:
+            reads = list(self.extra_inputs) or "only the images and flow"
+            raise ValueError(f"this model does not read {unexpected}; it reads {reads}")
+        missing = [key for key in self.extra_inputs if key not in given]
+        if missing:
+            described = {entry["name"]: entry for entry in self.metadata["inputs"]}
+            needs = "; ".join(f"{key}: {described[key].get('help', '')}" for key in missing)
+            raise ValueError(f"this model also reads {missing}: give them by keyword ({needs})")
+        arrays = []
+        for key in self.extra_inputs:
+            shape = self._extra_shapes[key]
+            value = np.asarray(given[key])
+            if value.dtype.kind not in "fiu":
+                raise ValueError(f"{key} must be numeric, got dtype {value.dtype}")
+            value = value.astype(np.float32)
+            if single:
+                value = value[None]
+            if value.shape != (batch_size, *shape):
+                dims = ", ".join(map(str, shape if single else ("B", *shape)))
+                raise ValueError(
+                    f"{key} must be [{dims}] with these images, got shape {np.shape(given[key])}"
+                )
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"{key} contains NaN or inf")
+            arrays.append(value)
+        return arrays
+
     def predict(
-        self, image1: np.ndarray, image2: np.ndarray, flow: np.ndarray
+        self, image1: np.ndarray, image2: np.ndarray, flow: np.ndarray, **extra: Any
     ) -> dict[str, np.ndarray]:
         """Every output of the exported model, as numpy.
 
         Args:
           image1, image2: [B, H, W, 3] or [H, W, 3], uint8 or float32 in [-0.5, 0.5].
           flow: [B, H, W, 2] or [H, W, 2] float32, pixels, image1 -> image2.
+          **extra: the inputs `extra_inputs` names (rotation [3, 3], translation [3],
+            intrinsics1 [4], ...; [B, ...] with a batch), float32.
 
         Returns:
           {"inv_depth": [B, H, W], "depth": [B, H, W] in baselines, and the model's
@@ -183,12 +231,16 @@ class DeployedModel:
                 f"this model was exported for batch size {self.batch_size}, got "
                 f"{first.shape[0]}: export it again with a symbolic batch (no --batch_size)"
             )
-        outputs = jax.device_get(self._call(self._weights, first, second, flow))
+        given = self._extra(extra, first.shape[0], single)
+        outputs = jax.device_get(self._call(self._weights, first, second, flow, *given))
         outputs = {key: np.asarray(value) for key, value in outputs.items()}
         if single:
             outputs = {key: value[0] for key, value in outputs.items()}
         return outputs
 
-    def __call__(self, image1: np.ndarray, image2: np.ndarray, flow: np.ndarray) -> np.ndarray:
-        """Depth of view 1 in baselines: [B, H, W], or [H, W] for one pair."""
-        return self.predict(image1, image2, flow)["depth"]
+    def __call__(
+        self, image1: np.ndarray, image2: np.ndarray, flow: np.ndarray, **extra: Any
+    ) -> np.ndarray:
+        """Depth of view 1 in baselines: [B, H, W], or [H, W] for one pair; `extra` as
+        for `predict`."""
+        return self.predict(image1, image2, flow, **extra)["depth"]

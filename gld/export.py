@@ -6,8 +6,10 @@
 
 The file is a zip archive of three members:
 
-    metadata.json   what a user needs: inputs (names, shapes, dtypes, normalisation),
-                    outputs, the training resolution, depth units, the model and its
+    metadata.json   what a user needs: inputs (names, shapes, dtypes, normalisation;
+                    after the flow, "extra_inputs": the odometry pose, the flow's
+                    essential-matrix pose or the normalised cameras for models that
+                    read them), outputs, the training resolution, depth units, the model and its
                     configuration, the gld and JAX versions, the source workdir and step
     model.jaxexport the forward pass serialised by `jax.export` (StableHLO), batch size
                     symbolic unless fixed, image size fixed at the training resolution
@@ -47,7 +49,9 @@ from gld import filter_banks
 from gld import model as model_lib
 
 FORMAT = "gld-exported-model"
-FORMAT_VERSION = 1
+# 2: inputs after the flow for models that read a given pose or the cameras
+# ("extra_inputs"); version 1 files (images and flow only) read the same way.
+FORMAT_VERSION = 2
 METADATA_MEMBER = "metadata.json"
 EXPORTED_MEMBER = "model.jaxexport"
 WEIGHTS_MEMBER = "weights.npz"
@@ -55,6 +59,27 @@ WEIGHTS_MEMBER = "weights.npz"
 # Platforms `jax.export` lowers for; a file may hold several (multi-platform lowering).
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")
 INPUT_NAMES = ("image1", "image2", "flow")
+# Inputs a model may read besides the images and flow (`GlobalLocal.extra_inputs`), each
+# with its shape after the batch axis and what to give.
+_RELATIVE_POSE = "X2 = R X1 + t: a point in camera 1's frame in camera 2's"
+EXTRA_INPUTS = {
+    "rotation": ((3, 3), f"the pair's relative rotation R (odometry), {_RELATIVE_POSE}"),
+    "translation": ((3,), f"the pair's relative translation t (odometry), {_RELATIVE_POSE}"),
+    "flow_rotation": (
+        (3, 3),
+        f"R of the essential-matrix pose of the input flow (gld.flow_pose), {_RELATIVE_POSE}",
+    ),
+    "flow_translation": (
+        (3,),
+        "unit t of the essential-matrix pose of the input flow (gld.flow_pose); " + _RELATIVE_POSE,
+    ),
+    "intrinsics1": (
+        (4,),
+        "camera 1 at the exported resolution, normalised: [fx / width, fy / height, "
+        "(cx + 0.5) / width, (cy + 0.5) / height] (pixel-index cx, cy)",
+    ),
+    "intrinsics2": ((4,), "camera 2, normalised as intrinsics1"),
+}
 DEPTH_UNITS = (
     "baseline: depth in units of the distance between the two camera centres "
     "(the training scale, ||t|| = 1); metric depth = depth * baseline"
@@ -134,6 +159,7 @@ def _checked(
     batch_size: int | None,
     formulation: str | None,
     platforms: tuple[str, ...],
+    extra_allowed: bool = True,
 ) -> tuple[nn.Module, str, Path]:
     """Refuses bad arguments; the model with its formulation set, its name, the path."""
     output = Path(output)
@@ -143,11 +169,15 @@ def _checked(
     if batch_size is not None and (not isinstance(batch_size, int | np.integer) or batch_size < 1):
         raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}")
     name = model_name(model)
-    if getattr(model, "extra_inputs", ()):
+    extra = list(getattr(model, "extra_inputs", ()))
+    if extra and not extra_allowed:
         raise ValueError(
-            f"model {name!r} also reads {list(model.extra_inputs)} (a given pose or the "
-            "cameras); only models of the images and flow can be exported"
+            f"model {name!r} also reads {extra} (a given pose or the cameras); only models "
+            "of the images and flow convert to ONNX (the jax.export file takes them)"
         )
+    unknown = [key for key in extra if key not in EXTRA_INPUTS]
+    if unknown:
+        raise ValueError(f"model {name!r} reads {unknown}, which no exported file can take")
     if hasattr(model, "filter_formulation"):
         formulation = choose_formulation(formulation, platforms, batch_size)
         model = model.clone(filter_formulation=formulation)
@@ -178,6 +208,7 @@ def _describe(
 ) -> dict[str, Any]:
     """The metadata both formats share: model, resolution, inputs, outputs, units."""
     batch_dim = "batch" if batch_size is None else int(batch_size)
+    extra_inputs = tuple(getattr(model, "extra_inputs", ()))
     image_help = "RGB, float32 in [-0.5, 0.5] = uint8 / 255 - 0.5 (gld.deploy also takes uint8)"
     image = {"dtype": "float32", "range": [-0.5, 0.5], "help": image_help}
     return {
@@ -197,7 +228,17 @@ def _describe(
                 "help": "optical flow image1 -> image2 in pixels at height x width "
                 "(pixel p of image1 sits at p + flow(p) in image2)",
             },
+            *[
+                {
+                    "name": key,
+                    "shape": [batch_dim, *EXTRA_INPUTS[key][0]],
+                    "dtype": "float32",
+                    "help": EXTRA_INPUTS[key][1],
+                }
+                for key in extra_inputs
+            ],
         ],
+        "extra_inputs": list(extra_inputs),
         "outputs": [
             {
                 "name": key,
@@ -261,16 +302,22 @@ def export_model(
     weight_names, weights, tree = _weight_names(variables)
     weights = [np.asarray(jax.device_get(weight)) for weight in weights]
 
-    def forward(weights, image1, image2, flow):
+    extra_inputs = tuple(getattr(model, "extra_inputs", ()))
+
+    def forward(weights, image1, image2, flow, *extra):
         variables = jax.tree_util.tree_unflatten(tree, weights)
-        return _inference_outputs(model.apply(variables, image1, image2, flow))
+        given = dict(zip(extra_inputs, extra, strict=True))
+        return _inference_outputs(model.apply(variables, image1, image2, flow, **given))
 
     (batch,) = jax.export.symbolic_shape("batch") if batch_size is None else (int(batch_size),)
     image_spec = jax.ShapeDtypeStruct((batch, height, width, 3), jnp.float32)
     flow_spec = jax.ShapeDtypeStruct((batch, height, width, 2), jnp.float32)
+    extra_specs = [
+        jax.ShapeDtypeStruct((batch, *EXTRA_INPUTS[key][0]), jnp.float32) for key in extra_inputs
+    ]
     weight_specs = [jax.ShapeDtypeStruct(weight.shape, weight.dtype) for weight in weights]
     exported = jax.export.export(jax.jit(forward), platforms=platforms)(
-        weight_specs, image_spec, image_spec, flow_spec
+        weight_specs, image_spec, image_spec, flow_spec, *extra_specs
     )
     outputs = jax.tree_util.tree_unflatten(exported.out_tree, exported.out_avals)
     metadata = {
@@ -282,8 +329,9 @@ def export_model(
             {"name": weight_name, "shape": list(weight.shape), "dtype": str(weight.dtype)}
             for weight_name, weight in zip(weight_names, weights, strict=True)
         ],
-        "calling_convention": "Exported.call(weights, image1, image2, flow): weights is the "
-        "list of weights.npz arrays in the order of 'weights'; returns a dict of 'outputs'",
+        "calling_convention": "Exported.call(weights, image1, image2, flow, *extra): weights "
+        "is the list of weights.npz arrays in the order of 'weights', extra the arrays "
+        "'extra_inputs' names, in its order; returns a dict of 'outputs'",
     }
     weights_buffer = io.BytesIO()
     np.savez(weights_buffer, **{f"{i:05d}": weight for i, weight in enumerate(weights)})
@@ -339,7 +387,9 @@ def export_onnx(
             "formulation 'vmap' cannot be exported to ONNX (jax2onnx converts its grouped "
             "convolution wrongly); choose another formulation"
         )
-    model, name, output = _checked(model, output, height, width, batch_size, formulation, ("cpu",))
+    model, name, output = _checked(
+        model, output, height, width, batch_size, formulation, ("cpu",), extra_allowed=False
+    )
     try:
         import jax2onnx
         import onnx

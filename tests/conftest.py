@@ -1,5 +1,6 @@
 """Test-wide settings: CPU only, quiet TFDS, repo root importable."""
 
+import functools
 import json
 import os
 import subprocess
@@ -124,16 +125,19 @@ def eval_batch(tiny_scenes):
     return next(input_pipeline.eval_batches([source[i] for i in range(4)], batch_size=4))
 
 
-def random_variables(model, height: int, width: int, seed: int) -> dict:
+def random_variables(model, height: int, width: int, seed: int, **inputs) -> dict:
     """Variables of `model`'s structure drawn with numpy (std 1/sqrt(fan-in), biases 0):
-    jit-compiling `model.init` would cost seconds per test module."""
+    jit-compiling `model.init` would cost seconds per test module. `inputs`: the model's
+    extra inputs by keyword (a pose, the cameras) where it reads them."""
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     zeros = jax.ShapeDtypeStruct((1, height, width, 3), jnp.float32)
     flow = jax.ShapeDtypeStruct((1, height, width, 2), jnp.float32)
-    shapes = jax.eval_shape(model.init, jax.random.key(0), zeros, zeros, flow)
+    shapes = jax.eval_shape(
+        functools.partial(model.init, **inputs), jax.random.key(0), zeros, zeros, flow
+    )
     rng = np.random.default_rng(seed)
 
     def draw(leaf):

@@ -195,3 +195,85 @@ def test_the_reader_and_the_writer_agree_on_the_layout():
         "WEIGHTS_MEMBER",
     ):
         assert getattr(deploy, name) == getattr(export, name), name
+
+
+def _camera(batch_size: int, focal: float) -> np.ndarray:
+    """Normalised intrinsics [B, 4] of a camera of focal length `focal` x the width."""
+    return np.tile(np.float32([focal, focal * WIDTH / HEIGHT, 0.5, 0.5]), (batch_size, 1))
+
+
+def test_a_model_that_refines_its_pose_runs_given_the_cameras(tmp_path):
+    """A refinement model exports with the cameras as inputs after the flow; deployed,
+    it equals the model applied in gld, reads the cameras it is given, and names what it
+    lacks."""
+    import jax
+
+    model = model_lib.make_model("global_local", **TINY_MODEL, pose_refinement_steps=2)
+    assert model.extra_inputs == ("intrinsics1", "intrinsics2")
+    cameras = dict(intrinsics1=_camera(1, 0.9), intrinsics2=_camera(1, 0.9))
+    variables = random_variables(model, HEIGHT, WIDTH, seed=3, **cameras)
+    path = tmp_path / "refines.gldx"
+    metadata = export.export_model(model, variables, path, height=HEIGHT, width=WIDTH)
+    assert metadata["extra_inputs"] == ["intrinsics1", "intrinsics2"]
+    assert [entry["name"] for entry in metadata["inputs"]][3:] == ["intrinsics1", "intrinsics2"]
+    assert metadata["inputs"][3]["shape"] == ["batch", 4]
+
+    deployed = DeployedModel.load(path)
+    assert deployed.extra_inputs == ("intrinsics1", "intrinsics2")
+    image1, image2, flow = _pairs(2, seed=8)
+    given = dict(intrinsics1=_camera(2, 0.9), intrinsics2=_camera(2, 0.9))
+    outputs = deployed.predict(image1, image2, flow, **given)
+    as_float = [image / np.float32(255) - np.float32(0.5) for image in (image1, image2)]
+    expected = jax.jit(model.apply)(variables, *as_float, flow, **given)
+    np.testing.assert_allclose(outputs["depth"], expected["depth"], rtol=1e-4)
+    np.testing.assert_allclose(outputs["global_params"], expected["global_params"], atol=1e-5)
+    # The cameras reach the refinement: another focal length, another pose and depth.
+    other = deployed.predict(
+        image1, image2, flow, intrinsics1=_camera(2, 0.4), intrinsics2=_camera(2, 0.4)
+    )
+    assert not np.allclose(other["global_params"], outputs["global_params"], atol=1e-4)
+    # One pair without the batch axis, the cameras as [4].
+    single = deployed(
+        image1[0],
+        image2[0],
+        flow[0],
+        intrinsics1=given["intrinsics1"][0],
+        intrinsics2=given["intrinsics2"][0],
+    )
+    np.testing.assert_allclose(single, outputs["depth"][0], rtol=1e-4)
+
+    with pytest.raises(
+        ValueError, match=r"also reads \['intrinsics1', 'intrinsics2'\].*fx / width"
+    ):
+        deployed(image1, image2, flow)
+    with pytest.raises(ValueError, match=r"intrinsics2 must be \[B, 4\].*got shape \(2, 3\)"):
+        deployed(
+            image1,
+            image2,
+            flow,
+            intrinsics1=given["intrinsics1"],
+            intrinsics2=given["intrinsics2"][:, :3],
+        )
+    with pytest.raises(ValueError, match="intrinsics1 contains NaN"):
+        deployed(
+            image1,
+            image2,
+            flow,
+            intrinsics1=given["intrinsics1"] * np.nan,
+            intrinsics2=given["intrinsics2"],
+        )
+    with pytest.raises(ValueError, match=r"does not read \['rotation'\]"):
+        deployed(image1, image2, flow, rotation=np.eye(3), **given)
+    # ONNX takes the images and flow only, and says so before writing anything.
+    onnx_path = tmp_path / "refines.onnx"
+    with pytest.raises(ValueError, match="only models of the images and flow convert to ONNX"):
+        export.export_onnx(model, variables, onnx_path, height=HEIGHT, width=WIDTH)
+    assert not onnx_path.exists()
+
+
+def test_a_model_of_the_images_and_flow_refuses_extra_inputs(exported):
+    _, _, path = exported
+    deployed = DeployedModel.load(path)
+    assert deployed.extra_inputs == ()
+    with pytest.raises(ValueError, match=r"does not read \['intrinsics1'\]"):
+        deployed(*_pairs(1, seed=9), intrinsics1=_camera(1, 0.9))

@@ -357,8 +357,10 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
     tiny_scenes, tmp_path
 ):
     """The pose reaches the model in training (augmented with the images) and in
-    evaluation; a predictor asks for odometry and the exporter refuses such a model."""
+    evaluation; a predictor asks for odometry, and the exported model takes it after
+    the flow."""
     from gld import evaluation, export, predict
+    from gld.deploy import DeployedModel
 
     config = tiny_train_config(
         model_config={**TINY_MODEL, "global_source": "pose"}, eval_every=4, log_every=1
@@ -389,8 +391,23 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
     image = np.zeros((48, 64, 3), np.uint8)
     with pytest.raises(ValueError, match="give the pair's odometry"):
         predictor(image, image)
-    with pytest.raises(ValueError, match="a given pose or the cameras"):
-        export.export_model(model, variables, tmp_path / "model.gld", height=48, width=64)
+    export.export_model(model, variables, tmp_path / "model.gldx", height=48, width=64)
+    deployed = DeployedModel.load(tmp_path / "model.gldx")
+    assert deployed.extra_inputs == ("rotation", "translation")
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (2, 48, 64, 3), dtype=np.uint8)
+    flow = rng.normal(0, 2, (48, 64, 2)).astype(np.float32)
+    inputs = (images[0], images[1], flow)
+    pose = {"rotation": np.eye(3, dtype=np.float32), "translation": np.float32([0.6, 0, 0.8])}
+    expected = model.apply(
+        variables,
+        *[image[None] / np.float32(255) - np.float32(0.5) for image in images],
+        flow[None],
+        **{key: value[None] for key, value in pose.items()},
+    )
+    np.testing.assert_allclose(deployed(*inputs, **pose), expected["depth"][0], rtol=1e-4)
+    with pytest.raises(ValueError, match=r"also reads \['rotation', 'translation'\]"):
+        deployed(*inputs)
 
 
 def test_the_epipolar_term_teaches_the_global_parameters_the_motion(sixteen_pairs_dense):
