@@ -19,22 +19,23 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", "runs/demo", "Run directory (checkpoints, logs, eval).")
 flags.DEFINE_bool("final_eval", True, "Evaluate the final model on the whole test split.")
 flags.DEFINE_integer("num_figures", 8, "Example figures written by the final evaluation.")
-# The main job's recipe: the best measured within its 15-minute CPU budget (Adam 1e-3,
-# warm-up and cosine decay, the epipolar term at 0.1, an instance-normalised global
-# encoder that sees the flow alone; WORKSPACE.md). Paper flagfiles set Adam 1e-4,
-# constant, no epipolar term, and the paper's global module (no normalisation, the image
-# pair and the flow).
-MAIN_JOB_EPIPOLAR_WEIGHT = 0.1
-MAIN_JOB_ARCHITECTURE = {"encoder_norm": "instance", "use_image_pair": False}
+# The main job's recipe: the best measured within its CPU budget (Adam 1e-3, warm-up and
+# cosine decay; an instance-normalised global encoder that sees the flow alone, whose
+# pose is taught by the epipolar term at 0.1 and the classical pose teacher and refined
+# on the flow; WORKSPACE.md), written once in gld.paper_suite. Paper flagfiles set Adam
+# 1e-4, constant, none of the motion terms, and the paper's global module (no
+# normalisation, the image pair and the flow).
+from gld.paper_suite import MAIN_MOTION_WEIGHTS, MAIN_RECIPE  # noqa: E402
+
 common.define_training_flags(
     steps=2000,
     eval_every=1000,
     learning_rate=1e-3,
     lr_schedule="cosine",
     warmup_steps=100,
-    epipolar_weight=MAIN_JOB_EPIPOLAR_WEIGHT,
+    **MAIN_MOTION_WEIGHTS,
 )
-common.define_architecture_flags(**MAIN_JOB_ARCHITECTURE)
+common.define_architecture_flags(**MAIN_RECIPE)
 common.define_flow_net_flags()
 common.define_data_flags()
 common.define_distributed_flags()
@@ -63,23 +64,35 @@ def _with_stored_architecture(model_config: dict) -> dict:
     return {**model_config, **kept}
 
 
+def _motion_where_it_applies(model_config: dict) -> tuple[dict, dict]:
+    """The main job's ways of teaching g the motion are defaults of the global-local
+    model whose encoder infers a pose: a model without one (another model, a given pose,
+    no global module) trains without the epipolar term and the teacher, and one without
+    it or without the flow without refinement, unless the command line asks for them."""
+    from gld import config
+
+    infers_pose = config.infers_pose(FLAGS.model, model_config)
+    weights = {
+        name: FLAGS[name].value if infers_pose or FLAGS[name].present else 0.0
+        for name in MAIN_MOTION_WEIGHTS
+    }
+    refines = infers_pose and model_config.get("use_flow", True)
+    if FLAGS.model == "global_local" and not refines and not FLAGS["pose_refinement_steps"].present:
+        model_config = {**model_config, "pose_refinement_steps": 0}
+    return model_config, weights
+
+
 def main(argv):
     del argv
     common.initialise()
     import dataclasses
 
-    from gld import config, train
+    from gld import train
 
     model_config = _with_stored_architecture(common.model_options(FLAGS.model))
-    # The default epipolar weight is the global-local model's; a model whose global
-    # parameters cannot stand for a pose trains without the term unless it is asked for.
-    epipolar_weight = FLAGS.epipolar_weight
-    if not FLAGS["epipolar_weight"].present and not config.infers_pose(FLAGS.model, model_config):
-        epipolar_weight = 0.0
+    model_config, weights = _motion_where_it_applies(model_config)
     # Every option is checked before the dataset is built or the workdir touched.
-    run_config = common.train_config(
-        model_config=model_config, dataset=FLAGS.dataset, epipolar_weight=epipolar_weight
-    )
+    run_config = common.train_config(model_config=model_config, dataset=FLAGS.dataset, **weights)
     evaluates = FLAGS.final_eval or run_config.eval_every > 0
     builder, height, width, train_source, test_source = common.training_data(evaluates)
     run_config = dataclasses.replace(run_config, height=height, width=width)

@@ -26,9 +26,9 @@ if TYPE_CHECKING:
 CLASSICAL = ("dataset_mean", "oracle_pair_median", "triangulation_gt_pose", "sfm_flow")
 
 MAIN_RUN = "global_local_1px"
-# The pose probe reads the encoders of the main run, whose epipolar term trains g to be
-# the camera motion, and of the run without that term (g learned from depth alone:
-# the paper's setting).
+# The pose probe reads the encoders of the main run, whose motion terms (the epipolar
+# term, the pose teacher) train g to be the camera motion, and of the run without them
+# (g learned from depth alone: the paper's setting).
 PROBED_RUNS = (MAIN_RUN, "global_local_no_epipolar")
 # Triangulation with a predicted pose uses the main run's encoder, fine-tuned on the pose.
 PREDICTED_POSE = (MAIN_RUN, "pretrained_full")
@@ -131,7 +131,7 @@ def classical(runner: SuiteRunner, dataset: str, methods: Sequence[str]) -> dict
 
 def pose_probe(runner: SuiteRunner) -> dict[str, Any]:
     """The four settings on the main run's encoder; the pretrained two on the encoder
-    of the run without the epipolar term (the scratch ones are the same there)."""
+    of the run without the motion terms (the scratch ones are the same there)."""
     from gld import probes
 
     errors, arrays = {}, {}

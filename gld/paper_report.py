@@ -684,9 +684,10 @@ class Report:
             "\nThe full model here is the main job's: its global encoder sees the flow alone "
             '(beside it, the paper\'s "- Image Pair" row), so the image pair is the '
             "ablation added back (beside it, the paper's full model). The rows without a "
-            "global module or without flow also drop the epipolar term (it needs g and reads "
-            'the flow); "- epipolar term" shows what that alone costs, and they are '
-            "compared with it too.\n\n"
+            "global module or without flow also drop what teaches g the motion (the epipolar "
+            "term, the pose teacher and the refinement need g and read the flow); "
+            '"- epipolar term, teacher and refinement" shows what those alone cost, and '
+            "they are compared with it too.\n\n"
         )
         main = _metric(self.run("global_local_1px"))
         worse = {}
@@ -704,16 +705,16 @@ class Report:
         detail = "Abs-Inv change of each ablation against the main model: " + (
             ", ".join(f"{k} {v:+.1%}" for k, v in worse.items()) or "—"
         )
-        # Without a global module or flow, the epipolar term goes too: such a row is worse
-        # only if it is worse than the main model and than the main model without the term.
-        no_epipolar = _metric(self.run("global_local_no_epipolar"))
+        # Without a global module or flow, the motion terms go too: such a row is worse
+        # only if it is worse than the main model and than the main model without them.
+        no_motion = _metric(self.run("global_local_no_epipolar"))
         against = {
-            self.runs[name].label: value / no_epipolar - 1
+            self.runs[name].label: value / no_motion - 1
             for name in ("global_local_no_global_module", "global_local_no_flow")
-            if no_epipolar is not None and (value := _metric(self.run(name))) is not None
+            if no_motion is not None and (value := _metric(self.run(name))) is not None
         }
         if against:
-            detail += '; against "- epipolar term": ' + ", ".join(
+            detail += '; against "- epipolar term, teacher and refinement": ' + ", ".join(
                 f"{k} {v:+.1%}" for k, v in against.items()
             )
         changes = [*worse.values(), *against.values()]
@@ -984,8 +985,8 @@ class Report:
         result = self.results.get("pose_probe")
         errors = {} if result is None else result["errors"]
         text += (
-            "| probe | main run (epipolar term): rotation / translation (deg) | run without "
-            "the epipolar term (depth loss alone) | paper (Scenes11, "
+            "| probe | main run (motion terms): rotation / translation (deg) | run without "
+            "the motion terms (depth loss alone) | paper (Scenes11, "
             f"`{paper.TABLES['pose_experiments'].label}`) |\n|---|---|---|---|\n"
         )
         scratch = errors.get(main, {})
@@ -1013,10 +1014,10 @@ class Report:
             f"\nA two-hidden-layer MLP (256 units) on the six global parameters, "
             f"{self.scale.probe_steps:,} steps per setting on the training pairs; mean errors "
             "on the test pairs (`gld.probes`). The scratch rows are the same for both "
-            "columns (a random encoder). The main run's epipolar term trains g to be the "
-            "camera motion, so its encoder is expected to help; the paper's claim is about "
-            "g learned from the depth loss alone, the second column, which the target "
-            "reads.\n\n"
+            "columns (a random encoder). The main run's motion terms (epipolar, pose "
+            "teacher) train g to be the camera motion, so its encoder is expected to help; "
+            "the paper's claim is about g learned from the depth loss alone, the second "
+            "column, which the target reads.\n\n"
         )
         holds, detail = None, "—"
         pretrained = errors.get(depth_only, {})
@@ -1311,7 +1312,11 @@ def write_report(
             else ". "
         )
         + "The global-local runs also carry the main "
-        f"job's recipe: the epipolar term at {paper_suite.MAIN_EPIPOLAR_WEIGHT:g}, a global "
+        "job's recipe: a global module that learns the motion (the epipolar term at "
+        f"{paper_suite.MAIN_MOTION_WEIGHTS['epipolar_weight']:g}, the classical pose teacher "
+        f"at {paper_suite.MAIN_MOTION_WEIGHTS['pose_teacher_weight']:g}, "
+        f"{paper_suite.MAIN_RECIPE['pose_refinement_steps']} refinement steps of the "
+        "encoder's pose on the flow), a global "
         "encoder with instance normalisation that sees the flow alone, and the flow scaled "
         "by 10 as the model's input; the baselines see the image pair and the flow in "
         'pixels. "x mean" is Abs-Inv as a multiple of the dataset mean\'s ("paper x '

@@ -17,12 +17,16 @@ model's runs at the other densities and on the varying intrinsics train at that 
 (`Run.rate_of`, `with_compared_rate`); the ablations, at the suite's rate (global-local's
 check chose it on the CPU suite).
 
-The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): the
-epipolar term at 0.1 and a global encoder with instance normalisation that sees the flow
-alone. Two ablations therefore read differently from the paper's: "+ image pair" adds
-the image pair the main recipe leaves out, and the runs without a global module or
-without flow drop the epipolar term too (it needs g, and it reads the flow); the run
-"- epipolar term" measures what that alone costs.
+The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): a
+global encoder with instance normalisation that sees the flow alone, and a global
+module that learns the motion: the epipolar term at 0.1, the classical pose teacher
+(`pose_teacher_weight`) and ten refinement steps of the encoder's pose on the flow
+(`pose_refinement_steps`). Two ablations therefore read differently from the paper's:
+"+ image pair" adds the image pair the main recipe leaves out, and the runs without a
+global module or without flow drop all three ways of learning the motion too (they need
+g, and they read the flow); the run "- epipolar term, teacher and refinement" measures
+what those alone cost (g learned from the depth loss alone, as the paper's). The runs
+given a pose have no encoder to teach or refine.
 
 A suite with the further runs (`Scale.further`; all but cpu) adds the control of one
 fixed pixel per image to the densities, and closes with the paper's remaining
@@ -33,8 +37,8 @@ global-local model on its flow, the network fixed or fine-tuned with the sparse 
 loss, and the network with a (32, 16, 1) conv head trained by the sparse loss alone;
 beside them the same model on the stored DIS flow. Every run of the flow experiment
 trains at the lower rate of the learning-rate check (fine-tuning the flow network at
-the CPU suite's 1e-3 collapsed) and without the epipolar term (it reads the stored
-flow).
+the CPU suite's 1e-3 collapsed) and without the epipolar term, the teacher and the
+refinement (they read the stored flow).
 
 `run_config` turns a run into its `gld.config.TrainConfig`; `gld.paper_runner` trains,
 reuses and scores them.
@@ -48,9 +52,12 @@ from typing import Any
 
 import numpy as np
 
-# The main job's recipe for the global-local model (experiments/flags/demo.flags).
-MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False}
-MAIN_EPIPOLAR_WEIGHT = 0.1
+# The main job's recipe for the global-local model (experiments/flags/demo.flags): its
+# architecture, and the loss weights by which its global module learns the motion.
+MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
+MAIN_MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
+# The recipe for a model without an encoder's pose to refine, or without the flow.
+MAIN_RECIPE_WITHOUT_MOTION = {**MAIN_RECIPE, "pose_refinement_steps": 0}
 # The depth models that run the learned flow network (and start from the suite's).
 FLOW_NET_MODELS = ("global_local_flow_net", "flow_net_head")
 
@@ -226,9 +233,12 @@ def density_name(gt_pixels: int) -> str:
     return "dense" if gt_pixels == 0 else f"{gt_pixels}px"
 
 
-def _global_local(name: str, label: str, *, epipolar: bool = True, **kwargs) -> Run:
-    model_config = {**MAIN_RECIPE, **kwargs.pop("model_config", {})}
-    options = {"epipolar_weight": MAIN_EPIPOLAR_WEIGHT if epipolar else 0.0}
+def _global_local(name: str, label: str, *, motion: bool = True, **kwargs) -> Run:
+    """A global-local run of the main recipe; `motion=False` drops what teaches g the
+    motion (the epipolar term, the pose teacher, the refinement)."""
+    recipe = MAIN_RECIPE if motion else MAIN_RECIPE_WITHOUT_MOTION
+    model_config = {**recipe, **kwargs.pop("model_config", {})}
+    options = {key: value if motion else 0.0 for key, value in MAIN_MOTION_WEIGHTS.items()}
     options.update(kwargs.pop("options", {}))
     return Run(name, "global_local", label, options=options, model_config=model_config, **kwargs)
 
@@ -268,17 +278,21 @@ def suite_runs(scale: Scale) -> list[Run]:
         ),
         _global_local(
             "global_local_no_global_module",
-            "- global module (static filters; no epipolar term)",
-            epipolar=False,
+            "- global module (static filters; no epipolar term, teacher or refinement)",
+            motion=False,
             model_config={"use_global_module": False},
         ),
         _global_local(
             "global_local_no_flow",
-            "- flow (the image pair instead; no epipolar term)",
-            epipolar=False,
+            "- flow (the image pair instead; no epipolar term, teacher or refinement)",
+            motion=False,
             model_config={"use_flow": False},
         ),
-        _global_local("global_local_no_epipolar", "- epipolar term", epipolar=False),
+        _global_local(
+            "global_local_no_epipolar",
+            "- epipolar term, teacher and refinement (g from the depth loss alone)",
+            motion=False,
+        ),
     ]
     for gt_pixels in DENSITIES[1:]:
         suffix = density_name(gt_pixels)
@@ -334,13 +348,13 @@ def suite_runs(scale: Scale) -> list[Run]:
         _global_local(
             "global_local_gt_pose",
             "global-local, true pose given (Ours-GT Pose)",
-            epipolar=False,
+            motion=False,
             model_config={"global_source": "pose"},
         ),
         _global_local(
             "global_local_flow_pose",
             "global-local, its flow's essential-matrix pose given",
-            epipolar=False,
+            motion=False,
             model_config={"global_source": "flow_pose"},
         ),
     ]
@@ -371,14 +385,17 @@ def suite_runs(scale: Scale) -> list[Run]:
     runs += self_supervised + _rate_checks(scale, self_supervised)
     rate = {"learning_rate": scale.check_learning_rate or scale.learning_rate}
     runs += [
-        _global_local("flow_dis", "global-local, DIS flow (stored)", epipolar=False, options=rate),
+        _global_local("flow_dis", "global-local, DIS flow (stored)", motion=False, options=rate),
         *(
             Run(
                 f"flow_net_{state}",
                 "global_local_flow_net",
                 f"global-local, flow network {label}",
                 options=rate,
-                model_config={"global_local": MAIN_RECIPE, "flow_trainable": trainable},
+                model_config={
+                    "global_local": MAIN_RECIPE_WITHOUT_MOTION,
+                    "flow_trainable": trainable,
+                },
             )
             for state, label, trainable in (
                 ("fixed", "fixed", False),

@@ -58,6 +58,7 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         assert train_flags.learning_rate == 1e-4
         assert train_flags.lr_schedule == "constant"
         assert train_flags.epipolar_weight == 0  # the paper's loss
+        assert train_flags.pose_teacher_weight == 0 and train_flags.pose_refinement_steps == 0
         assert train_flags.encoder_norm == "none"  # the paper's global module
         assert train_flags.use_image_pair == (path.stem != "scenes11_ablation_no_image_pair")
     finally:
@@ -109,7 +110,7 @@ def test_flow_flagfiles_parse_with_the_flow_trainer_and_document_themselves(path
 
 
 def test_the_trainers_architecture_defaults_are_the_models_but_the_main_jobs(train_flags):
-    main_job = {"encoder_norm": "instance", "use_image_pair": False}
+    main_job = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
     for name, (default, _, _) in model_lib.architecture_options().items():
         expected = main_job.get(name, default)
         expected = [str(item) for item in expected] if isinstance(expected, tuple) else expected
@@ -158,3 +159,35 @@ def test_a_relaunch_takes_the_workdirs_architecture_for_options_no_flag_gives(
     finally:
         train_flags.unparse_flags()
     assert (options["encoder_norm"], options["use_image_pair"]) == ("instance", False)
+
+
+@pytest.mark.parametrize(
+    "given, teacher, epipolar, refinement",
+    [
+        ([], 1.0, 0.1, 10),  # the main job
+        (["--model=small_encdec"], 0.0, 0.0, None),  # no global parameters to teach
+        (["--global_source=pose"], 0.0, 0.0, 0),  # a given pose: no encoder's to refine
+        (["--nouse_global_module"], 0.0, 0.0, 0),
+        (["--nouse_flow"], 1.0, 0.1, 0),  # the encoder infers g; refinement reads the flow
+        (["--global_dim=4"], 0.0, 0.0, 0),  # g cannot stand for a pose
+        (["--nouse_flow", "--pose_refinement_steps=3"], 1.0, 0.1, 3),  # asked for: kept
+        (["--model=small_encdec", "--pose_teacher_weight=2"], 2.0, 0.0, None),
+    ],
+)
+def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
+    train_flags, given, teacher, epipolar, refinement
+):
+    """The trainer's defaults teach g the motion; a model without an encoder's pose (or
+    without the flow, for refinement) drops them unless the command line names them (and
+    then the config check says what is wrong)."""
+    from experiments import common
+    from experiments import train as train_launcher
+
+    try:
+        train_flags(["train", *given])
+        options = common.model_options(train_flags.model)
+        options, weights = train_launcher._motion_where_it_applies(options)
+    finally:
+        train_flags.unparse_flags()
+    assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
+    assert options.get("pose_refinement_steps") == refinement

@@ -30,6 +30,7 @@ def test_launcher_flags_are_derived_from_the_config():
         "lr_schedule": "cosine",
         "warmup_steps": 100,
         "epipolar_weight": 0.1,
+        "pose_teacher_weight": 1.0,
     }
     for field in config.flag_fields():
         flag = flags.FLAGS[field.name]

@@ -231,16 +231,16 @@ def test_ablation_density_and_varying_targets(tmp_path):
         # of it, 0.75 -> 0.78, +4%.
         "global_local_varying": 0.039,
     }
-    # Without a global module or flow the epipolar term goes too: those rows wait for the
-    # main model without it.
+    # Without a global module or flow the motion terms go too: those rows wait for the
+    # main model without them.
     readme = _write(tmp_path, _results(values))
     assert _verdicts(readme)[ABLATIONS] == "not measured yet"
     values["global_local_no_epipolar"] = 0.0335
     readme = _write(tmp_path, _results(values))
     assert _verdicts(readme)[ABLATIONS] == "**does not hold**"  # static filters: 0.033
     assert (
-        'against "- epipolar term": - global module (static filters; no epipolar term) -1.5%'
-        in (readme)
+        'against "- epipolar term, teacher and refinement": - global module (static filters; '
+        "no epipolar term, teacher or refinement) -1.5%" in readme
     )
     values["global_local_no_epipolar"] = 0.031
     readme = _write(tmp_path, _results(values))

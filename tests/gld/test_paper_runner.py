@@ -147,7 +147,7 @@ def test_the_flow_networks_runs_depend_on_the_flow_network_not_its_path(tmp_path
     assert config.model_config["flow_net_workdir"] == str(tmp_path / "runs" / "flow_net")
     assert config.model_config["flow_trainable"] is True
     assert config.model_config["global_local"] == {
-        **paper_suite.MAIN_RECIPE,
+        **paper_suite.MAIN_RECIPE_WITHOUT_MOTION,
         **SUITES["tiny"].global_local,
     }
 

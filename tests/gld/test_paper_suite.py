@@ -47,33 +47,35 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
         if run.model == "global_local"
     }
     main = configs["global_local_1px"]
-    assert main.model_config == {"encoder_norm": "instance", "use_image_pair": False}
-    assert main.epipolar_weight == 0.1 and main.gt_pixels == 1 and main.flow_source == "estimated"
+    assert main.model_config == {
+        "encoder_norm": "instance",
+        "use_image_pair": False,
+        "pose_refinement_steps": 10,
+    }
+    assert main.epipolar_weight == 0.1 and main.pose_teacher_weight == 1.0
+    assert main.gt_pixels == 1 and main.flow_source == "estimated"
     # The over-fitting figure needs the main run's test curve.
     assert main.eval_every == scale.steps // scale.curve_evaluations
 
     def differences(name):
         config = configs[name]
         changed = {k: v for k, v in config.model_config.items() if main.model_config.get(k) != v}
-        for option in ("epipolar_weight", "gt_pixels", "flow_source", "dataset"):
+        options = ("epipolar_weight", "pose_teacher_weight", "gt_pixels", "flow_source", "dataset")
+        for option in options:
             if getattr(config, option) != getattr(main, option):
                 changed[option] = getattr(config, option)
         return changed
 
     assert differences("global_local_image_pair") == {"use_image_pair": True}
     assert differences("global_local_no_coordconv") == {"use_coordinates": False}
-    assert differences("global_local_no_global_module") == {
-        "use_global_module": False,
-        "epipolar_weight": 0.0,
-    }
-    assert differences("global_local_no_flow") == {"use_flow": False, "epipolar_weight": 0.0}
-    assert differences("global_local_no_epipolar") == {"epipolar_weight": 0.0}
+    # Without g from the encoder, or without the flow, nothing teaches g the motion.
+    no_motion = {"epipolar_weight": 0.0, "pose_teacher_weight": 0.0, "pose_refinement_steps": 0}
+    assert differences("global_local_no_global_module") == {"use_global_module": False, **no_motion}
+    assert differences("global_local_no_flow") == {"use_flow": False, **no_motion}
+    assert differences("global_local_no_epipolar") == no_motion
     assert differences("global_local_gt_flow") == {"flow_source": "gt"}
-    assert differences("global_local_gt_pose") == {"global_source": "pose", "epipolar_weight": 0.0}
-    assert differences("global_local_flow_pose") == {
-        "global_source": "flow_pose",
-        "epipolar_weight": 0.0,
-    }
+    assert differences("global_local_gt_pose") == {"global_source": "pose", **no_motion}
+    assert differences("global_local_flow_pose") == {"global_source": "flow_pose", **no_motion}
     assert differences("global_local_varying") == {"dataset": "gld_scenes/small_varying"}
     for gt_pixels in (4, 16, 64, 0):
         name = f"global_local_{paper_suite.density_name(gt_pixels)}"
@@ -118,10 +120,12 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     assert config("struct2depth").model == "struct2depth"
     assert config("struct2depth_flow").model == "struct2depth_flow"
     assert config("struct2depth_low_lr").learning_rate == scale.check_learning_rate
-    # The flow experiment: the main recipe without the epipolar term, on the stored DIS
+    # The flow experiment: the main recipe without the motion terms, on the stored DIS
     # flow or on the network's, fixed or fine-tuned; the head; one rate for all four.
     dis = config("flow_dis")
-    assert dis.model == "global_local" and dis.model_config == paper_suite.MAIN_RECIPE
+    assert (
+        dis.model == "global_local" and dis.model_config == paper_suite.MAIN_RECIPE_WITHOUT_MOTION
+    )
     fixed, finetuned, head = (
         config(n) for n in ("flow_net_fixed", "flow_net_finetuned", "flow_net_head")
     )
@@ -129,12 +133,13 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     assert (
         fixed.model_config["global_local"]
         == finetuned.model_config["global_local"]
-        == (paper_suite.MAIN_RECIPE)
+        == paper_suite.MAIN_RECIPE_WITHOUT_MOTION
     )
     assert not fixed.model_config["flow_trainable"] and finetuned.model_config["flow_trainable"]
     assert head.model == "flow_net_head"
     for run in (dis, fixed, finetuned, head):
         assert run.epipolar_weight == 0 and run.learning_rate == scale.check_learning_rate
+        assert run.pose_teacher_weight == 0
         assert (run.steps, run.gt_pixels, run.dataset) == (scale.steps, 1, scale.dataset)
     flow = paper_suite.flow_net_config(scale, height=96, width=128)
     assert (flow.steps, flow.batch_size, flow.warmup_steps) == (5000, 8, 100)
@@ -172,8 +177,8 @@ def test_the_cpu_suite_is_the_full_ones_main_experiments_at_half_the_budget():
 
 def test_learned_models_differ_only_where_the_suite_says():
     """Against the main run's configuration, a baseline differs in the model, its options
-    and the epipolar term; every other option (loss weights, augmentation, flow,
-    schedule, checkpoints) is the same, at the same density and dataset."""
+    and the motion terms (epipolar, pose teacher); every other option (loss weights,
+    augmentation, flow, schedule, checkpoints) is the same, at the same density and dataset."""
     import dataclasses
 
     scale = SUITES["cpu"]
@@ -186,7 +191,7 @@ def test_learned_models_differ_only_where_the_suite_says():
     main = config("global_local_1px")
     for name in ("small_encdec_1px", "eigen_1px"):
         differing = {k for k, v in config(name).items() if main[k] != v}
-        assert differing == {"model", "model_config", "epipolar_weight"}, name
+        assert differing == {"model", "model_config", "epipolar_weight", "pose_teacher_weight"}
     # The learning-rate check: the main table's models again, at the second rate only.
     assert {n for n in runs if n.endswith("_low_lr")} == {
         paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED if n in runs
@@ -202,6 +207,7 @@ def test_learned_models_differ_only_where_the_suite_says():
         "model",
         "model_config",
         "epipolar_weight",
+        "pose_teacher_weight",
         "steps",
         "warmup_steps",
         "checkpoint_every",
