@@ -76,7 +76,7 @@ def _motion_where_it_applies(model_config: dict) -> tuple[dict, dict]:
         name: FLAGS[name].value if infers_pose or FLAGS[name].present else 0.0
         for name in MAIN_MOTION_WEIGHTS
     }
-    refines = infers_pose and model_config.get("use_flow", True)
+    refines = config.refines_pose(FLAGS.model, model_config)
     if FLAGS.model == "global_local" and not refines and not FLAGS["pose_refinement_steps"].present:
         model_config = {**model_config, "pose_refinement_steps": 0}
     return model_config, weights

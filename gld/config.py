@@ -151,6 +151,14 @@ def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
     )
 
 
+def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
+    """Whether a model could refine its encoder's pose on its flow
+    (`pose_refinement_steps`): it infers a pose (`infers_pose`) and reads the flow."""
+    if not infers_pose(model, model_config):
+        return False
+    return bool(model_lib.full_config(model, model_config)["use_flow"])
+
+
 def flag_fields() -> list[dataclasses.Field]:
     """The TrainConfig fields that are command-line options."""
     return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]

@@ -93,8 +93,9 @@ class DeployedModel:
         self.batch_size = metadata["batch_size"]
         self.platforms = tuple(exported.platforms)
         self.extra_inputs = tuple(metadata.get("extra_inputs", ()))
+        # Each extra input's metadata entry (shape with its batch axis, help), checked by load.
         described = {entry["name"]: entry for entry in metadata.get("inputs", ())}
-        self._extra_shapes = {key: tuple(described[key]["shape"][1:]) for key in self.extra_inputs}
+        self._extra_entries = {key: described[key] for key in self.extra_inputs}
         self._exported = exported
         # On the device once: each call passes only the images and the flow.
         self._weights = jax.device_put(weights)
@@ -172,12 +173,13 @@ class DeployedModel:
             raise ValueError(f"this model does not read {unexpected}; it reads {reads}")
         missing = [key for key in self.extra_inputs if key not in given]
         if missing:
-            described = {entry["name"]: entry for entry in self.metadata["inputs"]}
-            needs = "; ".join(f"{key}: {described[key].get('help', '')}" for key in missing)
+            needs = "; ".join(
+                f"{key}: {self._extra_entries[key].get('help', '')}" for key in missing
+            )
             raise ValueError(f"this model also reads {missing}: give them by keyword ({needs})")
         arrays = []
         for key in self.extra_inputs:
-            shape = self._extra_shapes[key]
+            shape = tuple(self._extra_entries[key]["shape"][1:])
             value = np.asarray(given[key])
             if value.dtype.kind not in "fiu":
                 raise ValueError(f"{key} must be numeric, got dtype {value.dtype}")

@@ -144,6 +144,11 @@ def model_config(model: nn.Module) -> dict[str, Any]:
     return json.loads(json.dumps(values, default=list))
 
 
+def _extra_inputs(model: nn.Module) -> tuple[str, ...]:
+    """What `model` reads by keyword besides the images and flow (`EXTRA_INPUTS` keys)."""
+    return tuple(getattr(model, "extra_inputs", ()))
+
+
 def _weight_names(variables: dict) -> tuple[list[str], list[jax.Array], Any]:
     """Leaf names ("params/global_encoder/conv_0/kernel"), leaves and tree of `variables`."""
     with_paths, tree = jax.tree_util.tree_flatten_with_path(variables)
@@ -169,7 +174,7 @@ def _checked(
     if batch_size is not None and (not isinstance(batch_size, int | np.integer) or batch_size < 1):
         raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}")
     name = model_name(model)
-    extra = list(getattr(model, "extra_inputs", ()))
+    extra = list(_extra_inputs(model))
     if extra and not extra_allowed:
         raise ValueError(
             f"model {name!r} also reads {extra} (a given pose or the cameras); only models "
@@ -208,7 +213,7 @@ def _describe(
 ) -> dict[str, Any]:
     """The metadata both formats share: model, resolution, inputs, outputs, units."""
     batch_dim = "batch" if batch_size is None else int(batch_size)
-    extra_inputs = tuple(getattr(model, "extra_inputs", ()))
+    extra_inputs = _extra_inputs(model)
     image_help = "RGB, float32 in [-0.5, 0.5] = uint8 / 255 - 0.5 (gld.deploy also takes uint8)"
     image = {"dtype": "float32", "range": [-0.5, 0.5], "help": image_help}
     return {
@@ -302,7 +307,7 @@ def export_model(
     weight_names, weights, tree = _weight_names(variables)
     weights = [np.asarray(jax.device_get(weight)) for weight in weights]
 
-    extra_inputs = tuple(getattr(model, "extra_inputs", ()))
+    extra_inputs = _extra_inputs(model)
 
     def forward(weights, image1, image2, flow, *extra):
         variables = jax.tree_util.tree_unflatten(tree, weights)
