@@ -28,7 +28,7 @@ FLAGS = flags.FLAGS
 
 flags.DEFINE_string("suite", "model", "Benchmark suite: model, renderer, pipeline, demon or robot.")
 flags.DEFINE_string("output", "benchmark.json", "Where the JSON result is written.")
-flags.DEFINE_list("models", ["global_local"], "Models of gld.model.MODELS to time.")
+flags.DEFINE_list("models", ["global_local"], "Models of gld.models.registry.MODELS to time.")
 flags.DEFINE_list("formulations", None, "apply_filter_banks formulations to time (default: all).")
 flags.DEFINE_integer("height", 192, "Image height.")
 flags.DEFINE_integer("width", 256, "Image width.")

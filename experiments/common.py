@@ -23,7 +23,7 @@ def define_data_flags(default_dataset: str = "gld_scenes/small") -> None:
 
 def define_flow_source_flag() -> None:
     """--flow_source for launchers that use a trained workdir (default: the workdir's)."""
-    from gld.config import FLOW_SOURCES
+    from gld.runs.config import FLOW_SOURCES
 
     flags.DEFINE_enum(
         "flow_source",
@@ -65,10 +65,10 @@ def _define(
 
 
 def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> None:
-    """A flag for every option of `gld.config.TrainConfig` (its help, choices and
+    """A flag for every option of `gld.runs.config.TrainConfig` (its help, choices and
     default) but `exclude`; `defaults` replaces a default for this launcher (the main
     job's recipe in `experiments.train`)."""
-    from gld import config
+    from gld.runs import config
 
     fields = [field for field in config.flag_fields() if field.name not in exclude]
     unknown = sorted(set(defaults) - {field.name for field in fields})
@@ -89,7 +89,7 @@ def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> No
 
 def training_options() -> dict[str, Any]:
     """The TrainConfig fields given by this launcher's training flags."""
-    from gld import config
+    from gld.runs import config
 
     return {
         field.name: FLAGS[field.name].value for field in config.flag_fields() if field.name in FLAGS
@@ -98,16 +98,16 @@ def training_options() -> dict[str, Any]:
 
 def define_architecture_flags(**defaults: Any) -> None:
     """A flag for every architecture option of the global-local model
-    (`gld.model.architecture_options`: its default, help and choices); `defaults` replace
+    (`gld.models.registry.architecture_options`: its default, help and choices); `defaults` replace
     the model's defaults of some options for this launcher (the main job's recipe)."""
-    from gld import model
+    from gld.models import registry
 
-    options = model.architecture_options()
+    options = registry.architecture_options()
     unknown = sorted(set(defaults) - set(options))
     if unknown:
         raise ValueError(f"no architecture option(s) {unknown}; valid: {sorted(options)}")
     for name, (default, help_text, choices) in options.items():
-        minimum = model.ARCHITECTURE_MINIMA.get(name)
+        minimum = registry.ARCHITECTURE_MINIMA.get(name)
         default = defaults.get(name, default)
         _define(name, default, help_text, choices, at_least=None if choices else minimum)
 
@@ -117,10 +117,10 @@ def architecture_options() -> dict[str, Any]:
     as ints; an option left at None, like the speed-only formulation, is omitted)."""
     from absl import app
 
-    from gld import model
+    from gld.models import registry
 
     values = {}
-    for name, (default, _, _) in model.architecture_options().items():
+    for name, (default, _, _) in registry.architecture_options().items():
         value = FLAGS[name].value
         if isinstance(default, list | tuple):
             try:
@@ -133,7 +133,7 @@ def architecture_options() -> dict[str, Any]:
 
 
 def define_flow_net_flags() -> None:
-    """Flags of the depth models with a learned flow network (`gld.flow_depth`)."""
+    """Flags of the depth models with a learned flow network (`gld.models.flow_depth`)."""
     flags.DEFINE_string(
         "flow_net_workdir",
         "",
@@ -149,7 +149,7 @@ def define_flow_net_flags() -> None:
 
 def flow_net_options(model_name: str) -> dict[str, Any]:
     """The flow-network flags' values that `model_name` takes (none but for the models of
-    `gld.flow_depth`)."""
+    `gld.models.flow_depth`)."""
     if model_name == "global_local_flow_net":
         return {
             "flow_net_workdir": FLAGS.flow_net_workdir,
@@ -163,7 +163,7 @@ def flow_net_options(model_name: str) -> dict[str, Any]:
 def model_options(model_name: str) -> dict[str, Any]:
     """The constructor arguments of `model_name` from this launcher's flags: the
     architecture flags for the global-local model, the flow-network flags for the models
-    of `gld.flow_depth`, none for the baselines (their paper's architectures)."""
+    of `gld.models.flow_depth`, none for the baselines (their paper's architectures)."""
     if model_name == "global_local":
         return architecture_options()
     return flow_net_options(model_name)
@@ -324,26 +324,13 @@ def commit_stamp(*outputs: Path) -> str:
     return commit + ("+changes" if dirty else "")
 
 
-def write_text_atomically(path: Path, text: str) -> None:
-    """Writes `text` to `path` through a temporary file in the same folder, so a reader
-    (or a crash) never sees half a file. Process 0 only."""
-    import jax
-
-    if jax.process_index() != 0:
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(text)
-    os.replace(temporary, path)
-
-
 def train_config(**values: Any):
     """The TrainConfig of this launcher's training flags and `values`, checked as a whole
     (`TrainConfig.validate`) before anything is built or written: a bad value stops the
     launcher with a usage error naming the option."""
     from absl import app
 
-    from gld import config
+    from gld.runs import config
 
     try:
         return config.TrainConfig(**{**training_options(), **values}).validate()

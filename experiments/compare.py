@@ -3,10 +3,10 @@ r"""Compares depth methods on one dataset: `python -m experiments.compare [--fla
     python -m experiments.compare --dataset=gld_scenes/small --workdir=runs/compare_small \
         --gt_pixels=1 --steps=2500 [--models=global_local,dispnet] [--classical=sfm_flow]
 
-Trains every selected learned model (`--models`, gld.model.MODELS) with the same
+Trains every selected learned model (`--models`, gld.models.registry.MODELS) with the same
 budget, seed, loss, optimiser and input pipeline in <workdir>/<model> (a finished run
 is reused, an unfinished one resumed), evaluates them and the classical baselines
-(`--classical`, gld.baselines.CLASSICAL, no training) on the same split with the same
+(`--classical`, gld.models.baselines.CLASSICAL, no training) on the same split with the same
 flow, and writes <workdir>/compare/:
   table.md      rows = methods; Abs-Inv, Abs-Rel, S-RMSE as mean ± std over examples,
                 Abs-Inv as a multiple of the dataset mean's, the protocol stamp, and each
@@ -28,6 +28,7 @@ from typing import Any
 from absl import app, flags
 
 from experiments import common
+from gld import files
 
 FLAGS = flags.FLAGS
 
@@ -48,11 +49,11 @@ common.define_flow_net_flags()
 
 def _finished_step(workdir: Path) -> int | None:
     """The last checkpointed step of a run directory, or None."""
-    from gld import workdir as workdir_lib
+    from gld.runs import checkpoints as checkpoint_lib
 
     if not (workdir / "checkpoints").exists():
         return None
-    manager = workdir_lib.checkpoint_manager(workdir)
+    manager = checkpoint_lib.checkpoint_manager(workdir)
     step = manager.latest_step()
     manager.close()
     return step
@@ -76,11 +77,11 @@ def run_comparison(
     Args:
       workdir: <workdir>/<model> holds each model's run, <workdir>/compare the results.
       builder: the dataset's TFDS builder (built).
-      models: names in gld.model.MODELS.
-      classical_methods: names in gld.baselines.CLASSICAL; the references of every
-        evaluation (`gld.evaluation.REFERENCES`) are evaluated, first among them, whether
+      models: names in gld.models.registry.MODELS.
+      classical_methods: names in gld.models.baselines.CLASSICAL; the references of every
+        evaluation (`gld.evaluation.evaluate.REFERENCES`) are evaluated, first among them, whether
         listed or not: a table carries its references.
-      train_config: gld.config.TrainConfig fields shared by every model (budget, seed,
+      train_config: gld.runs.config.TrainConfig fields shared by every model (budget, seed,
         loss weights, supervision, flow, ...); `model`, dataset and size are set here.
       split: the evaluation split.
       eval_batch_size, max_examples: evaluation batching; 0 examples = the whole split.
@@ -91,15 +92,18 @@ def run_comparison(
     Returns:
       The content of results.json.
     """
-    from gld import config, evaluation, metrics, train
-    from gld import model as model_lib
-    from gld import workdir as workdir_lib
-    from gld.baselines import CLASSICAL
-    from gld.baselines.classical import LABELS
+    from gld.evaluation import evaluate as evaluation
+    from gld.evaluation import metrics
+    from gld.models import registry
+    from gld.models.baselines import CLASSICAL
+    from gld.models.baselines.classical import LABELS
+    from gld.runs import config
+    from gld.runs import workdir as workdir_lib
+    from gld.training import trainer as train
 
     for name in models:
-        if name not in model_lib.MODELS:
-            raise ValueError(f"unknown model {name!r}; valid: {sorted(model_lib.MODELS)}")
+        if name not in registry.MODELS:
+            raise ValueError(f"unknown model {name!r}; valid: {sorted(registry.MODELS)}")
     for name in classical_methods:
         if name not in CLASSICAL:
             raise ValueError(f"unknown classical method {name!r}; valid: {sorted(CLASSICAL)}")
@@ -147,7 +151,7 @@ def run_comparison(
         results[name], num_examples = evaluation.summarise_examples(per_example)
         runs[name] = {
             "workdir": str(run_dir),
-            "parameters": model_lib.parameter_counts(variables["params"])["total"],
+            "parameters": registry.parameter_counts(variables["params"])["total"],
             "steps": int(_finished_step(run_dir)),
             "batch_size": saved.batch_size,
             "train_seconds": train_seconds,
@@ -213,11 +217,11 @@ def run_comparison(
 def main(argv):
     del argv
     common.initialise()
-    from gld import model as model_lib
-    from gld.baselines import CLASSICAL
+    from gld.models import registry
+    from gld.models.baselines import CLASSICAL
 
     for flag, names, valid in (
-        ("models", FLAGS.models, model_lib.MODELS),
+        ("models", FLAGS.models, registry.MODELS),
         ("classical", FLAGS.classical, CLASSICAL),
     ):
         unknown = sorted(set(names) - set(valid))
@@ -240,9 +244,7 @@ def main(argv):
         model_configs=model_configs,
     )
     # Next to the table it produced: the flags that made it (a valid --flagfile).
-    common.write_text_atomically(
-        Path(FLAGS.workdir) / "compare" / "flags.txt", common.flags_file_text()
-    )
+    files.write_atomically(Path(FLAGS.workdir) / "compare" / "flags.txt", common.flags_file_text())
 
 
 if __name__ == "__main__":

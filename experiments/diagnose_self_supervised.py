@@ -3,7 +3,7 @@ r"""Where a self-supervised run's depth error comes from: scale, shape or pose.
     python -m experiments.diagnose_self_supervised \
         --workdirs=runs/paper_cpu_full/runs/struct2depth_low_lr[,...] [--split=test]
 
-Prints, per workdir, on the split's pairs (`gld.self_supervised_diagnosis`): Abs-Inv and
+Prints, per workdir, on the split's pairs (`gld.analysis.self_supervised_diagnosis`): Abs-Inv and
 S-RMSE as scored (units of the predicted translation) and with each pair's scale from the
 truth, beside the per-pair oracle constant; the pose errors in degrees beside predicting no
 rotation. Then, once for the dataset, the photometric loss at the true depth and pose and
@@ -32,10 +32,10 @@ common.define_data_flags(default_dataset=None)
 def main(argv):
     del argv
     common.initialise()
-    from gld import evaluation
-    from gld import self_supervised_diagnosis as diagnosis
-    from gld import workdir as workdir_lib
-    from gld.baselines import classical
+    from gld.analysis import self_supervised_diagnosis as diagnosis
+    from gld.evaluation import evaluate as evaluation
+    from gld.models.baselines import classical
+    from gld.runs import workdir as workdir_lib
 
     if not FLAGS.workdirs:
         raise app.UsageError("--workdirs names no workdir")

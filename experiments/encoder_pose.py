@@ -4,7 +4,7 @@ r"""Trains the global encoder directly on the true relative pose: how fast can i
         [--encoder_coordinates]
         [--steps=600] [--flow_source=gt] [--out=runs/encoder_pose/<name>.json]
 
-A capacity check of the global module, not a depth model (`gld.probes.
+A capacity check of the global module, not a depth model (`gld.analysis.probes.
 train_encoder_on_pose`): the encoder and a 256-256 MLP head regress [10 x the rotation
 vector, the translation direction] of the training pairs (L1, Adam with warm-up and
 cosine decay); the test pairs are scored in degrees next to their mean pose. Prints the
@@ -19,8 +19,9 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
-from gld.config import FLOW_SOURCES
-from gld.global_encoder import ENCODER_NORMS
+from gld import files
+from gld.models.global_encoder import ENCODER_NORMS
+from gld.runs.config import FLOW_SOURCES
 
 FLAGS = flags.FLAGS
 
@@ -41,10 +42,11 @@ common.define_data_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld import config, probes
+    from gld.analysis import probes
+    from gld.runs import options
 
     try:
-        config.check_schedule("cosine", FLAGS.warmup_steps, FLAGS.steps)
+        options.check_schedule("cosine", FLAGS.warmup_steps, FLAGS.steps)
     except ValueError as error:
         raise app.UsageError(str(error)) from None
     builder = common.prepare_dataset()
@@ -68,7 +70,7 @@ def main(argv):
             f"translation direction {values['translation_deg']:.2f} deg"
         )
     if FLAGS.out:
-        common.write_text_atomically(Path(FLAGS.out), json.dumps(errors, indent=2) + "\n")
+        files.write_atomically(Path(FLAGS.out), json.dumps(errors, indent=2) + "\n")
         print(f"wrote {FLAGS.out}")
 
 

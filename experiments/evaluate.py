@@ -11,7 +11,7 @@ on a whole split.
 
 --predictions reads one file per example id, the id's "/" replaced by "__": a 2-D float
 `.npy` of depth or a 16-bit PNG (value x --png_depth_scale = depth); a map at another
-resolution is resized by nearest neighbour (details: `gld.stored_predictions`). A missing
+resolution is resized by nearest neighbour (details: `gld.evaluation.stored_predictions`). A missing
 or bad file stops the run, naming it, before anything is written.
 
 --truth_resolution=file scores every method against the ground truth at the resolution
@@ -39,8 +39,8 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from gld import metrics, stored_predictions
-from gld.baselines import CLASSICAL
+from gld.evaluation import metrics, stored_predictions
+from gld.models.baselines import CLASSICAL
 
 FLAGS = flags.FLAGS
 
@@ -102,8 +102,8 @@ common.define_distributed_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld import evaluation
-    from gld import workdir as workdir_lib
+    from gld.evaluation import evaluate as evaluation
+    from gld.runs import workdir as workdir_lib
 
     if FLAGS.method and FLAGS.predictions:
         raise app.UsageError("give --method or --predictions, not both")

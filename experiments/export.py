@@ -1,4 +1,4 @@
-r"""Exports a trained model to one file that runs with JAX alone (`gld.deploy`).
+r"""Exports a trained model to one file that runs with JAX alone (`gld.inference.deploy`).
 
     python -m experiments.export --workdir=runs/demo --output=runs/demo/model.gldx
     python -m experiments.export --workdir=runs/demo --output=gpu.gldx \
@@ -9,11 +9,11 @@ r"""Exports a trained model to one file that runs with JAX alone (`gld.deploy`).
 The file (a zip: metadata.json, the `jax.export` module, the weights as .npz) holds the
 forward pass at the run's training resolution, with a symbolic batch size unless
 --batch_size fixes it. --formulation chooses how the per-example filters are applied
-(default: the first platform's, `gld.filter_banks.default_formulation`; "vmap" needs
+(default: the first platform's, `gld.models.filter_banks.default_formulation`; "vmap" needs
 --batch_size). --onnx_output also writes an ONNX model (needs `pip install jax2onnx
 onnxruntime`; checked against JAX with onnxruntime before it is written). On the robot:
 
-    from gld.deploy import DeployedModel
+    from gld.inference.deploy import DeployedModel
     depth = DeployedModel.load("model.gldx")(image1, image2, flow)   # jax + numpy only
 
 A model that reads a given pose or the cameras (trained with --global_source=pose or
@@ -26,8 +26,8 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from gld.export import PLATFORMS, check_platforms
-from gld.filter_banks import FORMULATIONS
+from gld.inference.export import PLATFORMS, check_platforms
+from gld.models.filter_banks import FORMULATIONS
 
 FLAGS = flags.FLAGS
 
@@ -63,7 +63,7 @@ def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
-    from gld import export
+    from gld.inference import export
 
     metadata = export.export_workdir(
         FLAGS.workdir,

@@ -31,9 +31,9 @@ common.define_flow_source_flag()
 def main(argv):
     del argv
     common.initialise()
-    from gld import evaluation
-    from gld import filter_inspection as inspect_lib
-    from gld import workdir as workdir_lib
+    from gld.analysis import filter_inspection as inspect_lib
+    from gld.evaluation import evaluate as evaluation
+    from gld.runs import workdir as workdir_lib
 
     model, variables, config = workdir_lib.load_trained(FLAGS.workdir)
     if config.model != "global_local":

@@ -6,7 +6,7 @@ r"""The paper's experimental section on the embedded benchmark, one command:
     python -m experiments.paper --suite=cpu --only=train/global_local_1px,classical
     python -m experiments.paper --suite=cpu --report_only
 
-Trains and evaluates every run of the suite (`gld.paper_suite`) in <workdir>/runs/, with
+Trains and evaluates every run of the suite (`gld.paper.suite`) in <workdir>/runs/, with
 the analyses, each as soon as the runs it reads have finished (pose probe, triangulation
 with the probe's pose, flow-error curves, qualitative predictions, generated filters),
 and writes the report (every table with the
@@ -31,12 +31,12 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
-from gld import paper_suite
+from gld.paper import suite as paper_suite
 
 FLAGS = flags.FLAGS
 
 flags.DEFINE_enum(
-    "suite", "cpu", list(paper_suite.SUITES), "Which scale to run (gld.paper_suite.SUITES)."
+    "suite", "cpu", list(paper_suite.SUITES), "Which scale to run (gld.paper.suite.SUITES)."
 )
 flags.DEFINE_string("workdir", None, "The training runs (default: runs/paper_<suite>).")
 flags.DEFINE_string(
@@ -61,7 +61,8 @@ def main(argv):
     common.initialise()
     import jax
 
-    from gld import paper_report, paper_runner
+    from gld.paper import report as paper_report
+    from gld.paper import runner as paper_runner
 
     scale = paper_suite.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")

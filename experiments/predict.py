@@ -27,7 +27,7 @@ needs `--intrinsics`, as does one that refines its encoder's pose on the flow
 with a baseline not above `--min_baseline`, are skipped and counted. With neither,
 depth is in units of the (unknown) baseline and written as .npy.
 
-Writes to `--output_dir` (see `gld.predict`): depth/<frame1>__<frame2>.png (16-bit,
+Writes to `--output_dir` (see `gld.inference.predict`): depth/<frame1>__<frame2>.png (16-bit,
 millimetres; `--format=png`, the default for metric depth) or .npy (float32, the
 default without a scale), preview/ (`--previews`), ply/ (`--ply`, needs
 `--intrinsics`: fx,fy,cx,cy in pixels or a file with 4 numbers or a 3x3 K), pairs.csv
@@ -101,7 +101,7 @@ def _usage(flag: str, error: Exception) -> app.UsageError:
 def _frames():
     """The frame source and the image paths (None for a video), checked."""
     from data.demon import recordings
-    from gld import predict
+    from gld.inference import predict
 
     if bool(FLAGS.images) == bool(FLAGS.video):
         raise app.UsageError("give exactly one of --images (a folder) or --video (a file)")
@@ -138,22 +138,23 @@ def _camera_poses(image_paths, names) -> object:
 def _model_inputs() -> tuple[str, ...]:
     """The inputs the workdir's model reads besides the images and flow (its
     `extra_inputs`: a given pose, or the cameras), from its stored config."""
-    from gld import model as model_lib
-    from gld import workdir as workdir_lib
+    from gld.models import registry
+    from gld.runs import workdir as workdir_lib
 
     try:
         config = workdir_lib.load_run_config(FLAGS.workdir)
     except (FileNotFoundError, ValueError) as error:
         raise _usage("workdir", error) from None
     return tuple(
-        getattr(model_lib.make_model(config.model, **config.model_config), "extra_inputs", ())
+        getattr(registry.make_model(config.model, **config.model_config), "extra_inputs", ())
     )
 
 
 def _measure_scale() -> None:
-    from gld import input_pipeline, scale
-    from gld import workdir as workdir_lib
-    from gld.predict import DepthPredictor
+    from gld import input_pipeline
+    from gld.inference import scale
+    from gld.inference.predict import DepthPredictor
+    from gld.runs import workdir as workdir_lib
 
     try:
         config = workdir_lib.load_run_config(FLAGS.workdir)
@@ -202,8 +203,8 @@ def main(argv):
         _measure_scale()
         return
     from data.demon import recordings
-    from gld import predict
-    from gld import workdir as workdir_lib
+    from gld.inference import predict
+    from gld.runs import workdir as workdir_lib
 
     if not FLAGS.output_dir:
         raise app.UsageError("--output_dir is needed: where the depth files go")
@@ -262,7 +263,7 @@ def main(argv):
         except (FileNotFoundError, ValueError, OSError) as error:
             raise _usage("ranges", error) from None
         if FLAGS.range_metric == "ray_length":
-            from gld import scale
+            from gld.inference import scale
 
             for readings in ranges.values():
                 readings[:, 2] = scale.ray_length_to_depth(
@@ -270,7 +271,7 @@ def main(argv):
                 )
     if FLAGS.poses:
         camera_to_world = _camera_poses(image_paths, frames.names)
-    from gld import model as model_lib
+    from gld.models import global_local as model_lib
 
     model_inputs = _model_inputs()
     if model_inputs == model_lib.POSE_INPUTS and camera_to_world is None:

@@ -5,12 +5,12 @@ r"""Probes what a trained global-local model has learned, on the test pairs.
 Prints and writes <workdir>/eval/probe.json:
 - depth statistics: how each pair's mean predicted inverse depth follows the truth
   across pairs (the depth scale) and how the map correlates with the truth within a
-  pair (the structure); see `gld.probes.depth_statistics`;
+  pair (the structure); see `gld.analysis.probes.depth_statistics`;
 - the pose probe (the paper's Sec. 4.4): an MLP trained on the frozen global
   parameters of the training pairs regresses the relative pose of the test pairs;
   errors in degrees beside predicting the training mean pose;
 - for a run trained with the epipolar term, g read directly as the pose the term trains
-  it to be (`gld.probes.global_params_pose_errors`; translation direction up to sign).
+  it to be (`gld.analysis.probes.global_params_pose_errors`; translation direction up to sign).
 """
 
 from __future__ import annotations
@@ -40,14 +40,14 @@ def main(argv):
     common.initialise()
     import jax
 
-    from gld import probes
-    from gld import workdir as workdir_lib
+    from gld.analysis import probes
+    from gld.runs import workdir as workdir_lib
 
     model, variables, config = workdir_lib.load_trained(FLAGS.workdir, step=FLAGS.step)
     builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
     flow_source = FLAGS.flow_source or config.flow_source
 
-    from gld import layers
+    from gld.models import layers
 
     @jax.jit
     def forward(variables, batch):

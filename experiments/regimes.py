@@ -9,7 +9,7 @@ Reads the workdir's evaluation on --dataset (default: the workdir's own; the fol
 <workdir>/eval_gld_scenes-small_untextured, or --eval_dir): the per-pair Abs-Inv of the
 model (per_example_<model>.csv) and of sfm_flow, the classical pipeline on the same flow
 (per_example_sfm_flow.csv). For each evaluated pair it computes, from the dataset's
-record (`gld.regimes`): the baseline (raw ||t||), the rotation share of the true flow,
+record (`gld.analysis.regimes`): the baseline (raw ||t||), the rotation share of the true flow,
 the flow's end-point error, sfm_flow's pose errors (its pose estimated again from the
 same flow) and, for gld_scenes, the texture kind covering most of view 1 (the pair's
 scene drawn again from its seed, as the builder draws it, and checked against the
@@ -63,8 +63,8 @@ def _read_per_example(path: Path) -> dict[str, dict[str, str]]:
 
 def _evaluation(workdir: Path) -> tuple[Path, str, dict]:
     """The evaluation folder, the dataset ('name/config') and its metrics.json."""
-    from gld import evaluation
-    from gld import workdir as workdir_lib
+    from gld.evaluation import evaluate as evaluation
+    from gld.runs import workdir as workdir_lib
 
     try:
         config = workdir_lib.load_run_config(workdir)
@@ -100,7 +100,7 @@ def _texture_reader(builder):
     if not builder.name.startswith("gld_scenes"):
         return None
     from data.gld_scenes import raycast, renderer, scenes
-    from gld import regimes
+    from gld.analysis import regimes
 
     config = builder.builder_config
     settings = config.scene_settings()
@@ -130,7 +130,8 @@ def main(argv):
     from tqdm import tqdm
 
     import data
-    from gld import input_pipeline, regimes
+    from gld import input_pipeline
+    from gld.analysis import regimes
 
     workdir = Path(FLAGS.workdir)
     eval_dir, evaluated, metrics = _evaluation(workdir)

@@ -22,10 +22,10 @@ flags.DEFINE_integer("num_figures", 8, "Example figures written by the final eva
 # The main job's recipe: the best measured within its CPU budget (Adam 1e-3, warm-up and
 # cosine decay; an instance-normalised global encoder that sees the flow alone, whose
 # pose is taught by the epipolar term at 0.1 and the classical pose teacher and refined
-# on the flow; WORKSPACE.md), written once in gld.paper_suite. Paper flagfiles set Adam
+# on the flow; WORKSPACE.md), written once in gld.paper.suite. Paper flagfiles set Adam
 # 1e-4, constant, none of the motion terms, and the paper's global module (no
 # normalisation, the image pair and the flow).
-from gld.paper_suite import MAIN_MOTION_WEIGHTS, MAIN_RECIPE  # noqa: E402
+from gld.paper.suite import MAIN_MOTION_WEIGHTS, MAIN_RECIPE  # noqa: E402
 
 common.define_training_flags(
     steps=2000,
@@ -45,15 +45,15 @@ def _with_stored_architecture(model_config: dict) -> dict:
     """A relaunch of a workdir keeps its run's architecture: an option the command line
     does not give takes the stored value, not this launcher's default (which may have
     changed since the run began)."""
-    from gld import model
-    from gld import workdir as workdir_lib
+    from gld.models import registry
+    from gld.runs import workdir as workdir_lib
 
     stored = workdir_lib.stored_architecture(FLAGS.workdir)
     if FLAGS.model != "global_local" or not stored or stored.get("model") != FLAGS.model:
         return model_config
     kept = {
         name: stored[name]
-        for name in model.architecture_options()
+        for name in registry.architecture_options()
         if not FLAGS[name].present
         and stored.get(name) is not None
         and stored[name] != model_config.get(name)
@@ -69,7 +69,7 @@ def _motion_where_it_applies(model_config: dict) -> tuple[dict, dict]:
     model whose encoder infers a pose: a model without one (another model, a given pose,
     no global module) trains without the epipolar term and the teacher, and one without
     it or without the flow without refinement, unless the command line asks for them."""
-    from gld import config
+    from gld.runs import config
 
     infers_pose = config.infers_pose(FLAGS.model, model_config)
     weights = {
@@ -87,7 +87,7 @@ def main(argv):
     common.initialise()
     import dataclasses
 
-    from gld import train
+    from gld.training import trainer as train
 
     model_config = _with_stored_architecture(common.model_options(FLAGS.model))
     model_config, weights = _motion_where_it_applies(model_config)
@@ -104,7 +104,7 @@ def main(argv):
         records={"flags.txt": common.flags_file_text()},
     )
     if FLAGS.final_eval:
-        from gld import evaluation
+        from gld.evaluation import evaluate as evaluation
 
         evaluation.evaluate_workdir(
             FLAGS.workdir,

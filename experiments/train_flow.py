@@ -4,7 +4,7 @@ with the stored DIS flow: `python -m experiments.train_flow [--flagfile=...]`.
     python -m experiments.train_flow --dataset=gld_scenes/small --workdir=runs/flow_net \
         --steps=5000
 
-Builds the dataset on first use, trains `gld.flow_net.FlowNet` (PWC-Net style) against
+Builds the dataset on first use, trains `gld.models.flow_net.FlowNet` (PWC-Net style) against
 `gt_flow`, evaluates its end-point error periodically, and finally writes
 `<workdir>/eval/flow.json` and `flow_table.md`: EPE of the network and of DIS on the
 test split (same pairs, same valid pixels), parameters and ms per pair. Re-running the
@@ -31,9 +31,10 @@ flags.DEFINE_integer(
 def _define_flags() -> None:
     """A flag for every option of FlowTrainConfig and every FlowNet argument, each with
     its one default and help."""
-    from gld import flow_net, flow_training
+    from gld.models import flow_net
+    from gld.runs import flow_config
 
-    for field in flow_training.flag_fields():
+    for field in flow_config.flag_fields():
         name, default, metadata = field.name, field.default, field.metadata
         if metadata["choices"]:
             flags.DEFINE_enum(name, default, list(metadata["choices"]), metadata["help"])
@@ -63,7 +64,7 @@ common.define_data_flags()
 
 
 def _architecture() -> dict:
-    from gld import flow_net
+    from gld.models import flow_net
 
     values = {}
     for name in flow_net.ARCHITECTURE_HELP:
@@ -81,12 +82,14 @@ def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
-    from gld import flow_net, flow_training
+    from gld.models import flow_net
+    from gld.runs import flow_config
+    from gld.training import flow_trainer as flow_training
 
     def make_config(**values):
-        options = {field.name: FLAGS[field.name].value for field in flow_training.flag_fields()}
+        options = {field.name: FLAGS[field.name].value for field in flow_config.flag_fields()}
         try:
-            return flow_training.FlowTrainConfig(
+            return flow_config.FlowTrainConfig(
                 **options, model_config=_architecture(), dataset=FLAGS.dataset, **values
             ).validate()
         except ValueError as error:

@@ -40,24 +40,6 @@ def _as_gray_uint8(image: np.ndarray, name: str) -> np.ndarray:
     return image.reshape(image.shape[:2])
 
 
-def as_unit_rgb(image: np.ndarray, name: str) -> np.ndarray:
-    """[H, W, 3] float32 in gld's image contract ([-0.5, 0.5]) from uint8 or float
-    ([-0.5, 0.5] or [0, 1]) RGB, or from [H, W] greyscale (replicated)."""
-    image = np.asarray(image)
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=-1)
-    if image.ndim != 3 or image.shape[-1] != 3:
-        raise ValueError(f"{name} must be [H, W] or [H, W, 3], got shape {image.shape}")
-    if image.dtype == np.uint8:
-        return image.astype(np.float32) / 255.0 - 0.5
-    if not np.issubdtype(image.dtype, np.floating):
-        raise ValueError(f"{name} must be uint8 or float, got dtype {image.dtype}")
-    if not np.all(np.isfinite(image)):
-        raise ValueError(f"{name} contains NaN or inf")
-    offset = 0.0 if image.min() < 0 else 0.5
-    return (image - offset).astype(np.float32)
-
-
 def _check_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gray1 = _as_gray_uint8(image1, "image1")
     gray2 = _as_gray_uint8(image2, "image2")
@@ -137,7 +119,7 @@ ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
 
 # A trained flow network: "flow_net:<workdir of experiments.train_flow>".
 LEARNED_PREFIX = "flow_net:"
-# The file that marks a flow network's workdir (`gld.flow_training.FLOW_CONFIG_FILE`).
+# The file that marks a flow network's workdir (`gld.runs.flow_config.FLOW_CONFIG_FILE`).
 _FLOW_RUN_MARKER = "flow_config.json"
 
 
@@ -167,9 +149,10 @@ def check_estimator(method: str) -> None:
 
 @functools.lru_cache(maxsize=4)
 def _trained_network(workdir: str):
-    from gld import flow_training  # JAX: imported only when a network is asked for
+    # JAX and Flax: imported only when a network is asked for (dataset builders need neither).
+    from gld.runs import trained_flow
 
-    return flow_training.TrainedFlowNet(workdir)
+    return trained_flow.TrainedFlowNet(workdir)
 
 
 def describe(method: str) -> dict[str, Any]:

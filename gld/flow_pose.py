@@ -15,9 +15,9 @@ below `min_parallax_pixels`: the pose is then undetermined), no essential matrix
 fewer than `min_inliers` cheirality inliers; a failed pair gets the identity rotation
 and a zero translation.
 
-The classical pipeline (`gld.baselines.classical.SfMFlow`) triangulates on this pose;
+The classical pipeline (`gld.models.baselines.classical.SfMFlow`) triangulates on this pose;
 a global-local model with `global_source="flow_pose"` takes it as its global
-parameters (`gld.model.pose_parameters`), so a robot gets the motion from its own
+parameters (`gld.models.global_local.pose_parameters`), so a robot gets the motion from its own
 flow without odometry, and the learned part is only the depth.
 """
 

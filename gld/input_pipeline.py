@@ -512,7 +512,7 @@ def train_dataset(
       fixed_sparse_pixels: the same supervised pixels in every epoch.
       worker_count: grain worker processes (0 = in the calling process). The batch
         sequence is deterministic for a given worker count.
-      keys: the fields the consumer reads (e.g. `gld.train.TRAIN_KEYS`); the others are
+      keys: the fields the consumer reads (e.g. `gld.training.trainer.TRAIN_KEYS`); the others are
         not augmented or batched. None keeps the whole contract.
       process_index, process_count: this process's shard is records
         `process_index::process_count`; the shards are disjoint and cover the split.

@@ -4,7 +4,7 @@ Training and evaluation run on a 1-D `Mesh` of all devices (of all processes) wh
 axis `BATCH_AXIS` shards the batch while parameters are replicated. Each process feeds
 its own rows (`per_process_batch_size`, `to_global_batch`); results come back to every
 host with `gather`. Per-example code that XLA cannot partition by itself (the `lax.map`
-filter-bank formulations of `gld.filter_banks`) runs on each device's shard through
+filter-bank formulations of `gld.models.filter_banks`) runs on each device's shard through
 `on_batch_shards`, which reads the mesh that `under_mesh` sets around a jitted step.
 """
 

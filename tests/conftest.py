@@ -65,7 +65,7 @@ TINY_MODEL = {"encoder_channels": [4, 8, 8, 8, 8]}
 def tiny_train_config(**overrides):
     """A TrainConfig for `gld_scenes/tiny` with TINY_MODEL: batch 4, 4 steps, a checkpoint
     every 2 steps, no periodic evaluation; `overrides` replace any field."""
-    from gld import config
+    from gld.runs import config
 
     values = dict(
         model_config=dict(TINY_MODEL),
@@ -102,7 +102,7 @@ def tiny_scenes(tiny_scenes_dir):
 @pytest.fixture(scope="session")
 def trained_workdir(tiny_scenes, tmp_path_factory):
     """A tiny global-local run trained for 2 steps."""
-    from gld import train
+    from gld.training import trainer as train
 
     workdir = tmp_path_factory.mktemp("trained")
     config = tiny_train_config(steps=2, log_every=1)

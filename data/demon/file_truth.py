@@ -2,7 +2,8 @@
 
 A record holds depth at 256x192; DeMoN evaluates against the depth of its file (640x480
 for SUN3D and RGB-D) with the prediction upsampled by nearest neighbour. `FileTruth`
-serves that ground truth to `gld.evaluation` (it is a `gld.evaluation.Truth`): for the
+serves that ground truth to `gld.evaluation.evaluate` (it is a
+`gld.evaluation.evaluate.Truth`): for the
 id `"<file>/<group>/<i>-<j>"` (`reader.example_id`) it reads view i of the group from
 `<manual_dir>/<file>`, the camera-z depth as `reader.read_view` gives it (0 where not
 finite and positive), and divides it by the record's ||t||, as
@@ -90,7 +91,7 @@ class FileTruth:
 
         Args:
           examples: (id, ||t|| of its record) of each example to be scored
-            (`gld.stored_predictions.record_ids_and_baselines`).
+            (`gld.evaluation.stored_predictions.record_ids_and_baselines`).
 
         Raises:
           ValueError naming every example whose id is not a DeMoN id, whose file is

@@ -43,8 +43,9 @@ import tensorflow_datasets as tfds
 
 import data
 from gld import flow as flow_lib
-from gld import geometry, metrics, records
-from gld.baselines import classical
+from gld import geometry, records
+from gld.evaluation import metrics
+from gld.models.baselines import classical
 
 from . import raycast, renderer, scenes
 

@@ -3,11 +3,11 @@
     python -m experiments.benchmark                                   # this suite
     python -m experiments.benchmark --torch_python=.torchref/bin/python
 
-For every model of `gld.model.MODELS` asked for (the global-local model once per
-formulation of `gld.filter_banks.FORMULATIONS`) it measures, each in a fresh process so
+For every model of `gld.models.registry.MODELS` asked for (the global-local model once per
+formulation of `gld.models.filter_banks.FORMULATIONS`) it measures, each in a fresh process so
 that peak memory is the row's own: compile time of the train step, forward latency
 at batch 1 (median and p90), forward throughput at the forward batch sizes, the time
-of a whole Adam train step (the model's loss, `gld.train.make_train_step`), peak host
+of a whole Adam train step (the model's loss, `gld.training.trainer.make_train_step`), peak host
 memory, and the GFLOP/s achieved (the flops of the computation, from XLA's cost
 analysis of the "vmap" reference program, divided by the median time). With a
 PyTorch interpreter it also runs `../shared/bench/torch_reference.py` (the same
@@ -84,18 +84,18 @@ def measure_one(
     import jax.numpy as jnp
     import numpy as np
 
-    from gld import losses
-    from gld import model as model_lib
-    from gld import state as state_lib
-    from gld import train as train_lib
+    from gld.losses import supervised as losses
+    from gld.models import registry
+    from gld.runs import state as state_lib
+    from gld.training import trainer as train_lib
 
     config = {"filter_formulation": formulation} if formulation is not None else {}
-    model = model_lib.make_model(model_name, **config)
+    model = registry.make_model(model_name, **config)
     # The flops of the computation itself, the same for every formulation: XLA's cost
     # analysis counts a loop body once, so lax.map formulations would be undercounted;
     # the vmap reference has no loop (its lowering is analysed, never compiled).
     flops_model = (
-        model_lib.make_model(model_name, filter_formulation="vmap")
+        registry.make_model(model_name, filter_formulation="vmap")
         if formulation is not None
         else model
     )
@@ -273,8 +273,8 @@ def run(
     """Measures every (model, formulation) and, optionally, the PyTorch reference.
 
     Args:
-      models: names in `gld.model.MODELS`; only "global_local" has formulations.
-      formulations: keys of `gld.filter_banks.FORMULATIONS` (None = all).
+      models: names in `gld.models.registry.MODELS`; only "global_local" has formulations.
+      formulations: keys of `gld.models.filter_banks.FORMULATIONS` (None = all).
       height, width: image size.
       forward_batch_sizes: batch sizes of the throughput measurements (batch 1 is
         always measured, for latency).
@@ -290,7 +290,7 @@ def run(
     Returns:
       {"rows": [...], "torch": {...}, "default_formulation": ..., "settings": {...}}.
     """
-    from gld import filter_banks
+    from gld.models import filter_banks
 
     names = list(filter_banks.FORMULATIONS) if formulations is None else list(formulations)
     unknown = sorted(set(names) - set(filter_banks.FORMULATIONS))

@@ -6,11 +6,11 @@
 
 What a robot does for every new pair: estimate the flow (OpenCV DIS, `gld.flow`), run
 the depth network, and turn its depth (in baselines) into metres with one range
-reading (`gld.scale.scale_from_ranges`). Each stage and the whole loop are timed per
+reading (`gld.inference.scale.scale_from_ranges`). Each stage and the whole loop are timed per
 pair (median and p90), at the paper's resolution (256x192) and at the embedded
 benchmark's (128x96, `gld_scenes/small`), with the network run two ways: jit-compiled
 from the live Flax model, and as the file `python -m experiments.export` writes, loaded
-by `gld.deploy`. The network is untrained (latency does not depend on the weights) and
+by `gld.inference.deploy`. The network is untrained (latency does not depend on the weights) and
 the pair is rendered by the embedded benchmark's renderer. The paper's figures (an
 NVIDIA GeForce 940MX: 4 ms for the network, 45 ms for PWC-Net flow) are printed as the
 reference row; they were measured on a GPU with another flow network.
@@ -82,11 +82,11 @@ def _networks(height: int, width: int, seed: int, scratch: Path, pair: dict) -> 
     import jax.numpy as jnp
     import numpy as np
 
-    from gld import deploy, export, filter_banks
     from gld import flow as flow_lib
-    from gld import model as model_lib
+    from gld.inference import deploy, export
+    from gld.models import filter_banks, registry
 
-    model = model_lib.make_model("global_local")
+    model = registry.make_model("global_local")
     # Weights drawn with numpy into the model's structure (std 1/sqrt(fan-in), biases 0):
     # latency does not depend on them, and compiling `model.init` would take seconds.
     shapes = jax.eval_shape(
@@ -112,7 +112,7 @@ def _networks(height: int, width: int, seed: int, scratch: Path, pair: dict) -> 
         return {key: value for key, value in outputs.items() if isinstance(value, jax.Array)}
 
     def live(image1, image2, flow):
-        # The same host work as gld.deploy: uint8 -> [-0.5, 0.5], results to numpy.
+        # The same host work as gld.inference.deploy: uint8 -> [-0.5, 0.5], results to numpy.
         images = [image[None].astype(np.float32) / 255.0 - 0.5 for image in (image1, image2)]
         outputs = jax.device_get(apply(variables, *images, flow[None]))
         return np.asarray(outputs["depth"][0])
@@ -145,7 +145,7 @@ def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str,
     import numpy as np
 
     from gld import flow as flow_lib
-    from gld import scale as scale_lib
+    from gld.inference import scale as scale_lib
 
     image1, image2 = pair["image1"], pair["image2"]
     pixel, distance = _range_reading(pair["depth1"])

@@ -18,7 +18,9 @@ from conftest import REPO_ROOT
 
 import data
 from data.demon import file_truth, reader
-from gld import evaluation, input_pipeline, stored_predictions
+from gld import input_pipeline
+from gld.evaluation import evaluate as evaluation
+from gld.evaluation import stored_predictions
 
 FILE_HEIGHT, FILE_WIDTH = 480, 640  # SUN3D's and RGB-D's files
 HEIGHT, WIDTH = 192, 256  # the records'

@@ -283,8 +283,8 @@ def _by_hand_flow_signal(example) -> tuple[float, float, float]:
 
 
 def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
-    from gld import evaluation
-    from gld.baselines import classical
+    from gld.evaluation import evaluate as evaluation
+    from gld.models.baselines import classical
 
     metadata = json.loads((tiny.data_path / "metadata.json").read_text())
     assert metadata["signal_train"]["pairs"] == metadata["signal_train"]["split_pairs"] == 32

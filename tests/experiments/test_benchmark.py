@@ -10,7 +10,7 @@ import pytest
 from conftest import REPO_ROOT
 
 from experiments.benchmarks import model as model_benchmark
-from gld import filter_banks
+from gld.models import filter_banks
 
 FAKE_TORCH_FIGURES = {
     "eager": {"forward_b1_ms": 12.0, "forward_b16_ms": 400.0, "train_b16_ms": 1250.0},

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import launch
 
-from gld import export
-from gld import workdir as workdir_lib
-from gld.deploy import DeployedModel
+from gld.inference import export
+from gld.inference.deploy import DeployedModel
+from gld.runs import workdir as workdir_lib
 
 
 def _launch(*flags: str) -> subprocess.CompletedProcess:

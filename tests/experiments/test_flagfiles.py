@@ -7,7 +7,7 @@ from absl import flags
 from conftest import REPO_ROOT, run_python
 
 import data
-from gld import model as model_lib
+from gld.models import registry
 
 FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags").glob("*.flags"))
 
@@ -94,7 +94,7 @@ FLOW_PARSE = """
 import sys
 from absl import flags
 import data
-from gld import model as model_lib
+from gld.models import global_local as model_lib
 import experiments.train_flow  # noqa: F401  (defines the flow trainer's flags)
 flags.FLAGS(["train_flow", "--flagfile=" + sys.argv[1]])
 data.parse_name(flags.FLAGS.dataset)
@@ -111,7 +111,7 @@ def test_flow_flagfiles_parse_with_the_flow_trainer_and_document_themselves(path
 
 def test_the_trainers_architecture_defaults_are_the_models_but_the_main_jobs(train_flags):
     main_job = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
-    for name, (default, _, _) in model_lib.architecture_options().items():
+    for name, (default, _, _) in registry.architecture_options().items():
         expected = main_job.get(name, default)
         expected = [str(item) for item in expected] if isinstance(expected, tuple) else expected
         assert train_flags[name].default == expected, name
@@ -151,7 +151,7 @@ def test_a_relaunch_takes_the_workdirs_architecture_for_options_no_flag_gives(
         assert options["encoder_norm"] == encoder_norm  # a flag given wins
         assert options["use_image_pair"] is True  # the trainer's default is False
         # An option the stored config predates reads as its run was trained.
-        assert options["flow_scale"] == model_lib.FIELDS_ADDED_LATER["global_local"]["flow_scale"]
+        assert options["flow_scale"] == registry.FIELDS_ADDED_LATER["global_local"]["flow_scale"]
     # A new workdir takes the trainer's defaults.
     try:
         train_flags(["train", f"--workdir={tmp_path / 'new'}"])

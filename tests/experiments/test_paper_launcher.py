@@ -12,7 +12,7 @@ import time
 import pytest
 from conftest import REPO_ROOT
 
-from gld import paper_suite
+from gld.paper import suite as paper_suite
 
 ENV = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
 RUNS = len(paper_suite.suite_runs(paper_suite.SUITES["tiny"]))

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from conftest import launch
 
-from gld import depth_io, stored_predictions
+from gld.evaluation import stored_predictions
+from gld.inference import depth_io
 
 HEIGHT, WIDTH = 72, 96  # the tiny model's 4:3 at 1.5x its 64x48
 FX, FY, CX, CY = 80.0, 82.0, 47.0, 35.5

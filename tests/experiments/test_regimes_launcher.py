@@ -20,7 +20,7 @@ def _launch(*args):
 def evaluated_workdir(tiny_scenes, tmp_path):
     """A workdir of gld_scenes/tiny with an evaluation written by hand: the model's Abs-Inv
     is 1 on even test pairs and 3 on odd ones, sfm_flow's 2 on all."""
-    from gld import workdir as workdir_lib
+    from gld.runs import workdir as workdir_lib
 
     workdir = tmp_path / "run"
     workdir_lib.write_run_config(workdir, tiny_train_config())

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import pytest
 from conftest import launch
 
-from gld import flow_training
+from gld.runs import trained_flow
 
 # A small network and a few steps keep each launch to compile time.
 TINY_FLAGS = [
@@ -72,7 +72,7 @@ def test_train_flow_trains_evaluates_and_resumes(tiny_scenes_dir, tmp_path):
     assert json.loads((workdir / "eval" / "flow.json").read_text())["step"] == 6
 
     # the trained network loads back from the workdir
-    model, variables, config, step = flow_training.load_flow_run(workdir)
+    model, variables, config, step = trained_flow.load_flow_run(workdir)
     assert step == 6 and config.steps == 6 and tuple(model.feature_channels) == (8, 12, 16)
     images = jnp.zeros((1, 48, 64, 3))
     assert jax.jit(model.apply)(variables, images, images)["flow"].shape == (1, 48, 64, 2)

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT, launch
 
-from gld import input_pipeline, stored_predictions
-from gld import workdir as workdir_lib
+from gld import input_pipeline
+from gld.evaluation import stored_predictions
+from gld.runs import workdir as workdir_lib
 
 # A few steps: the main job's 100 warm-up steps would not fit.
 TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2", "--warmup_steps=2"]

@@ -7,8 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gld import flow_pose, geometry, state
-from gld import model as model_lib
+from gld import flow_pose, geometry
+from gld.models import global_local as model_lib
+from gld.models import registry
+from gld.runs import state
 
 HEIGHT, WIDTH = 48, 64
 
@@ -109,4 +111,4 @@ def test_a_model_given_the_flow_pose_reads_it_as_its_global_parameters():
             translation=jnp.asarray(translation)[None],
         )
     with pytest.raises(ValueError, match="global_dim is 4"):
-        model_lib.check_config("global_local", {"global_source": "flow_pose", "global_dim": 4})
+        registry.check_config("global_local", {"global_source": "flow_pose", "global_dim": 4})

@@ -8,8 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gld import geometry, losses, pose_refinement, state
-from gld import model as model_lib
+from gld import geometry, pose_refinement
+from gld.losses import supervised as losses
+from gld.models import global_local as model_lib
+from gld.models import registry
+from gld.runs import state
 
 HEIGHT, WIDTH = 48, 64
 INTRINSICS = np.array([[0.9, 1.2, 0.5, 0.5], [0.85, 1.1, 0.52, 0.47]], np.float32)
@@ -122,11 +125,9 @@ def test_a_model_refining_its_encoder_pose_gives_the_refined_pose_as_g_and_train
     with pytest.raises(ValueError, match="intrinsics1= and intrinsics2="):
         model.apply({"params": params}, images, images, jnp.asarray(flow))
     with pytest.raises(ValueError, match="must not read"):
-        model_lib.check_config("global_local", {"pose_refinement_steps": 5, "use_flow": False})
+        registry.check_config("global_local", {"pose_refinement_steps": 5, "use_flow": False})
     with pytest.raises(ValueError, match="global_source encoder and global_dim 6"):
-        model_lib.check_config(
-            "global_local", {"pose_refinement_steps": 5, "global_source": "pose"}
-        )
+        registry.check_config("global_local", {"pose_refinement_steps": 5, "global_source": "pose"})
     # The losses on g's pose train the encoder's proposal, not the refined pose: the
     # teacher is at the true pose, so the refined g would score ~0, the proposal does not.
     batch = {
@@ -152,8 +153,10 @@ def test_the_pose_teacher_teaches_the_encoder_the_motion_and_refinement_sharpens
 ):
     from conftest import TINY_MODEL, tiny_train_config
 
-    from gld import layers, probes, train
-    from gld import workdir as workdir_lib
+    from gld.analysis import probes
+    from gld.models import layers
+    from gld.runs import workdir as workdir_lib
+    from gld.training import trainer as train
 
     source = tiny_scenes.as_data_source("train")
     model_config = {

@@ -1,0 +1,369 @@
+"""The global-local model F(I1, I2, w): global encoder -> hypernetwork -> local network.
+
+The global module sees the image pair and the flow and emits a 6-vector of global
+parameters; a linear layer turns it into three 3x3 filter banks (20, 10, 20 output
+channels); those banks, applied per example to [flow, x, y], and a final shared 3x3
+conv produce the inverse depth. The paper's numbers are the defaults, and each
+ablation of the paper's Table (image pair, CoordConv, global module, flow) is a switch.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gld import geometry, pose_refinement
+from gld.flow_pose import FLOW_POSE_KEYS
+from gld.models import layers
+from gld.models.filter_banks import SharedConv, apply_filter_banks
+from gld.models.global_encoder import GlobalEncoder
+from gld.models.global_pose import (  # noqa: F401  (POSE_ROTATION_SCALE: read as model.POSE_ROTATION_SCALE)
+    POSE_ROTATION_SCALE,
+    _unit,
+    global_params_pose,
+    pose_parameters,
+)
+from gld.models.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
+
+LOCAL_FLOW_UNITS = ("normalised", "pixels")
+GLOBAL_NORMS = ("none", "batch")
+GLOBAL_SOURCES = ("encoder", "pose", "flow_pose")
+# The example-contract keys a model reads for each given pose: the true relative pose
+# (a robot's odometry at deployment), or the essential matrix's from the input flow.
+POSE_INPUTS = ("rotation", "translation")
+GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
+# The keys a model that refines its encoder's pose on the flow reads (`pose_refinement`).
+CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
+# Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
+# test pins its entries, so that a numpy release that changed the stream is noticed).
+_PERTURBATION_MIX = np.random.default_rng(0).normal(0.0, 100.0, (12, 6)).astype(np.float32)
+
+
+def perturbed_pose(
+    rotation: jax.Array,
+    translation: jax.Array,
+    rotation_degrees: float,
+    translation_degrees: float,
+) -> tuple[jax.Array, jax.Array]:
+    """The relative pose off by exactly the given angles, for studying how accurate a
+    pose the model needs (`GlobalLocal.pose_rotation_error`).
+
+    The rotation is composed with a rotation of `rotation_degrees` about an axis, and the
+    translation turned by `translation_degrees` about an axis perpendicular to it (its
+    norm kept). Both axes are a fixed pseudo-random function of each pair's own pose,
+    spread over the directions (the turn's over those perpendicular to t), whatever else
+    is in the batch: a pair's given pose is off in the same way at every step and at
+    test time; an augmented (rotated or mirrored) copy of it has its own error. Computed
+    in float32 at full matmul precision (the directions move by under a degree between
+    platforms; the angles are exact on all).
+
+    Args:
+      rotation: [B, 3, 3]; translation: [B, 3] (X2 = R X1 + t).
+      rotation_degrees, translation_degrees: the errors in degrees, 0 to 180
+        (`check_config` refuses others in a model's config).
+
+    Returns:
+      (rotation [B, 3, 3], translation [B, 3]) in the inputs' dtype.
+    """
+    dtype = rotation.dtype
+    rotation = rotation.astype(jnp.float32)
+    translation = translation.astype(jnp.float32)
+    batch_size = rotation.shape[0]
+    direction = _unit(translation)
+    features = jnp.concatenate([rotation.reshape(batch_size, 9), direction], axis=-1)
+    mixed = jnp.matmul(features, _PERTURBATION_MIX, precision=jax.lax.Precision.HIGHEST)
+    directions = jnp.sin(mixed)
+    rotation_axis = _unit(directions[:, :3])
+    turn_axis = _unit(jnp.cross(direction, directions[:, 3:]))
+    error = geometry.rotation_matrix(math.radians(rotation_degrees) * rotation_axis)
+    turn = geometry.rotation_matrix(math.radians(translation_degrees) * turn_axis)
+    rotation = jnp.matmul(error, rotation, precision=jax.lax.Precision.HIGHEST)
+    translation = jnp.einsum("bij,bj->bi", turn, translation, precision=jax.lax.Precision.HIGHEST)
+    return rotation.astype(dtype), translation.astype(dtype)
+
+
+class GlobalLocal(nn.Module):
+    """The paper's global-local network.
+
+    Attributes:
+      encoder_channels, encoder_strides: hidden conv layers of the global encoder.
+      global_dim: size of the global parameter vector g.
+      bank_channels: output channels of the generated 3x3 filter banks.
+      kernel_size: spatial size of the generated filters and the final conv.
+      use_image_pair: feed the images to the global module (ablation: flow only).
+      use_coordinates: append x, y in [-1, 1] to the local input (ablation: no CoordConv).
+      use_global_module: generate filters from g (ablation: static learned filters).
+      use_flow: use optical flow (ablation: the image pair replaces the flow everywhere).
+      local_flow_units: "normalised" gives the local network the same flow as the global
+        module (divided by the image size, times `flow_scale`); "pixels" feeds it in
+        pixels, as the PyTorch reference does (on gld_scenes/small it learned slower:
+        test Abs-Inv 0.0382 vs 0.0336 at step 1000, with flow_scale=1).
+      flow_scale: factor on the normalised flow (fractions of the image size) that
+        either module sees. Normalised flow has a std of ~0.075 on gld_scenes, against
+        ~0.6 for the coordinates and ~0.2 for the images; at 10 the flow is on their
+        scale, and the local network learns structure several times faster (within-pair
+        correlation 0.76 vs 0.42 after 600 steps with true flow; WORKSPACE.md).
+      global_source: "encoder" (the paper's) computes g from the inputs; "pose" gives
+        the model the true relative pose instead (the paper's "GT Pose" variant):
+        g = `pose_parameters(rotation, translation)`, which the call then needs as
+        keyword arguments (the contract's "rotation" and "translation"), and the
+        global encoder is not built. Needs global_dim 6. "flow_pose" gives it the pose
+        the essential matrix gets from the input flow (`gld.flow_pose`, the contract's
+        "flow_rotation" and "flow_translation"): the classical pipeline's motion, no
+        label and no odometry needed; a failed estimate gives g = 0.
+      pose_rotation_error, pose_translation_error: with global_source="pose", the given
+        pose is off by these angles in degrees (`perturbed_pose`): how accurate a pose
+        the model needs. 0 (the default) gives the true pose.
+      encoder_norm: "instance" standardises each hidden channel of the global encoder
+        over the image, per example, before its activation; "none" (the paper's) does
+        not (`GlobalEncoder`).
+      encoder_coordinates: append x, y in [-1, 1] to the global encoder's input
+        (CoordConv for G). The flow of a rotation or a translation depends on where the
+        pixel is; a conv encoder that pools globally otherwise sees position only
+        through its zero padding. The paper's encoder has none (False).
+      pose_refinement_steps: with the encoder as the source of g (global_dim 6), g is
+        not the encoder's output but the pose it stands for refined by this many robust
+        Gauss-Newton steps on the flow's epipolar geometry (`gld.pose_refinement`;
+        the call then needs the cameras' intrinsics1= and intrinsics2=). The encoder
+        proposes and geometry refines; no gradient flows through the refinement, so the
+        encoder's proposal ("encoder_params") is trained by the epipolar term or the
+        pose teacher. 0 (the paper's) uses the encoder's output as g.
+      global_norm: "batch" standardises each global parameter over the batch (running
+        statistics at test time), so that g varies across pairs from the first step
+        (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
+        paper's) leaves it as it is.
+      modulation_scale: how far unit-variance global parameters move the generated
+        filters at initialisation, as a fraction of the filters' scale.
+      filter_formulation: how per-example banks are applied (see `gld.models.filter_banks`);
+        None picks the fastest for the platform.
+    """
+
+    encoder_channels: Sequence[int] = (16, 32, 64, 128, 256)
+    encoder_strides: Sequence[int] = (2, 2, 2, 2, 1)
+    global_dim: int = 6
+    bank_channels: Sequence[int] = (20, 10, 20)
+    kernel_size: int = 3
+    use_image_pair: bool = True
+    use_coordinates: bool = True
+    use_global_module: bool = True
+    use_flow: bool = True
+    local_flow_units: str = "normalised"
+    flow_scale: float = 10.0
+    global_source: str = "encoder"
+    pose_rotation_error: float = 0.0
+    pose_translation_error: float = 0.0
+    encoder_norm: str = "none"
+    encoder_coordinates: bool = False
+    pose_refinement_steps: int = 0
+    global_norm: str = "none"
+    modulation_scale: float = MODULATION_SCALE
+    filter_formulation: str | None = None
+
+    @property
+    def local_in_channels(self) -> int:
+        """Channels of the local network's input."""
+        return (2 if self.use_flow else 6) + (2 if self.use_coordinates else 0)
+
+    @property
+    def extra_inputs(self) -> tuple[str, ...]:
+        """Contract keys the call reads by keyword besides the images and flow."""
+        if not self.use_global_module:
+            return ()
+        if self.global_source == "encoder" and self.pose_refinement_steps:
+            return CAMERA_INPUTS
+        return GIVEN_POSE_INPUTS.get(self.global_source, ())
+
+    @nn.compact
+    def __call__(
+        self,
+        image1: jax.Array,
+        image2: jax.Array,
+        flow: jax.Array,
+        *,
+        rotation: jax.Array | None = None,
+        translation: jax.Array | None = None,
+        flow_rotation: jax.Array | None = None,
+        flow_translation: jax.Array | None = None,
+        intrinsics1: jax.Array | None = None,
+        intrinsics2: jax.Array | None = None,
+        train: bool = False,
+    ) -> dict[str, jax.Array]:
+        """Predicts inverse depth for view 1.
+
+        Args:
+          image1, image2: [B, H, W, 3] float32 in [-0.5, 0.5].
+          flow: [B, H, W, 2] pixels, I1 -> I2.
+          rotation, translation: [B, 3, 3] and [B, 3], the relative pose; read only
+            with global_source="pose".
+          flow_rotation, flow_translation: the same, estimated from the input flow;
+            read only with global_source="flow_pose".
+          intrinsics1, intrinsics2: [B, 4] normalised; read only with
+            pose_refinement_steps.
+          train: batch statistics (global_norm="batch") come from the batch and are
+            recorded when True, from the running averages when False.
+
+        Returns:
+          {"inv_depth": [B, H, W] positive, "depth": [B, H, W],
+           "global_params": [B, global_dim] (zeros without a global module),
+           "global_pose": the pose g stands for (`global_params_pose`; with a global
+             module and global_dim 6),
+           "filter_banks": list of FilterBank(kernel [B, k, k, C_in, C_out], bias [B, C_out])}.
+        """
+        layers.check_inputs(image1, image2, flow)
+        batch_size, height, width, _ = flow.shape
+        image_pair = jnp.concatenate([image1, image2], axis=-1)
+        normalised_flow = layers.normalise_flow(flow) * self.flow_scale
+
+        if self.local_flow_units not in LOCAL_FLOW_UNITS:
+            raise ValueError(
+                f"local_flow_units must be one of {LOCAL_FLOW_UNITS}, got {self.local_flow_units!r}"
+            )
+        if self.use_flow:
+            local_inputs = flow if self.local_flow_units == "pixels" else normalised_flow
+            global_inputs = layers.global_module_inputs(
+                image1, image2, normalised_flow, self.use_image_pair
+            )
+        else:
+            local_inputs = image_pair
+            global_inputs = image_pair
+        if self.use_coordinates:
+            local_inputs = layers.with_coordinates(local_inputs)
+        if self.encoder_coordinates:
+            global_inputs = layers.with_coordinates(global_inputs)
+
+        bank_kwargs = dict(
+            in_channels=self.local_in_channels,
+            bank_channels=tuple(self.bank_channels),
+            kernel_size=self.kernel_size,
+        )
+        if self.global_source not in GLOBAL_SOURCES:
+            raise ValueError(
+                f"global_source must be one of {GLOBAL_SOURCES}, got {self.global_source!r}"
+            )
+        if self.use_global_module and self.global_source in GIVEN_POSE_INPUTS:
+            rotation_key, translation_key = GIVEN_POSE_INPUTS[self.global_source]
+            if self.global_source == "flow_pose":
+                rotation, translation = flow_rotation, flow_translation
+            if rotation is None or translation is None:
+                raise ValueError(
+                    f'global_source="{self.global_source}" needs the relative pose: call with '
+                    f"{rotation_key}= [B, 3, 3] and {translation_key}= [B, 3]"
+                )
+            if self.global_dim != 6:
+                raise ValueError(
+                    f'global_source="{self.global_source}" gives 6 global parameters; '
+                    f"global_dim is {self.global_dim}"
+                )
+            if rotation.shape[0] != batch_size or translation.shape[0] != batch_size:
+                raise ValueError(
+                    f"rotation {rotation.shape} and translation {translation.shape} must "
+                    f"have the batch size of the flow ({batch_size})"
+                )
+            if self.pose_rotation_error or self.pose_translation_error:
+                rotation, translation = perturbed_pose(
+                    rotation, translation, self.pose_rotation_error, self.pose_translation_error
+                )
+            global_params = pose_parameters(rotation, translation).astype(flow.dtype)
+        elif self.use_global_module:
+            global_params = GlobalEncoder(
+                channels=tuple(self.encoder_channels),
+                strides=tuple(self.encoder_strides),
+                global_dim=self.global_dim,
+                kernel_size=self.kernel_size,
+                norm=self.encoder_norm,
+                name="global_encoder",
+            )(global_inputs)
+            encoder_params = global_params
+            if self.pose_refinement_steps:
+                global_params = self._refined(global_params, flow, intrinsics1, intrinsics2)
+        if self.global_norm not in GLOBAL_NORMS:
+            raise ValueError(f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}")
+        if self.use_global_module:
+            if self.global_norm == "batch":
+                global_params = nn.BatchNorm(
+                    use_running_average=not train,
+                    use_bias=False,
+                    use_scale=False,
+                    momentum=0.99,
+                    # g's variance starts near 1e-5: a larger epsilon would shrink it.
+                    epsilon=1e-8,
+                    name="global_norm",
+                )(global_params)
+            filter_banks = HyperNetwork(
+                **bank_kwargs, modulation_scale=self.modulation_scale, name="hypernet"
+            )(global_params)
+        else:
+            global_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
+            filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
+
+        final_conv = ConvParameters(
+            in_channels=self.bank_channels[-1],
+            out_channels=1,
+            kernel_size=self.kernel_size,
+            name="final_conv",
+        )()
+        logits = apply_filter_banks(
+            filter_banks, local_inputs, head=final_conv, formulation=self.filter_formulation
+        )
+        outputs = layers.depth_outputs(logits)
+        outputs["global_params"] = global_params
+        if self.use_global_module and self.global_dim == 6:
+            outputs["global_pose"] = global_params_pose(global_params)
+        if (
+            self.use_global_module
+            and self.global_source == "encoder"
+            and self.pose_refinement_steps
+        ):
+            outputs["encoder_params"] = encoder_params
+            outputs["encoder_pose"] = global_params_pose(encoder_params)
+        outputs["filter_banks"] = list(filter_banks)
+        return outputs
+
+    def _refined(self, proposal, flow, intrinsics1, intrinsics2):
+        """The global parameters of the encoder's pose refined on the flow."""
+        if intrinsics1 is None or intrinsics2 is None:
+            raise ValueError(
+                "pose_refinement_steps refines the pose on the flow's epipolar geometry, which "
+                "needs the cameras: call with intrinsics1= and intrinsics2= [B, 4]"
+            )
+        if self.global_dim != 6:
+            raise ValueError(
+                f"pose_refinement_steps needs 6 global parameters (a pose); global_dim is "
+                f"{self.global_dim}"
+            )
+        pose = global_params_pose(jax.lax.stop_gradient(proposal))
+        rotation, translation = pose_refinement.refine_pose(
+            jax.lax.stop_gradient(flow),
+            pose["rotation"],
+            pose["translation"],
+            intrinsics1,
+            intrinsics2,
+            iterations=self.pose_refinement_steps,
+        )
+        return jax.lax.stop_gradient(pose_parameters(rotation, translation)).astype(flow.dtype)
+
+
+class ConvParameters(nn.Module):
+    """The kernel and bias of a conv shared by the batch, initialised like `nn.Conv`.
+
+    The local network's final conv is applied by `apply_filter_banks` (as its head,
+    next to the per-example banks), so the model holds only its parameters; names and
+    initialisation are those of `nn.Conv`.
+    """
+
+    in_channels: int
+    out_channels: int
+    kernel_size: int = 3
+
+    @nn.compact
+    def __call__(self) -> SharedConv:
+        """Returns SharedConv(kernel [k, k, C_in, C_out], bias [C_out])."""
+        shape = (self.kernel_size, self.kernel_size, self.in_channels, self.out_channels)
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), shape)
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.out_channels,))
+        return SharedConv(kernel=kernel, bias=bias)

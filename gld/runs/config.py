@@ -1,0 +1,154 @@
+"""A training run's configuration: one definition of every option, with its help text.
+
+`TrainConfig` is the single source: the launchers derive their command-line flags from
+its fields (`experiments.common.define_training_flags`), and a workdir's `config.json`
+stores it (`gld.runs.workdir`). A field's metadata holds the flag's help and choices; fields
+without help (the model's constructor arguments, the dataset and its resolution) are
+set by the launcher, not by a flag. Defaults are the paper's; a launcher may give its
+own (the main job's recipe in `experiments.train`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import optax
+
+from gld.losses import photometric
+from gld.losses import supervised as losses
+from gld.models import registry
+from gld.runs.options import (
+    LR_SCHEDULES,
+    LoopOptions,
+    check_option,
+    check_schedule,
+    option,
+)
+from gld.runs.state import make_optimizer
+
+FLOW_SOURCES = ("estimated", "gt")
+
+
+@dataclasses.dataclass
+class TrainConfig(LoopOptions):
+    """A training run, as plain values."""
+
+    model: str = option("global_local", "Learned model.", tuple(registry.MODELS))
+    model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+    batch_size: int = option(16, "Global batch size, over all processes and devices.", at_least=1)
+    steps: int = option(94_000, "Training steps (the paper: 94000 at 256x192).", at_least=1)
+    learning_rate: float = option(1e-4, "Adam (peak) learning rate.", above=0)
+    lr_schedule: str = option(
+        "constant", "constant (the paper) or cosine (warm-up, then decay).", LR_SCHEDULES
+    )
+    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
+    depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.", at_least=0)
+    smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.", at_least=0)
+    epipolar_weight: float = option(
+        0.0,
+        "Weight of the epipolar loss on the pose the global parameters stand for (not the "
+        "paper's; 0 = off).",
+        at_least=0,
+    )
+    pose_teacher_weight: float = option(
+        0.0,
+        "Weight of the loss pulling the global parameters to the essential matrix's pose "
+        "from the input flow (a classical teacher; not the paper's; 0 = off).",
+        at_least=0,
+    )
+    photometric_smoothness_weight: float = option(
+        1e-3, "Smoothness weight of the self-supervised loss (struct2depth models).", at_least=0
+    )
+    gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.", at_least=0)
+    fixed_sparse_pixels: bool = option(False, "Keep the same supervised pixels every epoch.")
+    flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
+    augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
+    seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.", at_least=0)
+
+    def validate(self) -> TrainConfig:
+        """Raises ValueError naming the first option whose value cannot give a sound run
+        (a bound, a choice, the architecture, the schedule); returns the config."""
+        for field in flag_fields():
+            value = getattr(self, field.name)
+            check_option(field, value)
+        check_schedule(self.lr_schedule, self.warmup_steps, self.steps)
+        for name in ("height", "width"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        registry.check_config(self.model, self.model_config)
+        for name in ("epipolar_weight", "pose_teacher_weight"):
+            if getattr(self, name) > 0 and not infers_pose(self.model, self.model_config):
+                raise ValueError(
+                    f"{name} needs global parameters that the model infers and that stand "
+                    "for a pose: global_local with its global module, global_source encoder "
+                    "and global_dim 6"
+                )
+        return self
+
+    def architecture(self) -> dict[str, Any]:
+        """What a checkpoint's parameters depend on (a workdir refuses other values)."""
+        speed_only = {"filter_formulation"}  # changes how, not what, the model computes
+        full = registry.full_config(self.model, self.model_config)
+        config = {k: v for k, v in full.items() if k not in speed_only}
+        return {"model": self.model, **dict(sorted(config.items()))}
+
+    def loss_weights(self) -> losses.LossWeights | photometric.SelfSupervisedWeights:
+        """The weights of the model's training loss (self-supervised or sparse)."""
+        if getattr(registry.MODELS.get(self.model), "LOSS", "supervised") == "self_supervised":
+            return photometric.SelfSupervisedWeights(smoothness=self.photometric_smoothness_weight)
+        return losses.LossWeights(
+            depth=self.depth_weight,
+            smoothness=self.smoothness_weight,
+            epipolar=self.epipolar_weight,
+            pose_teacher=self.pose_teacher_weight,
+        )
+
+
+def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
+    """Whether a model's global parameters are inferred from its inputs and can stand for
+    the camera motion (`gld.models.global_local.global_params_pose`): the epipolar term applies."""
+    if model != "global_local":
+        return False
+    full = registry.full_config(model, model_config)
+    return bool(
+        full["use_global_module"] and full["global_source"] == "encoder" and full["global_dim"] == 6
+    )
+
+
+def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
+    """Whether a model could refine its encoder's pose on its flow
+    (`pose_refinement_steps`): it infers a pose (`infers_pose`) and reads the flow."""
+    if not infers_pose(model, model_config):
+        return False
+    return bool(registry.full_config(model, model_config)["use_flow"])
+
+
+def flag_fields() -> list[dataclasses.Field]:
+    """The TrainConfig fields that are command-line options."""
+    return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]
+
+
+# Stored config keys renamed since the first workdirs were written: old name -> new.
+RENAMED_FIELDS = {"flow": "flow_source"}
+
+
+def from_stored(values: dict[str, Any]) -> TrainConfig:
+    """The TrainConfig of a stored `config.json` "config" entry, written by any version:
+    renamed fields take their new names and model options added later take the values
+    the run was trained with (`gld.models.registry.FIELDS_ADDED_LATER`)."""
+    values = {RENAMED_FIELDS.get(key, key): value for key, value in values.items()}
+    values["model_config"] = registry.complete_stored_config(
+        values.get("model", "global_local"), values.get("model_config", {})
+    )
+    return TrainConfig(**values)
+
+
+def config_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    """The optimiser of a run."""
+    return make_optimizer(
+        config.learning_rate,
+        config.lr_schedule,
+        steps=config.steps,
+        warmup_steps=config.warmup_steps,
+    )

@@ -1,0 +1,128 @@
+"""The training state and its optimiser: what a checkpoint holds and how it is updated.
+
+`TrainState` carries everything a run needs to continue exactly where it stopped;
+`create_train_state` makes a fresh one (initial parameters, Adam's state, step 0, the
+run's base key); `make_optimizer` is the paper's Adam with the run's schedule.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from gld.models import global_local as model_lib
+from gld.models import layers
+from gld.models.flow_net import FlowNet, check_image_pair, init_params
+from gld.runs import options
+from gld.runs.options import LR_SCHEDULES
+
+
+@flax.struct.dataclass
+class TrainState:
+    """Everything a training run needs to continue exactly where it stopped."""
+
+    step: jax.Array
+    params: Any
+    batch_stats: Any
+    opt_state: Any
+    rng: jax.Array  # raw key data of the run's base PRNG key
+
+    def variables(self) -> dict[str, Any]:
+        """The model variables for `model.apply`."""
+        if self.batch_stats:
+            return {"params": self.params, "batch_stats": self.batch_stats}
+        return {"params": self.params}
+
+
+def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarray]:
+    """Zero inputs of the right shapes, for `model.init` and shape checks."""
+    batch = {
+        "image1": np.zeros((batch_size, height, width, 3), np.float32),
+        "image2": np.zeros((batch_size, height, width, 3), np.float32),
+        "flow": np.zeros((batch_size, height, width, 2), np.float32),
+    }
+    # The relative pose, for models given it (`GlobalLocal.global_source` "pose": the
+    # true one; "flow_pose": the one estimated from the flow).
+    for rotation_key, translation_key in model_lib.GIVEN_POSE_INPUTS.values():
+        batch[rotation_key] = np.broadcast_to(
+            np.eye(3, dtype=np.float32), (batch_size, 3, 3)
+        ).copy()
+        batch[translation_key] = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (batch_size, 1))
+    # The cameras, for models that refine their pose on the flow.
+    for key in model_lib.CAMERA_INPUTS:
+        batch[key] = np.tile(np.array([0.9, 1.2, 0.5, 0.5], np.float32), (batch_size, 1))
+    return batch
+
+
+def init_variables(model: nn.Module, height: int, width: int, seed: int) -> dict[str, Any]:
+    """Initial model variables for images of the given size."""
+    batch = dummy_batch(1, height, width)
+    args, extra = layers.model_arguments(model, batch)
+    return model.init(jax.random.key(seed), *args, **extra, train=False)
+
+
+def create_train_state(
+    model: nn.Module, optimizer: optax.GradientTransformation, height: int, width: int, seed: int
+) -> TrainState:
+    """A fresh state: initial parameters, optimiser state, step 0, the run's base key."""
+    variables = init_variables(model, height, width, seed)
+    params = variables["params"]
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        batch_stats=variables.get("batch_stats", {}),
+        opt_state=optimizer.init(params),
+        rng=jax.random.key_data(jax.random.key(seed + 1)),
+    )
+
+
+def learning_rate_schedule(
+    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
+) -> optax.Schedule:
+    """The learning rate per step.
+
+    "constant" is the paper's. "cosine" rises linearly from 0 over `warmup_steps`, then
+    decays along a cosine to 1% of `learning_rate` at `steps`.
+    """
+    if schedule == "constant":
+        return optax.constant_schedule(learning_rate)
+    if schedule == "cosine":
+        options.check_schedule(schedule, warmup_steps, steps)
+        return optax.warmup_cosine_decay_schedule(
+            init_value=0.0,
+            peak_value=learning_rate,
+            warmup_steps=warmup_steps,
+            decay_steps=steps,
+            end_value=0.01 * learning_rate,
+        )
+    raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {schedule!r}")
+
+
+def make_optimizer(
+    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
+) -> optax.GradientTransformation:
+    """Adam (the paper's optimiser) with the given schedule; the rate is logged."""
+    rate = learning_rate_schedule(learning_rate, schedule, steps=steps, warmup_steps=warmup_steps)
+    return optax.inject_hyperparams(optax.adam)(learning_rate=rate)
+
+
+def create_flow_state(
+    model: FlowNet, optimizer: optax.GradientTransformation, height: int, width: int, seed: int
+) -> TrainState:
+    """A fresh state (gld's `TrainState`, no batch statistics) for images of a size."""
+    images = jnp.zeros((1, height, width, 3), jnp.float32)
+    check_image_pair(images, images, len(model.feature_channels))
+    params = init_params(model, seed)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        batch_stats={},
+        opt_state=optimizer.init(params),
+        rng=jax.random.key_data(jax.random.key(seed + 1)),
+    )

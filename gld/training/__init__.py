@@ -1,0 +1,3 @@
+"""The trainers: the depth trainer with the training loop every trainer runs
+(`trainer`), and the flow network's (`flow_trainer`).
+"""

@@ -1,0 +1,574 @@
+"""Training and evaluating the learned flow network (`gld.models.flow_net.FlowNet`) on the
+records' exact flow.
+
+The loss is the end-point error (or PWC-Net's robust fine-tuning loss) against
+`gt_flow`, over `gt_flow_valid` pixels, at the output's full resolution plus, weighted
+by `pyramid_weight`, at every estimated level against the truth averaged over each
+level's pixel blocks (`flow_loss`). `make_flow_train_step` builds the pure step;
+`train_flow` runs it over a mesh of all devices (`gld.sharding`), resuming from and
+saving to a workdir with the depth trainer's verified orbax checkpoints
+(`gld.runs.workdir`: the `TrainState` and the grain iterator), and evaluates periodically.
+`evaluate_flow` scores the network and the records' stored estimated flow (OpenCV DIS
+for gld_scenes) on the same pairs and valid pixels; `write_flow_report` writes
+`flow.json` and `flow_table.md` with parameters and forward latency.
+
+A flow run's workdir:
+
+    <workdir>/flow_config.json  FlowTrainConfig and the network's architecture
+    <workdir>/checkpoints/      as a depth run's (gld.runs.workdir)
+    <workdir>/metrics.jsonl     train and test records; tensorboard/ the same
+    <workdir>/eval/flow.json, flow_table.md   the final evaluation
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh
+
+from gld import files as files_lib
+from gld import input_pipeline, sharding
+from gld.evaluation import evaluate as evaluation
+from gld.models.flow_net import (
+    FlowNet,
+    parameter_count,
+)
+from gld.runs import workdir as workdir_lib
+from gld.runs.flow_config import FLOW_CONFIG_FILE, LOSSES, FlowTrainConfig, make_flow_optimizer
+from gld.runs.state import TrainState, create_flow_state
+from gld.training import trainer as train_lib
+
+# Keys of a training batch the step reads (the truth; no estimated flow).
+FLOW_TRAIN_KEYS = ("image1", "image2", "gt_flow", "gt_flow_valid")
+# Evaluation batches also carry the stored estimated flow ("flow") to score it alike.
+FLOW_EVAL_KEYS = ("image1", "image2", "flow", "gt_flow", "gt_flow_valid", "example_mask")
+# End-point errors above this many pixels count as outliers (KITTI's Fl uses 3 px too).
+OUTLIER_PIXELS = 3.0
+# The stored estimated flow's name in reports (gld_scenes stores OpenCV DIS).
+STORED_FLOW = "dis"
+NETWORK = "flow_net"
+# PWC-Net's robust fine-tuning loss: (|du| + |dv| + epsilon) ** q.
+_ROBUST_EPSILON = 0.01
+_ROBUST_EXPONENT = 0.4
+
+
+def downsample_truth(
+    gt_flow: jax.Array, valid: jax.Array, factor: int
+) -> tuple[jax.Array, jax.Array]:
+    """The truth at a pyramid level: the mean of each factor x factor block's valid flow.
+
+    Args:
+      gt_flow: [B, H, W, 2] pixels; valid: [B, H, W] bool; factor: 2**level.
+
+    Returns:
+      flow [B, H / factor, W / factor, 2] (still in input pixels) and its validity
+      [B, H / factor, W / factor] (a block with at least one valid pixel).
+    """
+    if factor == 1:
+        return gt_flow, valid
+    batch, height, width, _ = gt_flow.shape
+    weights = valid.astype(gt_flow.dtype).reshape(
+        batch, height // factor, factor, width // factor, factor
+    )
+    sums = gt_flow.reshape(batch, height // factor, factor, width // factor, factor, 2)
+    sums = (sums * weights[..., None]).sum(axis=(2, 4))
+    counts = weights.sum(axis=(2, 4))
+    return sums / jnp.maximum(counts, 1.0)[..., None], counts > 0
+
+
+def pixel_losses(flow: jax.Array, gt_flow: jax.Array, loss: str = "epe") -> jax.Array:
+    """Per-pixel loss [B, H, W] of flow against the truth (both [B, H, W, 2])."""
+    difference = flow - gt_flow
+    if loss == "epe":
+        # The norm's gradient is undefined at 0; the epsilon keeps it finite.
+        return jnp.sqrt(jnp.sum(difference**2, axis=-1) + 1e-12)
+    if loss == "robust":
+        return (jnp.sum(jnp.abs(difference), axis=-1) + _ROBUST_EPSILON) ** _ROBUST_EXPONENT
+    raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+
+
+def _masked_mean(values: jax.Array, mask: jax.Array) -> jax.Array:
+    return jnp.sum(jnp.where(mask, values, 0.0)) / jnp.maximum(jnp.sum(mask), 1)
+
+
+def flow_loss(
+    outputs: dict[str, Any], batch: dict, *, loss: str = "epe", pyramid_weight: float = 0.5
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """The multi-scale loss over valid pixels of the batch (pooled over the batch).
+
+    Args:
+      outputs: `FlowNet`'s {"flow": [B, H, W, 2], "flow_pyramid": coarsest first}.
+      batch: "gt_flow" [B, H, W, 2], "gt_flow_valid" [B, H, W].
+      loss: "epe" or "robust" (`pixel_losses`).
+      pyramid_weight: weight of the mean of the per-level losses.
+
+    Returns:
+      (loss, terms): "loss", "full" (the full-resolution loss), "epe" (its mean
+      end-point error in pixels), "level<l>" per level.
+    """
+    gt_flow, valid = batch["gt_flow"], batch["gt_flow_valid"]
+    height = gt_flow.shape[1]
+    full = _masked_mean(pixel_losses(outputs["flow"], gt_flow, loss), valid)
+    terms = {"full": full}
+    level_losses = []
+    for level_flow in outputs["flow_pyramid"]:
+        factor = height // level_flow.shape[1]
+        level_truth, level_valid = downsample_truth(gt_flow, valid, factor)
+        level_loss = _masked_mean(pixel_losses(level_flow, level_truth, loss), level_valid)
+        terms[f"level{int(math.log2(factor))}"] = level_loss
+        level_losses.append(level_loss)
+    total = full
+    if level_losses and pyramid_weight:
+        total = total + pyramid_weight * jnp.mean(jnp.stack(level_losses))
+    terms["loss"] = total
+    terms["epe"] = (
+        full
+        if loss == "epe"
+        else _masked_mean(jnp.linalg.norm(outputs["flow"] - gt_flow, axis=-1), valid)
+    )
+    return total, terms
+
+
+# ------------------------------------------------------------------------- train step
+
+
+def make_flow_train_step(
+    *,
+    model: FlowNet,
+    optimizer: optax.GradientTransformation,
+    loss: str = "epe",
+    pyramid_weight: float = 0.5,
+) -> Callable[[TrainState, dict, jax.Array], tuple[TrainState, dict]]:
+    """Builds the pure `train_step(state, batch, rng) -> (state, metrics)`.
+
+    The batch holds FLOW_TRAIN_KEYS; `rng` is unused (the network has no randomness) and
+    kept so the step compiles like the depth trainer's (`gld.training.trainer.jit_train_step`).
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+
+    def train_step(state: TrainState, batch: dict, rng: jax.Array):
+        del rng
+
+        def loss_fn(params):
+            outputs = model.apply({"params": params}, batch["image1"], batch["image2"])
+            return flow_loss(outputs, batch, loss=loss, pyramid_weight=pyramid_weight)
+
+        (_, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        step_metrics = dict(terms)
+        step_metrics["grad_norm"] = optax.global_norm(grads)
+        step_metrics["learning_rate"] = jnp.asarray(
+            opt_state.hyperparams["learning_rate"] if hasattr(opt_state, "hyperparams") else jnp.nan
+        )
+        new_state = state.replace(
+            step=state.step + 1,
+            params=optax.apply_updates(state.params, updates),
+            opt_state=opt_state,
+        )
+        return new_state, step_metrics
+
+    return train_step
+
+
+# ------------------------------------------------------------------------- evaluation
+
+
+def make_flow_eval_step(*, model: FlowNet) -> Callable[[dict, dict], dict]:
+    """Builds the pure `eval_step(variables, batch) -> per-example values` ([B] each):
+    mean end-point error and outlier fraction of the network and of the batch's stored
+    flow ("flow") over the same valid pixels, the pixel count and "example_mask" (real
+    rows with at least one valid pixel)."""
+
+    def eval_step(variables: dict, batch: dict) -> dict:
+        flow = model.apply(variables, batch["image1"], batch["image2"])["flow"]
+        valid = batch["gt_flow_valid"]
+        count = jnp.sum(valid, axis=(1, 2))
+        values = {"valid_pixels": count}
+        for name, estimate in ((NETWORK, flow), (STORED_FLOW, batch["flow"])):
+            errors = jnp.linalg.norm(estimate - batch["gt_flow"], axis=-1)
+            sums = jnp.sum(jnp.where(valid, errors, 0.0), axis=(1, 2))
+            outliers = jnp.sum(valid & (errors > OUTLIER_PIXELS), axis=(1, 2))
+            values[f"{name}_epe"] = sums / jnp.maximum(count, 1)
+            values[f"{name}_epe_sum"] = sums
+            values[f"{name}_outliers"] = outliers / jnp.maximum(count, 1)
+        values["example_mask"] = batch["example_mask"] & (count > 0)
+        return values
+
+    return eval_step
+
+
+def summarise_flow(per_example: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """method -> {"epe" (mean over pairs of each pair's mean EPE), "epe_std",
+    "epe_median", "epe_pixels" (mean over all valid pixels), "outliers" (mean fraction
+    of pixels with EPE > OUTLIER_PIXELS), "count" (pairs)}."""
+    mask = np.asarray(per_example["example_mask"], bool)
+    pixels = np.asarray(per_example["valid_pixels"], np.float64)[mask]
+    summary = {}
+    for name in (NETWORK, STORED_FLOW):
+        epe = np.asarray(per_example[f"{name}_epe"], np.float64)[mask]
+        sums = np.asarray(per_example[f"{name}_epe_sum"], np.float64)[mask]
+        outliers = np.asarray(per_example[f"{name}_outliers"], np.float64)[mask]
+        empty = not mask.any()
+        summary[name] = {
+            "epe": float("nan") if empty else float(epe.mean()),
+            "epe_std": float("nan") if empty else float(epe.std()),
+            "epe_median": float("nan") if empty else float(np.median(epe)),
+            "epe_pixels": float("nan") if empty else float(sums.sum() / pixels.sum()),
+            "outliers": float("nan") if empty else float(outliers.mean()),
+            "count": int(mask.sum()),
+        }
+    return summary
+
+
+def evaluate_flow(
+    model: FlowNet,
+    variables: dict,
+    source,
+    *,
+    batch_size: int = 16,
+    max_examples: int = 0,
+    mesh: Mesh | None = None,
+    eval_step: Callable | None = None,
+    progress: bool = False,
+) -> tuple[dict[str, np.ndarray], list[str], dict[str, dict[str, float]]]:
+    """End-point errors of the network and of the records' stored estimated flow (DIS
+    for gld_scenes) against `gt_flow`, on the same pairs and `gt_flow_valid` pixels.
+
+    Args:
+      model, variables: the network and its trained variables.
+      source: random-access records (a TFDS data source of a split).
+      batch_size: pairs per evaluation batch (rounded up to the devices).
+      max_examples: the first N records only; 0 = all.
+      mesh: devices to run on (default: all).
+      eval_step: a compiled `make_flow_eval_step` to reuse (periodic evaluation).
+      progress: show a progress bar.
+
+    Returns:
+      (per-example values as `make_flow_eval_step` names them, [N] each, padded rows
+      masked out; the pairs' ids; `summarise_flow` of them).
+    """
+    mesh = mesh or sharding.make_mesh()
+    batch_size = sharding.evaluation_batch_size(batch_size, mesh)
+    local_batch = sharding.per_process_batch_size(batch_size, mesh)
+    variables = jax.device_put(variables, sharding.replicated(mesh))
+    eval_step = eval_step or evaluation.jit_eval_step(make_flow_eval_step(model=model), mesh)
+
+    def score(batch, ids):
+        del ids
+        device_batch = sharding.to_global_batch(batch, mesh, FLOW_EVAL_KEYS)
+        return sharding.gather(eval_step(variables, device_batch))
+
+    batches = evaluation.split_batches(
+        source,
+        batch_size=local_batch,
+        flow_source="estimated",
+        max_examples=max_examples,
+        keys=FLOW_EVAL_KEYS,
+        progress=progress,
+    )
+    per_example, ids = evaluation.evaluate_batches(batches, score)
+    return per_example, ids, summarise_flow(per_example)
+
+
+def forward_latency(
+    model: FlowNet, variables: dict, height: int, width: int, *, repeats: int = 30
+) -> dict[str, float]:
+    """Wall-clock time of one compiled forward pass at batch 1 (after a warm-up call):
+    {"median_ms", "p90_ms", "repeats"}. For reports; speed claims are measured, not
+    asserted."""
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    forward = jax.jit(lambda variables, image1, image2: model.apply(variables, image1, image2))
+    images = jax.random.uniform(jax.random.key(0), (2, 1, height, width, 3)) - 0.5
+    jax.block_until_ready(forward(variables, images[0], images[1]))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(forward(variables, images[0], images[1]))
+        times.append(time.perf_counter() - start)
+    times.sort()
+    return {
+        "median_ms": 1e3 * statistics.median(times),
+        "p90_ms": 1e3 * times[min(len(times) - 1, int(0.9 * len(times)))],
+        "repeats": repeats,
+    }
+
+
+def write_flow_report(
+    out_dir: str | Path,
+    summary: dict[str, dict[str, float]],
+    *,
+    parameters: int,
+    latency: dict[str, float],
+    info: dict[str, Any],
+) -> str:
+    """Writes `flow.json` and `flow_table.md` into `out_dir` (process 0); returns the
+    table's text.
+
+    Args:
+      summary: `summarise_flow`'s result.
+      parameters: the network's parameter count.
+      latency: `forward_latency`'s result.
+      info: what was evaluated ("dataset", "split", "step", "height", "width", ...).
+    """
+    out_dir = Path(out_dir)
+    network, stored = summary[NETWORK], summary[STORED_FLOW]
+    ratio = network["epe"] / stored["epe"] if stored["epe"] else float("nan")
+    report = {
+        **info,
+        "protocol": (
+            "end-point error (pixels) against the records' gt_flow over gt_flow_valid pixels; "
+            "epe: mean over pairs of each pair's mean; epe_pixels: mean over all valid "
+            f"pixels; outliers: fraction of pixels with EPE > {OUTLIER_PIXELS:g} px"
+        ),
+        "methods": summary,
+        "epe_vs_dis": ratio,
+        "parameters": parameters,
+        "latency_batch1": {**latency, "device": str(jax.devices()[0].device_kind)},
+    }
+    where = f"{info.get('dataset', '')} {info.get('split', '')}".strip()
+    lines = [
+        f"Optical flow on {where}, {network['count']} pairs at "
+        f"{info.get('width')}x{info.get('height')} (step {info.get('step')})",
+        "",
+        "| method | EPE (px) | ± std | median | EPE pixel-mean | > 3 px | parameters | ms/pair |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, label, params, milliseconds in (
+        (NETWORK, "flow_net (learned, PWC-Net style)", f"{parameters:,}", latency["median_ms"]),
+        (STORED_FLOW, "dis (stored estimated flow, OpenCV DIS)", "—", None),
+    ):
+        row = summary[name]
+        lines.append(
+            f"| {label} | {row['epe']:.3f} | {row['epe_std']:.3f} | {row['epe_median']:.3f} | "
+            f"{row['epe_pixels']:.3f} | {100 * row['outliers']:.1f}% | {params} | "
+            + (f"{milliseconds:.1f} |" if milliseconds is not None else "— |")
+        )
+    lines += [
+        "",
+        f"EPE of the network ÷ EPE of DIS: {ratio:.3f}. ms/pair: median forward at batch 1 "
+        f"on {report['latency_batch1']['device']}.",
+    ]
+    table = "\n".join(lines) + "\n"
+    if jax.process_index() == 0:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        files_lib.write_atomically(out_dir / "flow.json", json.dumps(report, indent=2) + "\n")
+        files_lib.write_atomically(out_dir / "flow_table.md", table)
+    return table
+
+
+# ---------------------------------------------------------------------------- workdir
+
+
+def _stored(config: FlowTrainConfig) -> dict[str, Any]:
+    return {
+        "architecture": config.architecture(),
+        "config": json.loads(json.dumps(dataclasses.asdict(config))),
+    }
+
+
+def check_flow_workdir(workdir: str | Path, config: FlowTrainConfig) -> dict[str, tuple]:
+    """Checks `config` against the workdir, reading only; returns the options that
+    differ from the stored ones ({name: (stored, now)}; empty for a new workdir).
+
+    Raises:
+      ValueError: the workdir holds a depth run, or a flow run of another architecture,
+        dataset or resolution (every differing value is named).
+    """
+    workdir = Path(workdir)
+    if (workdir / workdir_lib.CONFIG_FILE).exists():
+        raise ValueError(
+            f"workdir {workdir} holds a depth run ({workdir_lib.CONFIG_FILE}); use another "
+            "--workdir for the flow network"
+        )
+    path = workdir / FLOW_CONFIG_FILE
+    if not path.exists():
+        return {}
+    try:
+        previous = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON ({error})") from None
+    current = _stored(config)
+    fixed = {f"model_config.{k}": v for k, v in current["architecture"].items()}
+    stored_fixed = {f"model_config.{k}": v for k, v in previous.get("architecture", {}).items()}
+    for key in ("dataset", "height", "width"):
+        fixed[key] = current["config"][key]
+        stored_fixed[key] = previous.get("config", {}).get(key)
+    differing = sorted(
+        k for k in set(fixed) | set(stored_fixed) if fixed.get(k) != stored_fixed.get(k)
+    )
+    if differing:
+        details = ", ".join(
+            f"{k}: {stored_fixed.get(k)!r} in the workdir vs {fixed.get(k)!r} now"
+            for k in differing
+        )
+        raise ValueError(
+            f"workdir {workdir} holds a flow run of another architecture or dataset "
+            f"({details}); use another --workdir or the original flags"
+        )
+    stored_options = previous.get("config", {})
+    return {
+        key: (stored_options.get(key), value)
+        for key, value in current["config"].items()
+        if key != "model_config" and stored_options.get(key) != value
+    }
+
+
+def write_flow_config(workdir: str | Path, config: FlowTrainConfig) -> None:
+    """Writes `flow_config.json` atomically (process 0)."""
+    if jax.process_index() != 0:
+        return
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    files_lib.write_atomically(
+        workdir / FLOW_CONFIG_FILE, json.dumps(_stored(config), indent=2, sort_keys=True) + "\n"
+    )
+
+
+# ---------------------------------------------------------------------------- training
+
+
+def train_flow(
+    config: FlowTrainConfig,
+    workdir: str | Path,
+    train_source,
+    test_source=None,
+    *,
+    progress: bool = True,
+    print_fn: Callable[[str], None] = print,
+) -> TrainState:
+    """Trains the flow network (resuming from the workdir's newest intact checkpoint) and
+    evaluates it every `eval_every` steps on `test_source`.
+
+    Everything is checked before anything is written: the options, the network, the
+    workdir's stored config, the lock. `flow_config.json` is then written (with the
+    options in force) before the first step.
+
+    Returns:
+      The final TrainState.
+
+    Raises:
+      ValueError: a bad option, or a workdir holding another run (nothing is written).
+      gld.runs.lock.WorkdirLockedError: another process trains in the workdir.
+      gld.runs.checkpoints.CorruptCheckpointError: no checkpoint of the workdir is intact.
+      gld.training.trainer.NonFiniteLossError: the loss became NaN/inf (the step is named).
+    """
+    workdir = Path(workdir)
+    config.validate()
+    if not config.height or not config.width:
+        raise ValueError("config.height and config.width must be the dataset's resolution")
+    mesh = sharding.make_mesh()
+    local_batch = sharding.per_process_batch_size(config.batch_size, mesh)
+    model = config.make_model()
+    optimizer = make_flow_optimizer(config)
+    check_flow_workdir(workdir, config)
+    state = create_flow_state(model, optimizer, config.height, config.width, config.seed)
+    if jax.process_index() == 0:
+        print_fn(f"parameters flow_net: {parameter_count(state.params):,}")
+    dataset = input_pipeline.train_dataset(
+        train_source,
+        batch_size=local_batch,
+        seed=config.seed,
+        gt_pixels=0,
+        flow_source="gt",
+        augment=config.augment,
+        worker_count=config.worker_count,
+        keys=FLOW_TRAIN_KEYS,
+        process_index=jax.process_index(),
+        process_count=jax.process_count(),
+    )
+    iterator = iter(dataset)
+    with workdir_lib.held_run(
+        workdir, config.keep_checkpoints, lambda: check_flow_workdir(workdir, config)
+    ) as (changes, manager):
+        if changes:
+            print_fn(
+                f"options changed since the stored config: {workdir_lib.describe_changes(changes)}"
+            )
+        state = train_lib.resume(workdir, manager, state, iterator, print_fn)
+        write_flow_config(workdir, config)
+        return _train_loop(
+            config,
+            workdir,
+            state,
+            iterator,
+            manager,
+            model=model,
+            optimizer=optimizer,
+            mesh=mesh,
+            test_source=test_source,
+            progress=progress,
+            print_fn=print_fn,
+        )
+
+
+def _train_loop(
+    config: FlowTrainConfig,
+    workdir: Path,
+    state: TrainState,
+    iterator,
+    manager,
+    *,
+    model: FlowNet,
+    optimizer: optax.GradientTransformation,
+    mesh: Mesh,
+    test_source,
+    progress: bool,
+    print_fn: Callable[[str], None],
+) -> TrainState:
+    """The flow network's step and evaluation in the trainers' shared loop."""
+    eval_step = evaluation.jit_eval_step(make_flow_eval_step(model=model), mesh)
+
+    def evaluate(state: TrainState) -> tuple[dict[str, float], str]:
+        _, _, summary = evaluate_flow(
+            model,
+            state.variables(),
+            test_source,
+            batch_size=config.eval_batch_size,
+            max_examples=config.eval_examples,
+            mesh=mesh,
+            eval_step=eval_step,
+        )
+        values = {
+            "epe": summary[NETWORK]["epe"],
+            "outliers": summary[NETWORK]["outliers"],
+            "dis_epe": summary[STORED_FLOW]["epe"],
+        }
+        message = (
+            f"test EPE {summary[NETWORK]['epe']:.3f} px (DIS {summary[STORED_FLOW]['epe']:.3f} px)"
+        )
+        return values, message
+
+    train_step = make_flow_train_step(
+        model=model,
+        optimizer=optimizer,
+        loss=config.loss,
+        pyramid_weight=config.pyramid_weight,
+    )
+    return train_lib.run_loop(
+        state,
+        iterator,
+        manager,
+        workdir=workdir,
+        mesh=mesh,
+        train_step=train_step,
+        batch_keys=FLOW_TRAIN_KEYS,
+        schedule=config,
+        evaluate=evaluate if test_source is not None else None,
+        progress=progress,
+        description="train flow",
+        postfix="epe",
+        print_fn=print_fn,
+    )

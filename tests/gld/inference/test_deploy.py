@@ -1,0 +1,280 @@
+"""Running an exported model (gld/inference/deploy.py) without the training stack; input checks."""
+
+import ast
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import zipfile
+
+import numpy as np
+import pytest
+from conftest import REPO_ROOT, TINY_MODEL, random_variables
+
+from gld.inference import export
+from gld.inference.deploy import DeployedModel
+from gld.models import registry
+
+HEIGHT, WIDTH = 24, 32
+# What a robot need not install: importing any of these in the isolated run fails.
+TRAINING_PACKAGES = ("flax", "optax", "orbax", "tensorflow", "tensorflow_datasets", "grain", "cv2")
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """(model, variables, path) of a tiny untrained global-local model exported for CPU."""
+    model = registry.make_model("global_local", **TINY_MODEL)
+    variables = random_variables(model, HEIGHT, WIDTH, seed=1)
+    path = tmp_path_factory.mktemp("deploy") / "model.gldx"
+    export.export_model(model, variables, path, height=HEIGHT, width=WIDTH)
+    return model, variables, path
+
+
+def _pairs(batch_size: int, seed: int):
+    rng = np.random.default_rng(seed)
+    image1 = rng.integers(0, 256, (batch_size, HEIGHT, WIDTH, 3), dtype=np.uint8)
+    image2 = rng.integers(0, 256, (batch_size, HEIGHT, WIDTH, 3), dtype=np.uint8)
+    flow = rng.normal(0, 2, (batch_size, HEIGHT, WIDTH, 2)).astype(np.float32)
+    return image1, image2, flow
+
+
+# Run with `python -I` (no PYTHONPATH, user site or working directory on sys.path), so
+# the only way in is site-packages, where the training packages are installed; a finder
+# placed first on sys.meta_path makes every import of them fail, as on a machine
+# without them. The run checks that the finder works and that none got in.
+ISOLATED_RUN = textwrap.dedent(
+    """
+    import importlib.abc, json, sys
+    blocked, repo, inputs, outputs = json.loads(sys.argv[1])
+    blocked = set(blocked)
+
+    class TrainingStackAbsent(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name.partition(".")[0] in blocked:
+                raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+            return None
+
+    assert not blocked & {name.partition(".")[0] for name in sys.modules}, "imported early"
+    sys.meta_path.insert(0, TrainingStackAbsent())
+    for name in blocked:
+        try:
+            __import__(name)
+        except ImportError:
+            pass
+        else:
+            raise AssertionError(f"{name} could still be imported")
+    sys.path.insert(0, repo)
+
+    import numpy as np
+    from gld.inference.deploy import DeployedModel
+
+    model = DeployedModel.load(inputs["model"])
+    results = {}
+    for batch_size in inputs["batch_sizes"]:
+        with np.load(inputs[str(batch_size)]) as pairs:
+            predicted = model.predict(pairs["image1"], pairs["image2"], pairs["flow"])
+        for key, value in predicted.items():
+            results[f"{batch_size}/{key}"] = value
+    np.savez(outputs, **results)
+    loaded = sorted(name for name in sys.modules if name.partition(".")[0] in blocked)
+    assert not loaded, loaded
+    gld_modules = sorted(name for name in sys.modules if name.partition(".")[0] == "gld")
+    print(json.dumps(gld_modules))
+    """
+)
+
+
+def test_runs_without_the_training_stack_and_matches_the_live_model(exported, tmp_path):
+    model, variables, path = exported
+    inputs = {"model": str(path), "batch_sizes": [1, 3]}
+    for batch_size in inputs["batch_sizes"]:
+        pairs = dict(zip(("image1", "image2", "flow"), _pairs(batch_size, batch_size), strict=True))
+        inputs[str(batch_size)] = str(tmp_path / f"pairs{batch_size}.npz")
+        np.savez(inputs[str(batch_size)], **pairs)
+    outputs = tmp_path / "outputs.npz"
+    arguments = [list(TRAINING_PACKAGES), str(REPO_ROOT), inputs, str(outputs)]
+    completed = subprocess.run(
+        [sys.executable, "-I", "-c", ISOLATED_RUN, json.dumps(arguments)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        timeout=300,
+    )
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    imported = completed.stdout.strip().splitlines()[-1]
+    assert imported == '["gld", "gld.inference", "gld.inference.deploy"]'
+    with np.load(outputs) as results:
+        for batch_size in inputs["batch_sizes"]:
+            image1, image2, flow = _pairs(batch_size, batch_size)
+            live = model.apply(variables, image1 / 255.0 - 0.5, image2 / 255.0 - 0.5, flow)
+            for key in ("inv_depth", "depth", "global_params"):
+                got = results[f"{batch_size}/{key}"]
+                assert got.shape == live[key].shape
+                np.testing.assert_allclose(got, live[key], rtol=1e-5, atol=1e-6)
+
+
+def test_deploy_imports_only_jax_numpy_and_the_standard_library():
+    tree = ast.parse((REPO_ROOT / "gld" / "inference" / "deploy.py").read_text())
+    imported = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imported |= {alias.name.partition(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            imported.add(node.module.partition(".")[0])
+    assert imported - set(sys.stdlib_module_names) == {"jax", "numpy"}
+
+
+def test_one_pair_uint8_and_float_inputs_agree(exported):
+    _, _, path = exported
+    deployed = DeployedModel.load(path)
+    assert (deployed.height, deployed.width, deployed.batch_size) == (HEIGHT, WIDTH, None)
+    assert deployed.metadata["model"] == "global_local"
+    image1, image2, flow = _pairs(2, seed=5)
+    batch = deployed.predict(image1, image2, flow)
+    floats = deployed.predict(image1 / np.float32(255) - 0.5, image2 / np.float32(255) - 0.5, flow)
+    np.testing.assert_allclose(floats["depth"], batch["depth"], rtol=1e-6)
+    single = deployed(image1[1], image2[1], flow[1])
+    assert single.shape == (HEIGHT, WIDTH)
+    np.testing.assert_allclose(single, batch["depth"][1], rtol=1e-5)
+    np.testing.assert_allclose(batch["depth"], 1.0 / batch["inv_depth"], rtol=1e-5)
+
+
+def test_bad_inputs_are_named(exported):
+    _, _, path = exported
+    deployed = DeployedModel.load(path)
+    image1, image2, flow = _pairs(2, seed=6)
+    with pytest.raises(ValueError, match=r"image1 must be \[B, 24, 32, 3\].*got shape \(2, 20"):
+        deployed(image1[:, :20], image2, flow)
+    with pytest.raises(ValueError, match=r"flow must be \[B, 24, 32, 2\]"):
+        deployed(image1, image2, flow[..., :1])
+    with pytest.raises(ValueError, match="image2 must be uint8 or float32, got dtype float64"):
+        deployed(image1, image2 / 255.0 - 0.5, flow)
+    with pytest.raises(ValueError, match=r"float32 image1 must lie in \[-0.5, 0.5\]"):
+        deployed(image1.astype(np.float32), image2, flow)
+    with pytest.raises(ValueError, match="flow must be float32"):
+        deployed(image1, image2, flow.astype(np.float64))
+    with pytest.raises(ValueError, match="flow contains NaN"):
+        deployed(image1, image2, np.where(flow > 3, np.nan, flow).astype(np.float32))
+    with pytest.raises(ValueError, match="same batch size, got 2, 2 and 1"):
+        deployed(image1, image2, flow[:1])
+    with pytest.raises(ValueError, match="a batch axis or none"):
+        deployed(image1[0], image2[0], flow)
+
+
+def test_bad_files_are_named(exported, tmp_path):
+    model, variables, _ = exported
+    with pytest.raises(FileNotFoundError, match="nowhere.gldx"):
+        DeployedModel.load(tmp_path / "nowhere.gldx")
+    (tmp_path / "text.gldx").write_text("not a model")
+    with pytest.raises(ValueError, match="text.gldx is not an exported gld model"):
+        DeployedModel.load(tmp_path / "text.gldx")
+    with zipfile.ZipFile(tmp_path / "partial.gldx", "w") as archive:
+        archive.writestr("metadata.json", "{}")
+    with pytest.raises(ValueError, match=r"lacks \['model.jaxexport', 'weights.npz'\]"):
+        DeployedModel.load(tmp_path / "partial.gldx")
+    # A module lowered for GPUs only does not load on this CPU.
+    gpu_only = tmp_path / "gpu.gldx"
+    export.export_model(model, variables, gpu_only, height=HEIGHT, width=WIDTH, platforms=("cuda",))
+    with pytest.raises(ValueError, match=r"exported for \['cuda'\], but JAX runs on 'cpu'"):
+        DeployedModel.load(gpu_only)
+    # A fixed batch size is enforced with a message saying how to lift it.
+    fixed = tmp_path / "fixed.gldx"
+    export.export_model(model, variables, fixed, height=HEIGHT, width=WIDTH, batch_size=2)
+    with pytest.raises(ValueError, match="exported for batch size 2, got 3"):
+        DeployedModel.load(fixed)(*_pairs(3, seed=7))
+
+
+def test_the_reader_and_the_writer_agree_on_the_layout():
+    from gld.inference import deploy
+
+    for name in (
+        "FORMAT",
+        "FORMAT_VERSION",
+        "METADATA_MEMBER",
+        "EXPORTED_MEMBER",
+        "WEIGHTS_MEMBER",
+    ):
+        assert getattr(deploy, name) == getattr(export, name), name
+
+
+def _camera(batch_size: int, focal: float) -> np.ndarray:
+    """Normalised intrinsics [B, 4] of a camera of focal length `focal` x the width."""
+    return np.tile(np.float32([focal, focal * WIDTH / HEIGHT, 0.5, 0.5]), (batch_size, 1))
+
+
+def test_a_model_that_refines_its_pose_runs_given_the_cameras(tmp_path):
+    """A refinement model exports with the cameras as inputs after the flow; deployed,
+    it equals the model applied in gld, reads the cameras it is given, and names what it
+    lacks."""
+    import jax
+
+    model = registry.make_model("global_local", **TINY_MODEL, pose_refinement_steps=2)
+    assert model.extra_inputs == ("intrinsics1", "intrinsics2")
+    cameras = dict(intrinsics1=_camera(1, 0.9), intrinsics2=_camera(1, 0.9))
+    variables = random_variables(model, HEIGHT, WIDTH, seed=3, **cameras)
+    path = tmp_path / "refines.gldx"
+    metadata = export.export_model(model, variables, path, height=HEIGHT, width=WIDTH)
+    assert metadata["extra_inputs"] == ["intrinsics1", "intrinsics2"]
+    assert [entry["name"] for entry in metadata["inputs"]][3:] == ["intrinsics1", "intrinsics2"]
+    assert metadata["inputs"][3]["shape"] == ["batch", 4]
+
+    deployed = DeployedModel.load(path)
+    assert deployed.extra_inputs == ("intrinsics1", "intrinsics2")
+    image1, image2, flow = _pairs(2, seed=8)
+    given = dict(intrinsics1=_camera(2, 0.9), intrinsics2=_camera(2, 0.9))
+    outputs = deployed.predict(image1, image2, flow, **given)
+    as_float = [image / np.float32(255) - np.float32(0.5) for image in (image1, image2)]
+    expected = jax.jit(model.apply)(variables, *as_float, flow, **given)
+    np.testing.assert_allclose(outputs["depth"], expected["depth"], rtol=1e-4)
+    np.testing.assert_allclose(outputs["global_params"], expected["global_params"], atol=1e-5)
+    # The cameras reach the refinement: another focal length, another pose and depth.
+    other = deployed.predict(
+        image1, image2, flow, intrinsics1=_camera(2, 0.4), intrinsics2=_camera(2, 0.4)
+    )
+    assert not np.allclose(other["global_params"], outputs["global_params"], atol=1e-4)
+    # One pair without the batch axis, the cameras as [4].
+    single = deployed(
+        image1[0],
+        image2[0],
+        flow[0],
+        intrinsics1=given["intrinsics1"][0],
+        intrinsics2=given["intrinsics2"][0],
+    )
+    np.testing.assert_allclose(single, outputs["depth"][0], rtol=1e-4)
+
+    with pytest.raises(
+        ValueError, match=r"also reads \['intrinsics1', 'intrinsics2'\].*fx / width"
+    ):
+        deployed(image1, image2, flow)
+    with pytest.raises(ValueError, match=r"intrinsics2 must be \[B, 4\].*got shape \(2, 3\)"):
+        deployed(
+            image1,
+            image2,
+            flow,
+            intrinsics1=given["intrinsics1"],
+            intrinsics2=given["intrinsics2"][:, :3],
+        )
+    with pytest.raises(ValueError, match="intrinsics1 contains NaN"):
+        deployed(
+            image1,
+            image2,
+            flow,
+            intrinsics1=given["intrinsics1"] * np.nan,
+            intrinsics2=given["intrinsics2"],
+        )
+    with pytest.raises(ValueError, match=r"does not read \['rotation'\]"):
+        deployed(image1, image2, flow, rotation=np.eye(3), **given)
+    # ONNX takes the images and flow only, and says so before writing anything.
+    onnx_path = tmp_path / "refines.onnx"
+    with pytest.raises(ValueError, match="only models of the images and flow convert to ONNX"):
+        export.export_onnx(model, variables, onnx_path, height=HEIGHT, width=WIDTH)
+    assert not onnx_path.exists()
+
+
+def test_a_model_of_the_images_and_flow_refuses_extra_inputs(exported):
+    _, _, path = exported
+    deployed = DeployedModel.load(path)
+    assert deployed.extra_inputs == ()
+    with pytest.raises(ValueError, match=r"does not read \['intrinsics1'\]"):
+        deployed(*_pairs(1, seed=9), intrinsics1=_camera(1, 0.9))

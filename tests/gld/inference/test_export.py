@@ -1,0 +1,180 @@
+"""Exporting a model (gld/inference/export.py): the file's contents, formulations,
+platforms, refusals."""
+
+import json
+import sys
+import zipfile
+
+import jax
+import numpy as np
+import pytest
+from conftest import TINY_MODEL, random_variables
+
+from gld.inference import export
+from gld.models import registry
+
+HEIGHT, WIDTH = 24, 32
+
+
+@pytest.fixture(scope="module")
+def tiny_model():
+    model = registry.make_model("global_local", **TINY_MODEL)
+    return model, random_variables(model, HEIGHT, WIDTH, seed=0)
+
+
+def _inputs(batch_size: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    image1 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
+    image2 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
+    flow = rng.normal(0, 2, (batch_size, HEIGHT, WIDTH, 2)).astype(np.float32)
+    return image1, image2, flow
+
+
+def _read(path):
+    with zipfile.ZipFile(path) as archive:
+        metadata = json.loads(archive.read(export.METADATA_MEMBER))
+        exported = jax.export.deserialize(bytearray(archive.read(export.EXPORTED_MEMBER)))
+        with archive.open(export.WEIGHTS_MEMBER) as handle, np.load(handle) as stored:
+            weights = [stored[f"{i:05d}"] for i in range(len(stored.files))]
+    return metadata, exported, weights
+
+
+def test_the_file_describes_the_model_and_runs_any_batch(tiny_model, tmp_path):
+    model, variables = tiny_model
+    path = tmp_path / "nested" / "model.gldx"
+    source = {"workdir": "/runs/x", "step": 7}
+    metadata = export.export_model(
+        model, variables, path, height=HEIGHT, width=WIDTH, source=source
+    )
+    stored, exported, weights = _read(path)
+    assert stored == metadata
+    assert (stored["height"], stored["width"], stored["batch_size"]) == (HEIGHT, WIDTH, None)
+    assert stored["model"] == "global_local" and stored["source"] == source
+    assert stored["model_config"]["encoder_channels"] == TINY_MODEL["encoder_channels"]
+    assert stored["formulation"] == "fused" and stored["platforms"] == ["cpu"]
+    assert [entry["name"] for entry in stored["inputs"]] == ["image1", "image2", "flow"]
+    assert stored["inputs"][2]["shape"] == ["batch", HEIGHT, WIDTH, 2]
+    outputs = {entry["name"]: entry["shape"] for entry in stored["outputs"]}
+    assert outputs == {
+        "inv_depth": ["batch", HEIGHT, WIDTH],
+        "depth": ["batch", HEIGHT, WIDTH],
+        "global_params": ["batch", 6],
+    }
+    assert "baseline" in stored["depth_units"]
+    # One stored array per variable, named by its path, in the order the function takes.
+    leaves = jax.tree_util.tree_leaves(variables)
+    assert len(weights) == len(stored["weights"]) == len(leaves)
+    names = [entry["name"] for entry in stored["weights"]]
+    assert "params/final_conv/kernel" in names
+    for weight, leaf in zip(weights, leaves, strict=True):
+        np.testing.assert_array_equal(weight, np.asarray(leaf))
+    # The batch axis is symbolic: two batch sizes through the same module.
+    assert str(exported.in_avals[-1].shape[0]) == "batch"
+    for batch_size in (1, 3):
+        image1, image2, flow = _inputs(batch_size)
+        got = exported.call(weights, image1, image2, flow)
+        want = model.apply(variables, image1, image2, flow)
+        assert set(got) == set(outputs)
+        for key in got:
+            np.testing.assert_allclose(got[key], want[key], rtol=1e-5, atol=1e-6)
+
+
+def test_a_fixed_batch_and_several_platforms(tiny_model, tmp_path):
+    model, variables = tiny_model
+    path = tmp_path / "model.gldx"
+    metadata = export.export_model(
+        model,
+        variables,
+        path,
+        height=HEIGHT,
+        width=WIDTH,
+        platforms=("cpu", "cuda"),
+        batch_size=2,
+        formulation="vmap",
+    )
+    assert metadata["batch_size"] == 2 and metadata["formulation"] == "vmap"
+    assert metadata["inputs"][0]["shape"] == [2, HEIGHT, WIDTH, 3]
+    _, exported, weights = _read(path)
+    assert exported.platforms == ("cpu", "cuda")
+    image1, image2, flow = _inputs(2, seed=1)
+    # The CPU lowering of the two-platform module runs here and matches the live model.
+    np.testing.assert_allclose(
+        exported.call(weights, image1, image2, flow)["inv_depth"],
+        model.apply(variables, image1, image2, flow)["inv_depth"],
+        rtol=1e-5,
+        atol=1e-6,
+    )
+    with pytest.raises(ValueError, match="shape"):
+        exported.call(weights, *(array[:1] for array in (image1, image2, flow)))
+
+
+def test_the_formulation_follows_the_platform():
+    assert export.choose_formulation(None, ("cpu",), None) == "fused"
+    assert export.choose_formulation(None, ("cpu", "cuda"), None) == "fused"
+    # The GPU default (a grouped conv) needs a static batch; a symbolic one gets "shifted".
+    assert export.choose_formulation(None, ("cuda",), 4) == "vmap"
+    assert export.choose_formulation(None, ("cuda",), None) == "shifted"
+    assert export.choose_formulation("map_conv", ("cuda",), None) == "map_conv"
+    with pytest.raises(ValueError, match="'vmap' needs a fixed batch size"):
+        export.choose_formulation("vmap", ("cpu",), None)
+    with pytest.raises(ValueError, match="unknown formulation 'nope'"):
+        export.choose_formulation("nope", ("cpu",), None)
+
+
+def test_bad_arguments_are_refused_before_anything_is_written(tiny_model, tmp_path):
+    model, variables = tiny_model
+    path = tmp_path / "model.gldx"
+    arguments = dict(height=HEIGHT, width=WIDTH)
+    with pytest.raises(ValueError, match=r"unknown platform\(s\) \['gpu'\]"):
+        export.export_model(model, variables, path, platforms=("gpu",), **arguments)
+    with pytest.raises(ValueError, match="twice"):
+        export.export_model(model, variables, path, platforms=("cpu", "cpu"), **arguments)
+    with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+        export.export_model(model, variables, path, batch_size=0, **arguments)
+    with pytest.raises(ValueError, match="height must be a positive integer"):
+        export.export_model(model, variables, path, height=0, width=WIDTH)
+    with pytest.raises(ValueError, match="needs a fixed batch size"):
+        export.export_model(model, variables, path, formulation="vmap", **arguments)
+    with pytest.raises(ValueError, match="is a directory"):
+        export.export_model(model, variables, tmp_path, **arguments)
+    baseline = registry.make_model("small_encdec")
+    with pytest.raises(ValueError, match="'small_encdec' has no per-example filters"):
+        export.export_model(baseline, {}, path, formulation="fused", **arguments)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_onnx_refuses_vmap_and_names_the_missing_converter(tiny_model, tmp_path, monkeypatch):
+    model, variables = tiny_model
+    path = tmp_path / "model.onnx"
+    with pytest.raises(ValueError, match="'vmap' cannot be exported to ONNX"):
+        export.export_onnx(
+            model, variables, path, height=HEIGHT, width=WIDTH, batch_size=1, formulation="vmap"
+        )
+    monkeypatch.setitem(sys.modules, "jax2onnx", None)  # as if it were not installed
+    with pytest.raises(ImportError, match="pip install jax2onnx onnxruntime"):
+        export.export_onnx(model, variables, path, height=HEIGHT, width=WIDTH)
+    assert not path.exists()
+
+
+def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
+    pytest.importorskip("jax2onnx")
+    onnx = pytest.importorskip("onnx")
+    onnxruntime = pytest.importorskip("onnxruntime")
+    model, variables = tiny_model
+    path = tmp_path / "model.onnx"
+    metadata = export.export_onnx(
+        model, variables, path, height=HEIGHT, width=WIDTH, formulation="shifted"
+    )
+    stored = onnx.load(str(path))
+    assert json.loads(stored.metadata_props[0].value) == metadata
+    assert metadata["formulation"] == "shifted" and metadata["inputs"][0]["shape"][0] == "batch"
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [entry.name for entry in session.get_inputs()] == ["image1", "image2", "flow"]
+    names = [entry.name for entry in session.get_outputs()]
+    assert set(names) == {"inv_depth", "depth", "global_params"}
+    for batch_size in (1, 3):
+        image1, image2, flow = _inputs(batch_size, seed=batch_size)
+        got = session.run(names, {"image1": image1, "image2": image2, "flow": flow})
+        want = model.apply(variables, image1, image2, flow)
+        for key, value in zip(names, got, strict=True):
+            np.testing.assert_allclose(value, want[key], rtol=1e-5, atol=1e-5)
