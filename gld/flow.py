@@ -10,7 +10,6 @@ process). Flow is computed once, when a dataset is built, and stored with the re
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -147,31 +146,27 @@ def check_estimator(method: str) -> None:
     )
 
 
-@functools.lru_cache(maxsize=4)
-def _trained_network(workdir: str):
-    # JAX and Flax: imported only when a network is asked for (dataset builders need neither).
-    from gld.runs import trained_flow
-
-    return trained_flow.TrainedFlowNet(workdir)
-
-
 def describe(method: str) -> dict[str, Any]:
-    """What produced the stored flow, for a dataset's card: {"estimator": method}, plus
-    the workdir, checkpoint step and parameter digest of a trained network."""
-    check_estimator(method)
-    if not is_learned(method):
-        return {"estimator": method}
-    network = _trained_network(str(Path(method[len(LEARNED_PREFIX) :]).expanduser().resolve()))
-    return {"estimator": method, **network.describe()}
+    """What produced a flow, for a dataset's card: {"estimator": method} of a classical
+    estimator (a trained network's card is `gld.runs.trained_flow.describe_flow`'s)."""
+    _check_classical(method)
+    return {"estimator": method}
 
 
 def estimate(image1: np.ndarray, image2: np.ndarray, method: str = DEFAULT_ESTIMATOR) -> np.ndarray:
-    """Flow I1 -> I2 [H, W, 2] float32 with the named estimator (see `check_estimator`)."""
+    """Flow I1 -> I2 [H, W, 2] float32 with a classical estimator of `ESTIMATORS` (a trained
+    network, "flow_net:<workdir>", runs through `gld.runs.trained_flow.estimate_flow`)."""
+    _check_classical(method)
+    return ESTIMATORS[method](image1, image2)
+
+
+def _check_classical(method: str) -> None:
     check_estimator(method)
     if is_learned(method):
-        workdir = str(Path(method[len(LEARNED_PREFIX) :]).expanduser().resolve())
-        return _trained_network(workdir)(image1, image2)
-    return ESTIMATORS[method](image1, image2)
+        raise ValueError(
+            f"flow estimator {method!r} is a trained network: estimate with "
+            "gld.runs.trained_flow.estimate_flow"
+        )
 
 
 def endpoint_error(flow: np.ndarray, flow_true: np.ndarray, valid: np.ndarray) -> float:

@@ -40,6 +40,7 @@ from data import sources
 from data.demon import checksums, pairs, reader
 from gld import flow as flow_lib
 from gld import records
+from gld.runs import trained_flow
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -287,4 +288,6 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         print(report.format(), flush=True)
         self.info.metadata.setdefault("build_report", {})[split] = report.as_dict()
         self.info.metadata.setdefault("build_options", {})[split] = options
-        self.info.metadata["flow_estimator_source"] = flow_lib.describe(options["flow_estimator"])
+        self.info.metadata["flow_estimator_source"] = trained_flow.describe_flow(
+            options["flow_estimator"]
+        )

@@ -27,6 +27,7 @@ import numpy as np
 from data.demon import reader
 from gld import flow as flow_lib
 from gld import geometry
+from gld.runs import trained_flow
 
 HEIGHT, WIDTH = 192, 256
 
@@ -196,7 +197,7 @@ def make_example(
         "intrinsics2": view2.intrinsics.astype(np.float32),
         "rotation": rotation.astype(np.float32),
         "translation": translation.astype(np.float32),
-        "flow": flow_lib.estimate(view1.image, view2.image, method=flow_estimator),
+        "flow": trained_flow.estimate_flow(view1.image, view2.image, method=flow_estimator),
         "gt_flow": gt_flow,
         "gt_flow_valid": gt_flow_valid,
         "id": example_id,

@@ -46,6 +46,7 @@ from gld import flow as flow_lib
 from gld import geometry, records
 from gld.evaluation import metrics
 from gld.models.baselines import classical
+from gld.runs import trained_flow
 
 from . import raycast, renderer, scenes
 
@@ -232,7 +233,9 @@ def add_flow(
     example: dict[str, Any], flow_estimator: str
 ) -> tuple[str, dict[str, Any], float, float]:
     """`render_example`'s result from a `render_pair` example: its estimated flow added."""
-    example["flow"] = flow_lib.estimate(example["image1"], example["image2"], method=flow_estimator)
+    example["flow"] = trained_flow.estimate_flow(
+        example["image1"], example["image2"], method=flow_estimator
+    )
     epe = flow_lib.endpoint_error(example["flow"], example["gt_flow"], example["gt_flow_valid"])
     return example["id"], example, epe, float(example["gt_flow_valid"].mean())
 
@@ -533,7 +536,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             [texture_errors for _, texture_errors in card]
         )
         self.info.metadata.setdefault("build_options", {})[split] = self.build_options(split)
-        self.info.metadata["flow_estimator_source"] = flow_lib.describe(estimator)
+        self.info.metadata["flow_estimator_source"] = trained_flow.describe_flow(estimator)
 
     @staticmethod
     def _collect(results, errors: list, valid_fractions: list, card: list):

@@ -82,6 +82,7 @@ from gld.flow_pose import FLOW_POSE_KEYS
 from gld.inference import depth_io
 from gld.inference import scale as scale_lib
 from gld.models.global_local import CAMERA_INPUTS, GIVEN_POSE_INPUTS
+from gld.runs import trained_flow
 from gld.runs import workdir as workdir_lib
 
 ASPECT_MODES = ("resize", "crop")
@@ -473,7 +474,7 @@ class DepthPredictor:
         if flow is None:
             model_flow = np.stack(
                 [
-                    flow_lib.estimate(a, b, self.flow_method)
+                    trained_flow.estimate_flow(a, b, self.flow_method)
                     for a, b in zip(resized1, resized2, strict=True)
                 ]
             )

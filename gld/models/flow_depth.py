@@ -32,6 +32,7 @@ import jax
 from gld import flow as flow_lib
 from gld.models import layers
 from gld.models.flow_net import FlowNet
+from gld.models.global_local import GlobalLocal
 
 HEAD_CHANNELS = (32, 16, 1)
 # The head sees the flow in tenths of the image size, as the global-local model
@@ -78,10 +79,6 @@ class GlobalLocalFlowNet(_OnFlowNet):
     ) -> dict[str, jax.Array]:
         """{'inv_depth', 'depth' [B, H, W], 'flow' [B, H, W, 2] (the network's), and the
         global-local outputs}; the given `flow` only fixes the expected shape."""
-        from gld.models.global_local import (
-            GlobalLocal,  # gld.models.global_local registers this class
-        )
-
         estimated = self.estimate_flow(image1, image2, flow)
         if not self.flow_trainable:
             estimated = jax.lax.stop_gradient(estimated)

@@ -10,6 +10,7 @@ of `gld.flow`); `load_pretrained_flow` starts a depth model's flow network from 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -18,6 +19,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from gld import flow as flow_lib
 from gld.images import as_unit_rgb
 from gld.models.flow_net import FlowNet
 from gld.runs import checkpoints as checkpoint_lib
@@ -128,3 +130,34 @@ def load_pretrained_flow(params: dict[str, Any], flow_net_workdir: str) -> tuple
         f"parameters sha256 {params_digest(trained)[:12]})"
     )
     return {**params, "flow_net": trained}, note
+
+
+@functools.lru_cache(maxsize=4)
+def _trained_network(workdir: str) -> TrainedFlowNet:
+    return TrainedFlowNet(workdir)
+
+
+def _network_of(method: str) -> TrainedFlowNet:
+    return _trained_network(
+        str(Path(method[len(flow_lib.LEARNED_PREFIX) :]).expanduser().resolve())
+    )
+
+
+def estimate_flow(
+    image1: np.ndarray, image2: np.ndarray, method: str = flow_lib.DEFAULT_ESTIMATOR
+) -> np.ndarray:
+    """Flow I1 -> I2 [H, W, 2] float32 by any estimator name: a classical one of
+    `gld.flow.ESTIMATORS`, or "flow_net:<workdir>" of a trained network (loaded once)."""
+    flow_lib.check_estimator(method)
+    if flow_lib.is_learned(method):
+        return _network_of(method)(image1, image2)
+    return flow_lib.estimate(image1, image2, method)
+
+
+def describe_flow(method: str) -> dict[str, Any]:
+    """What produced a stored flow, for a dataset's card: {"estimator": method}, plus the
+    workdir, checkpoint step and parameter digest of a trained network."""
+    flow_lib.check_estimator(method)
+    if not flow_lib.is_learned(method):
+        return flow_lib.describe(method)
+    return {"estimator": method, **_network_of(method).describe()}

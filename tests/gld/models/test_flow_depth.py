@@ -174,16 +174,23 @@ def test_a_trained_network_is_a_flow_estimator(flow_run, eval_batch):
     image1 = eval_batch["image1"][0]
     image2 = eval_batch["image2"][0]
     as_uint8 = [np.rint((image + 0.5) * 255).astype(np.uint8) for image in (image1, image2)]
-    estimated = flow.estimate(*as_uint8, method=method)
+    estimated = trained_flow.estimate_flow(*as_uint8, method=method)
     _, variables, _, _ = trained_flow.load_flow_run(flow_run)
     expected = jax.jit(FlowNet().apply)(variables, image1[None], image2[None])["flow"][0]
     assert estimated.shape == (48, 64, 2) and estimated.dtype == np.float32
     np.testing.assert_allclose(estimated, expected, atol=1e-3)
-    described = flow.describe(method)
+    described = trained_flow.describe_flow(method)
     assert described["step"] == 2
     assert described["params_sha256"] == trained_flow.params_digest(variables["params"])
     with pytest.raises(ValueError, match="unknown flow estimator 'pwc'"):
         flow.check_estimator("pwc")
+    # The classical estimators' module never loads a network: it names the one that does.
+    with pytest.raises(ValueError, match="trained_flow.estimate_flow"):
+        flow.estimate(*as_uint8, method=method)
+    np.testing.assert_array_equal(
+        trained_flow.estimate_flow(*as_uint8, method="dis"), flow.estimate(*as_uint8)
+    )
+    assert trained_flow.describe_flow("dis") == {"estimator": "dis"}
 
 
 @pytest.mark.slow
