@@ -93,7 +93,7 @@ def run_comparison(
       The content of results.json.
     """
     from gld.evaluation import evaluate as evaluation
-    from gld.evaluation import metrics
+    from gld.evaluation import metrics, trained_run
     from gld.models import registry
     from gld.models.baselines import CLASSICAL
     from gld.models.baselines.classical import LABELS
@@ -160,7 +160,7 @@ def run_comparison(
     for name in classical_methods:
         print_fn(f"{name}: evaluating")
         started = time.perf_counter()
-        method = evaluation.fit_classical(name, train_source, flow_source)
+        method = trained_run.fit_classical(name, train_source, flow_source)
         per_example, _ = evaluation.evaluate_predictor(
             method.predict,
             eval_source,

@@ -102,7 +102,7 @@ common.define_distributed_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld.evaluation import evaluate as evaluation
+    from gld.evaluation import trained_run
     from gld.runs import workdir as workdir_lib
 
     if FLAGS.method and FLAGS.predictions:
@@ -163,7 +163,7 @@ def main(argv):
                 f"{builder.info.full_name} has no training split: sfm_flow's failed pairs "
                 f"are predicted as a fixed inverse depth, not the training mean"
             )
-    evaluation.evaluate_workdir(
+    trained_run.evaluate_workdir(
         FLAGS.workdir,
         common.data_source(builder, FLAGS.split),
         train_source=train_source,

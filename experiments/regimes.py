@@ -63,7 +63,7 @@ def _read_per_example(path: Path) -> dict[str, dict[str, str]]:
 
 def _evaluation(workdir: Path) -> tuple[Path, str, dict]:
     """The evaluation folder, the dataset ('name/config') and its metrics.json."""
-    from gld.evaluation import evaluate as evaluation
+    from gld.evaluation import trained_run
     from gld.runs import workdir as workdir_lib
 
     try:
@@ -75,7 +75,7 @@ def _evaluation(workdir: Path) -> tuple[Path, str, dict]:
         eval_dir = Path(FLAGS.eval_dir)
     else:
         own = dataset.split("/")[:2] == config.dataset.split("/")[:2]
-        eval_dir = evaluation.evaluation_dir(workdir, dataset=None if own else dataset)
+        eval_dir = trained_run.evaluation_dir(workdir, dataset=None if own else dataset)
     metrics_path = eval_dir / "metrics.json"
     if not metrics_path.exists():
         raise app.UsageError(
@@ -130,7 +130,7 @@ def main(argv):
     from tqdm import tqdm
 
     import data
-    from gld import input_pipeline
+    from gld import contract
     from gld.analysis import regimes
 
     workdir = Path(FLAGS.workdir)
@@ -162,7 +162,7 @@ def main(argv):
 
     rows = []
     for index in tqdm(range(len(source)), desc="pairs", unit="pair"):
-        example = input_pipeline.decode_example(
+        example = contract.decode_example(
             source[index], flow_source=flow_source, where=f"{name} {split}[{index}]"
         )
         if example["id"] not in model_abs_inv:

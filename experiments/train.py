@@ -104,9 +104,9 @@ def main(argv):
         records={"flags.txt": common.flags_file_text()},
     )
     if FLAGS.final_eval:
-        from gld.evaluation import evaluate as evaluation
+        from gld.evaluation import trained_run
 
-        evaluation.evaluate_workdir(
+        trained_run.evaluate_workdir(
             FLAGS.workdir,
             test_source,
             train_source=train_source,

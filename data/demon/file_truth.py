@@ -7,10 +7,10 @@ serves that ground truth to `gld.evaluation.evaluate` (it is a
 id `"<file>/<group>/<i>-<j>"` (`reader.example_id`) it reads view i of the group from
 `<manual_dir>/<file>`, the camera-z depth as `reader.read_view` gives it (0 where not
 finite and positive), and divides it by the record's ||t||, as
-`gld.input_pipeline.normalise_scale` scales the record's depth.
+`gld.contract.normalise_scale` scales the record's depth.
 
     with FileTruth("~/demon") as truth:
-        evaluation.evaluate_workdir(workdir, source, ..., truth=truth)
+        trained_run.evaluate_workdir(workdir, source, ..., truth=truth)
 
 `check` reads both views of every example and compares the pair's ||t|| in the file
 with the record's, so a manual directory that holds other files than the records were
@@ -144,7 +144,7 @@ class FileTruth:
         for example_id in ids:
             depth = self._view(example_id, 0).depth
             valid = geometry.valid_depth(depth)
-            # As `gld.input_pipeline.normalise_scale` scales the record's depth.
+            # As `gld.contract.normalise_scale` scales the record's depth.
             depth = np.asarray(depth, np.float64) / self._baselines[example_id]
             maps.append((np.where(valid, depth, 0.0).astype(np.float32), valid))
         return maps

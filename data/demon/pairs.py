@@ -31,7 +31,7 @@ from gld.runs import trained_flow
 
 HEIGHT, WIDTH = 192, 256
 
-# DeMoN skips a pair with ||t|| below this; `gld.input_pipeline.normalise_scale`
+# DeMoN skips a pair with ||t|| below this; `gld.contract.normalise_scale`
 # refuses the same pairs (it divides depth by ||t||).
 MIN_BASELINE = 1e-6
 # Default per split of the relative-baseline threshold (a build option): a pair with

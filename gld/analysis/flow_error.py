@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gld import input_pipeline
+from gld import contract, input_pipeline
 from gld.evaluation import metrics, reports
 from gld.models import layers
 from gld.models.baselines import classical
@@ -369,10 +369,8 @@ def flow_error_curves(
             'flow_source="gt" feeds the true flow, whose error is 0 everywhere: the curve '
             'needs the estimated flow (flow_source="estimated")'
         )
-    if flow_source not in input_pipeline.FLOW_SOURCES:
-        raise ValueError(
-            f"unknown flow_source {flow_source!r}; valid: {input_pipeline.FLOW_SOURCES}"
-        )
+    if flow_source not in contract.FLOW_SOURCES:
+        raise ValueError(f"unknown flow_source {flow_source!r}; valid: {contract.FLOW_SOURCES}")
     if not predictors:
         raise ValueError("no predictors")
     edges = _check_edges(log_edges() if edges is None else edges)

@@ -10,7 +10,7 @@ of a pair that decide it, their bins, the summary table and the figure.
     draw_regimes(path, properties, ratios, edges=...)
 
 A pair's properties (`PROPERTIES`) are read from the example before scale normalisation
-(`gld.input_pipeline.decode_example`): the baseline is the raw ||t||. The comparison is
+(`gld.contract.decode_example`): the baseline is the raw ||t||. The comparison is
 of per-pair Abs-Inv (the evaluation's per-example CSVs); the model "wins" a pair when
 its Abs-Inv is below the reference's.
 """

@@ -238,7 +238,7 @@ class StoredPredictions:
                 load_depth(self.path(example_id), self.png_depth_scale), *self._shapes[example_id]
             )
             if self.depth_scale == "raw":
-                # As `input_pipeline.normalise_scale` scales the ground truth.
+                # As `contract.normalise_scale` scales the ground truth.
                 depth = np.asarray(depth, np.float64) / self._baselines[example_id]
             maps.append(np.asarray(depth, np.float32))
         if len({depth.shape for depth in maps}) > 1:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from gld import input_pipeline
+from gld import contract
 
 SCALE_SOURCES = ("baseline", "ranges", "none")
 # The reading's pixel has its own random stream, apart from the input pipeline's
@@ -268,7 +268,7 @@ def measure_scale_recovery(
     per_example: dict[str, list[float]] = {name: [] for name in SCALE_METHODS}
     for start in range(0, count, batch_size):
         examples = [
-            input_pipeline.decode_example(test_source[i], where=f"test record {i}")
+            contract.decode_example(test_source[i], where=f"test record {i}")
             for i in range(start, min(start + batch_size, count))
         ]
         depth_units = predict_depth(
@@ -281,7 +281,7 @@ def measure_scale_recovery(
             valid_pixels = np.argwhere(example["depth_valid"])
             if len(valid_pixels) == 0:
                 continue
-            rng = input_pipeline.example_rng(seed, str(example["id"]), 0, _READING_STREAM)
+            rng = contract.example_rng(seed, str(example["id"]), 0, _READING_STREAM)
             row, column = valid_pixels[rng.integers(len(valid_pixels))]
             scales = {
                 "true_baseline": scale_from_baseline(np.linalg.norm(example["translation"])),

@@ -23,6 +23,7 @@ from gld.analysis import filter_inspection as inspect_lib
 from gld.analysis import flow_error as flow_error_lib
 from gld.analysis import probes
 from gld.evaluation import evaluate as evaluation
+from gld.evaluation import trained_run
 from gld.models import flow_net as flow_net_lib
 from gld.models.baselines import classical as classical_lib
 from gld.models.flow_net import FlowNet
@@ -141,7 +142,7 @@ def classical(runner: Runner, dataset: str, methods: Sequence[str]) -> dict[str,
     results = {}
     for name in methods:
         runner.print(f"{name} on {data.name}")
-        method = evaluation.fit_classical(name, data.train)
+        method = trained_run.fit_classical(name, data.train)
         per_example, _ = evaluation.evaluate_predictor(method.predict, data.test)
         summary, abs_inv = scores(per_example)
         results[name] = {"metrics": summary, "abs_inv_per_example": abs_inv}

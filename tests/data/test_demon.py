@@ -309,11 +309,11 @@ def test_tiny_baseline_test_pair_is_kept_and_counted(tmp_path, rng):
     assert report.as_dict()["files"]["test.h5"]["small_baseline_written"] == 1
     assert "1 written pairs have a small baseline" in report.format()
     # The input pipeline can normalise it (it refuses only DeMoN's ||t|| < 1e-6).
-    from gld import input_pipeline
+    from gld import contract
 
-    assert pairs.MIN_BASELINE == input_pipeline._MIN_TRANSLATION_NORM
+    assert pairs.MIN_BASELINE == contract._MIN_TRANSLATION_NORM
     example = examples["test.h5/e_tiny/0-1"]
-    normalised = input_pipeline.normalise_scale(
+    normalised = contract.normalise_scale(
         {"id": "e", "translation": example["translation"], "depth": example["depth1"]}
     )
     np.testing.assert_allclose(np.linalg.norm(normalised["translation"]), 1.0, rtol=1e-6)

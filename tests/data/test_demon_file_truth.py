@@ -19,8 +19,7 @@ from conftest import REPO_ROOT
 import data
 from data.demon import file_truth, reader
 from gld import input_pipeline
-from gld.evaluation import evaluate as evaluation
-from gld.evaluation import stored_predictions
+from gld.evaluation import stored_predictions, trained_run
 
 FILE_HEIGHT, FILE_WIDTH = 480, 640  # SUN3D's and RGB-D's files
 HEIGHT, WIDTH = 192, 256  # the records'
@@ -151,7 +150,7 @@ def test_scores_at_the_files_resolution_follow_demons_rule(demon_sun3d, tmp_path
             )
 
     with file_truth.FileTruth(manual_dir) as truth:
-        report = evaluation.evaluate_workdir(
+        report = trained_run.evaluate_workdir(
             tmp_path / "run",
             source,
             height=HEIGHT,
@@ -198,7 +197,7 @@ def test_an_exact_prediction_at_the_files_resolution_scores_zero(demon_sun3d, tm
     manual_dir, builder, expected = demon_sun3d
     folder = _exact_predictions(expected, tmp_path / "exact")
     with file_truth.FileTruth(manual_dir) as truth:
-        report = evaluation.evaluate_workdir(
+        report = trained_run.evaluate_workdir(
             tmp_path / "run",
             builder.as_data_source("test"),
             height=HEIGHT,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import launch, tiny_train_config
 
-from gld import input_pipeline
+from gld import contract
 
 
 def _launch(*args):
@@ -29,7 +29,7 @@ def evaluated_workdir(tiny_scenes, tmp_path):
     metrics = {"dataset": tiny_scenes.info.full_name, "split": "test", "model": "global_local"}
     (eval_dir / "metrics.json").write_text(json.dumps({**metrics, "flow_source": "estimated"}))
     source = tiny_scenes.as_data_source("test")
-    examples = [input_pipeline.decode_example(source[index]) for index in range(len(source))]
+    examples = [contract.decode_example(source[index]) for index in range(len(source))]
     ids = sorted(example["id"] for example in examples)
     for method, abs_inv in (("global_local", [1.0, 3.0]), ("sfm_flow", [2.0, 2.0])):
         with (eval_dir / f"per_example_{method}.csv").open("w", newline="") as file:

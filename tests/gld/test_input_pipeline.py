@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT
 
-from gld import geometry, input_pipeline, records
+from gld import contract, geometry, input_pipeline, records
 
 HEIGHT, WIDTH = 24, 32
 
@@ -129,15 +129,15 @@ def triangulation_error(example: dict) -> float:
 
 AUGMENTATIONS = {
     "none": lambda e: e,
-    "rotate_180": input_pipeline.rotate_180,
-    "mirror_x": input_pipeline.mirror_x,
-    "rotate_then_mirror": lambda e: input_pipeline.mirror_x(input_pipeline.rotate_180(e)),
-    "mirror_then_rotate": lambda e: input_pipeline.rotate_180(input_pipeline.mirror_x(e)),
+    "rotate_180": contract.rotate_180,
+    "mirror_x": contract.mirror_x,
+    "rotate_then_mirror": lambda e: contract.mirror_x(contract.rotate_180(e)),
+    "mirror_then_rotate": lambda e: contract.rotate_180(contract.mirror_x(e)),
 }
 
 
 def test_decode_example_follows_the_contract(source, scenes):
-    example = input_pipeline.decode_example(source[0], where="test[0]")
+    example = contract.decode_example(source[0], where="test[0]")
     assert example["image1"].shape == (HEIGHT, WIDTH, 3)
     assert example["image1"].dtype == np.float32
     assert -0.5 <= example["image1"].min() and example["image1"].max() <= 0.5
@@ -149,7 +149,7 @@ def test_decode_example_follows_the_contract(source, scenes):
     for key, shape in [("intrinsics1", (4,)), ("rotation", (3, 3)), ("translation", (3,))]:
         assert example[key].shape == shape and example[key].dtype == np.float32
     assert example["id"] == "scene-000"
-    gt_example = input_pipeline.decode_example(source[0], flow_source="gt")
+    gt_example = contract.decode_example(source[0], flow_source="gt")
     np.testing.assert_array_equal(gt_example["flow"], scenes[0]["gt_flow"])
 
 
@@ -158,7 +158,7 @@ def test_decode_example_zeroes_invalid_depth(scenes):
     depth = scene["depth1"].copy()
     depth[0, 0], depth[1, 1], depth[2, 2] = np.nan, -1.0, np.inf
     scene["depth1"] = depth
-    example = input_pipeline.decode_example(records.encode(scene))
+    example = contract.decode_example(records.encode(scene))
     assert not example["depth_valid"][0, 0] and not example["depth_valid"][1, 1]
     assert not example["depth_valid"][2, 2] and example["depth_valid"][3, 3]
     assert example["depth"][0, 0] == 0 and example["depth"][1, 1] == 0
@@ -168,7 +168,7 @@ def test_decode_example_zeroes_invalid_depth(scenes):
 @pytest.mark.parametrize("name", list(AUGMENTATIONS))
 def test_geometry_stays_consistent_under_augmentation(source, name):
     for index in (0, 3):
-        example = AUGMENTATIONS[name](input_pipeline.decode_example(source[index]))
+        example = AUGMENTATIONS[name](contract.decode_example(source[index]))
         assert photometric_error(example) < 0.03
         assert triangulation_error(example) < 1e-3
         rotation = example["rotation"].astype(np.float64)
@@ -178,19 +178,19 @@ def test_geometry_stays_consistent_under_augmentation(source, name):
 
 def test_checks_catch_a_flow_sign_error(source):
     """Moving flow pixels without negating the vectors must fail both checks."""
-    example = input_pipeline.decode_example(source[0])
-    wrong = input_pipeline.rotate_180(example)
+    example = contract.decode_example(source[0])
+    wrong = contract.rotate_180(example)
     wrong["gt_flow"] = -wrong["gt_flow"]
     assert photometric_error(wrong) > 0.06
     assert triangulation_error(wrong) > 0.1
-    wrong_intrinsics = input_pipeline.mirror_x(example)
+    wrong_intrinsics = contract.mirror_x(example)
     wrong_intrinsics["intrinsics1"] = example["intrinsics1"]
     assert triangulation_error(wrong_intrinsics) > 1e-2
 
 
 @pytest.mark.parametrize("name", ["rotate_180", "mirror_x", "rotate_then_mirror"])
 def test_estimated_flow_is_transformed_like_gt_flow(source, scenes, name):
-    example = input_pipeline.decode_example(source[2])
+    example = contract.decode_example(source[2])
     offset = example["flow"] - example["gt_flow"]  # the known field added in make_scene
     augmented = AUGMENTATIONS[name](example)
     flipped_offset = AUGMENTATIONS[name]({"flow": offset, "gt_flow": offset, **_pose(example)})
@@ -207,9 +207,9 @@ def _pose(example: dict) -> dict:
 
 
 def test_augmentations_move_pixels_and_invert_themselves(source):
-    example = input_pipeline.decode_example(source[4])
-    rotated = input_pipeline.rotate_180(example)
-    mirrored = input_pipeline.mirror_x(example)
+    example = contract.decode_example(source[4])
+    rotated = contract.rotate_180(example)
+    mirrored = contract.mirror_x(example)
     v, u = 5, 7
     assert rotated["depth"][HEIGHT - 1 - v, WIDTH - 1 - u] == example["depth"][v, u]
     assert mirrored["depth"][v, WIDTH - 1 - u] == example["depth"][v, u]
@@ -218,7 +218,7 @@ def test_augmentations_move_pixels_and_invert_themselves(source):
         rotated["intrinsics2"][2:], 1.0 - example["intrinsics2"][2:], atol=1e-7
     )
     np.testing.assert_allclose(mirrored["intrinsics1"][3], example["intrinsics1"][3])
-    for transform in (input_pipeline.rotate_180, input_pipeline.mirror_x):
+    for transform in (contract.rotate_180, contract.mirror_x):
         twice = transform(transform(example))
         for key, value in example.items():
             if key != "id":
@@ -226,10 +226,10 @@ def test_augmentations_move_pixels_and_invert_themselves(source):
 
 
 def test_normalise_scale(source):
-    example = input_pipeline.decode_example(source[5])
+    example = contract.decode_example(source[5])
     norm = np.linalg.norm(example["translation"])
     assert abs(norm - 1) > 0.05  # the fixture's translations are not unit already
-    normalised = input_pipeline.normalise_scale(example)
+    normalised = contract.normalise_scale(example)
     assert np.linalg.norm(normalised["translation"]) == pytest.approx(1.0, abs=1e-6)
     np.testing.assert_allclose(normalised["depth"], example["depth"] / norm, rtol=1e-6)
     np.testing.assert_array_equal(normalised["depth"][~example["depth_valid"]], 0)
@@ -237,17 +237,17 @@ def test_normalise_scale(source):
     assert triangulation_error(normalised) < 1e-3
     example["translation"] = np.zeros(3, np.float32)
     with pytest.raises(ValueError, match="scene-005"):
-        input_pipeline.normalise_scale(example)
+        contract.normalise_scale(example)
 
 
 @pytest.mark.parametrize("num_pixels", [1, 4, 16, 64])
 def test_sparse_mask_picks_exactly_k_valid_pixels(num_pixels):
     depth_valid = np.random.default_rng(0).random((HEIGHT, WIDTH)) < 0.4
-    mask = input_pipeline.sample_sparse_mask(depth_valid, num_pixels, np.random.default_rng(1))
+    mask = contract.sample_sparse_mask(depth_valid, num_pixels, np.random.default_rng(1))
     assert mask.shape == depth_valid.shape and mask.dtype == bool
     assert mask.sum() == num_pixels
     assert not np.any(mask & ~depth_valid)
-    again = input_pipeline.sample_sparse_mask(depth_valid, num_pixels, np.random.default_rng(1))
+    again = contract.sample_sparse_mask(depth_valid, num_pixels, np.random.default_rng(1))
     np.testing.assert_array_equal(mask, again)
 
 
@@ -255,19 +255,15 @@ def test_sparse_mask_dense_and_scarce():
     depth_valid = np.zeros((HEIGHT, WIDTH), bool)
     depth_valid[3, [4, 9, 20]] = True
     rng = np.random.default_rng(0)
-    np.testing.assert_array_equal(
-        input_pipeline.sample_sparse_mask(depth_valid, 16, rng), depth_valid
-    )
-    np.testing.assert_array_equal(
-        input_pipeline.sample_sparse_mask(depth_valid, 0, rng), depth_valid
-    )
+    np.testing.assert_array_equal(contract.sample_sparse_mask(depth_valid, 16, rng), depth_valid)
+    np.testing.assert_array_equal(contract.sample_sparse_mask(depth_valid, 0, rng), depth_valid)
     with pytest.raises(ValueError, match="-1"):
-        input_pipeline.sample_sparse_mask(depth_valid, -1, rng)
+        contract.sample_sparse_mask(depth_valid, -1, rng)
 
 
 def test_prepare_example_randomness_by_seed_id_and_epoch(source):
     def prepare(epoch, fixed=False, seed=3, index=0):
-        return input_pipeline.prepare_example(
+        return contract.prepare_example(
             source[index],
             epoch=epoch,
             seed=seed,
@@ -285,7 +281,7 @@ def test_prepare_example_randomness_by_seed_id_and_epoch(source):
     # The masks are drawn in the augmented frame, so compare them in a canonical frame:
     # unaugmented examples share the depth_valid layout.
     masks = [
-        input_pipeline.prepare_example(
+        contract.prepare_example(
             source[0], epoch=e, seed=3, gt_pixels=4, augment=False, fixed_sparse_pixels=fixed
         )["sparse_mask"]
         for fixed in (False, True)
@@ -432,9 +428,7 @@ def test_eval_batches_cover_every_example_once(source, process_count):
             padded_rows += int(padded.sum())
         # Unaugmented: the first real example equals the decoded record, scale-normalised.
         first = batches[0]
-        reference = input_pipeline.normalise_scale(
-            input_pipeline.decode_example(source[process_index])
-        )
+        reference = contract.normalise_scale(contract.decode_example(source[process_index]))
         np.testing.assert_array_equal(first["image1"][0], reference["image1"])
         np.testing.assert_allclose(first["depth"][0], reference["depth"])
     assert sorted(real_ids) == sorted(f"scene-{i:03d}" for i in range(len(source)))
@@ -536,7 +530,7 @@ def _flow_error(example: dict) -> float:
 def test_gld_scenes_geometry_survives_every_augmentation(tiny_builder):
     source = tiny_builder.as_data_source("train")
     for index in range(4):
-        example = input_pipeline.decode_example(source[index], where=f"train[{index}]")
+        example = contract.decode_example(source[index], where=f"train[{index}]")
         reference_photometric = photometric_error(example)
         reference_flow_error = _flow_error(example)
         assert reference_photometric < 0.03
@@ -547,7 +541,7 @@ def test_gld_scenes_geometry_survives_every_augmentation(tiny_builder):
             assert triangulation_error(augmented) < 1e-3, name
             assert _flow_error(augmented) == pytest.approx(reference_flow_error, rel=1e-4), name
         # Moving the estimated flow without transforming its vectors would be caught.
-        unrotated_vectors = dict(rotated := input_pipeline.rotate_180(example))
+        unrotated_vectors = dict(rotated := contract.rotate_180(example))
         unrotated_vectors["flow"] = -rotated["flow"]
         assert _flow_error(unrotated_vectors) > 1.5 * reference_flow_error
 
@@ -612,6 +606,7 @@ import multiprocessing, sys, time
 
 def child():
     from gld import input_pipeline
+    from gld import contract
     input_pipeline.exit_with_parent(period=0.1)
     print("watching", flush=True)
     time.sleep(120)
@@ -655,7 +650,7 @@ def test_the_pose_from_the_flow_is_estimated_once_and_flipped_with_the_example(s
     keys = ("flow", "flow_rotation", "flow_translation", "rotation", "translation")
     flipped_kinds = set()
     for epoch in range(6):
-        example = input_pipeline.prepare_example(
+        example = contract.prepare_example(
             source[2], epoch=epoch, seed=1, gt_pixels=1, flow_source="gt", keys=keys
         )
         # Exact flow: the essential matrix's pose is the true one, in the augmented frame.
@@ -669,5 +664,5 @@ def test_the_pose_from_the_flow_is_estimated_once_and_flipped_with_the_example(s
         flipped_kinds.add(float(np.sign(example["translation"][0])))
     assert flipped_kinds == {-1.0, 1.0}  # some epochs mirrored the sideways motion
     # Not made unless asked for.
-    plain = input_pipeline.prepare_example(source[2], epoch=0, seed=1, gt_pixels=1)
+    plain = contract.prepare_example(source[2], epoch=0, seed=1, gt_pixels=1)
     assert "flow_rotation" not in plain

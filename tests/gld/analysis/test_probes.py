@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import random_variables
 
-from gld import geometry, input_pipeline
+from gld import contract, geometry, input_pipeline
 from gld.analysis import probes
 from gld.models import global_local as model_lib
 from gld.models import layers, registry
@@ -157,7 +157,7 @@ def test_collect_reads_every_pair_once(tiny_scenes):
     assert collected["pred_mean"].shape == (7,)
     assert collected["global_params"].shape == (7, 3)
     # The first 7 pairs, in order, once each (the 3 padding rows of batch 2 dropped).
-    translations = [input_pipeline.decode_example(source[i])["translation"] for i in range(7)]
+    translations = [contract.decode_example(source[i])["translation"] for i in range(7)]
     expected = np.stack([t / np.linalg.norm(t) for t in translations])
     np.testing.assert_allclose(collected["translation"], expected, atol=1e-6)
     np.testing.assert_allclose(collected["pred_mean"], collected["true_mean"], rtol=1e-6)
@@ -175,7 +175,7 @@ def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_p
         train, test, steps=3, warmup_steps=1, batch_size=4, encoder_channels=(4, 8, 8, 8, 8)
     )
     # The reference, by hand: every test pair scored against the pairs' mean pose.
-    examples = [input_pipeline.decode_example(test[i]) for i in range(len(test))]
+    examples = [contract.decode_example(test[i]) for i in range(len(test))]
     rotation = np.stack([probes.rotation_vector(e["rotation"]) for e in examples])
     translation = np.stack([e["translation"] / np.linalg.norm(e["translation"]) for e in examples])
     mean_rotation = geometry.rotation_matrix(np.broadcast_to(rotation.mean(0), rotation.shape))
@@ -247,7 +247,7 @@ def _leaves(tree):
 
 def _test_poses(test_source):
     """The test pairs' true pose in split order: (ids, rotation vectors, unit translations)."""
-    examples = [input_pipeline.decode_example(test_source[i]) for i in range(len(test_source))]
+    examples = [contract.decode_example(test_source[i]) for i in range(len(test_source))]
     rotation = np.stack([probes.rotation_vector(e["rotation"]) for e in examples])
     translation = np.stack([e["translation"] / np.linalg.norm(e["translation"]) for e in examples])
     return [e["id"] for e in examples], rotation, translation

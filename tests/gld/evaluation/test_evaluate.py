@@ -12,7 +12,7 @@ from conftest import run_python, tiny_train_config
 
 from gld import input_pipeline, records
 from gld.evaluation import evaluate as evaluation
-from gld.evaluation import stored_predictions
+from gld.evaluation import stored_predictions, trained_run
 from gld.models import layers, registry
 from gld.models.baselines import classical
 from gld.runs import checkpoints as checkpoint_lib
@@ -40,7 +40,7 @@ def _oracle_abs_inv_by_hand(source) -> list[float]:
 def test_a_classical_method_is_reported_with_the_references(tiny_scenes, tmp_path):
     source = tiny_scenes.as_data_source("test")
     printed = []
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         tmp_path,
         source,
         train_source=tiny_scenes.as_data_source("train"),
@@ -76,7 +76,7 @@ def test_a_classical_method_is_reported_with_the_references(tiny_scenes, tmp_pat
 
 
 def test_the_oracle_alone_is_evaluated_once(tiny_scenes, tmp_path):
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         tmp_path,
         tiny_scenes.as_data_source("test"),
         height=48,
@@ -122,7 +122,7 @@ def untrained_workdir(tiny_scenes, tmp_path):
 
 
 def test_a_model_is_reported_with_the_references(tiny_scenes, untrained_workdir):
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         untrained_workdir,
         tiny_scenes.as_data_source("test"),
         train_source=tiny_scenes.as_data_source("train"),
@@ -160,7 +160,7 @@ def test_the_classical_pipeline_sees_the_examples_and_the_flow_of_the_model(
     tiny_scenes, untrained_workdir, flow_source
 ):
     source, train_source = (tiny_scenes.as_data_source(split) for split in ("test", "train"))
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         untrained_workdir,
         source,
         train_source=train_source,
@@ -176,9 +176,9 @@ def test_the_classical_pipeline_sees_the_examples_and_the_flow_of_the_model(
     assert list(report["methods"]) == ["global_local", "sfm_flow"]
     assert report["flow_source"] == flow_source
     # Without the dataset-mean row, the classical pipeline still falls back to its value.
-    mean = evaluation.fit_classical("dataset_mean", train_source).inv_depth
+    mean = trained_run.fit_classical("dataset_mean", train_source).inv_depth
     assert report["sfm_flow_fallback_inv_depth"] == mean
-    folder = evaluation.evaluation_dir(
+    folder = trained_run.evaluation_dir(
         untrained_workdir, max_examples=6, flow_source=None if flow_source == "estimated" else "gt"
     )
     model_rows = _ids_and_abs_inv(folder / "per_example_global_local.csv")
@@ -201,7 +201,7 @@ def test_an_evaluation_without_the_classical_row_is_rewritten_with_it(
     tiny_scenes, untrained_workdir
 ):
     def evaluate(**references):
-        return evaluation.evaluate_workdir(
+        return trained_run.evaluate_workdir(
             untrained_workdir,
             tiny_scenes.as_data_source("test"),
             height=48,
@@ -359,7 +359,7 @@ def test_stored_predictions_are_scored_with_the_references(tiny_scenes, tmp_path
     folder.mkdir()
     for example_id, (depth, *_) in _test_pairs(source).items():
         np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", depth)
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         tmp_path / "run",
         source,
         train_source=tiny_scenes.as_data_source("train"),
@@ -388,7 +388,7 @@ def test_stored_predictions_are_scored_with_the_references(tiny_scenes, tmp_path
 
 def test_a_constant_stored_prediction_scores_as_the_dataset_mean(tiny_scenes, tmp_path):
     source = tiny_scenes.as_data_source("test")
-    mean = evaluation.fit_classical("dataset_mean", tiny_scenes.as_data_source("train"))
+    mean = trained_run.fit_classical("dataset_mean", tiny_scenes.as_data_source("train"))
     constant = float(mean.predict({"flow": np.zeros((1, 1, 1, 2))})["depth"][0, 0, 0])
     pairs = _test_pairs(source)
     for example_id in pairs:
@@ -429,7 +429,7 @@ def test_raw_png_millimetres_are_scaled_and_their_zeros_excluded(tiny_scenes, tm
         expected_abs_inv[example_id] = _abs_inv_by_hand(prediction, depth, valid)
         expected_excluded += int(valid[:3].sum())
     assert expected_excluded > 0
-    report = evaluation.evaluate_workdir(
+    report = trained_run.evaluate_workdir(
         tmp_path / "run",
         source,
         height=48,
@@ -463,7 +463,7 @@ def test_a_bad_prediction_file_stops_the_evaluation_before_anything_is_written(
         depth[index % 48, 5] = np.nan if index == 3 else 2.0
         np.save(folder / f"{stored_predictions.file_stem(example_id)}.npy", depth)
     with pytest.raises(ValueError, match=r"\.npy: 1 NaN or inf value\(s\)"):
-        evaluation.evaluate_workdir(
+        trained_run.evaluate_workdir(
             tmp_path / "run",
             source,
             height=48,
@@ -475,18 +475,18 @@ def test_a_bad_prediction_file_stops_the_evaluation_before_anything_is_written(
 
 
 def test_each_evaluation_has_its_own_folder():
-    assert evaluation.evaluation_dir("w") == Path("w/eval")
-    assert evaluation.evaluation_dir("w", split="train", max_examples=2) == Path(
+    assert trained_run.evaluation_dir("w") == Path("w/eval")
+    assert trained_run.evaluation_dir("w", split="train", max_examples=2) == Path(
         "w/eval_train_first2"
     )
-    assert evaluation.evaluation_dir(
+    assert trained_run.evaluation_dir(
         "w", step=500, flow_source="gt", truth_resolution="file", dataset="demon/sun3d/1.1.0"
     ) == Path("w/eval_demon-sun3d_step500_flow-gt_truth-file")
 
 
 def test_an_evaluation_of_something_else_is_never_replaced(tiny_scenes, tmp_path):
     def evaluate(dataset):
-        return evaluation.evaluate_workdir(
+        return trained_run.evaluate_workdir(
             tmp_path,
             tiny_scenes.as_data_source("test"),
             dataset=dataset,
@@ -534,7 +534,7 @@ import json, sys
 import data
 from gld.evaluation import evaluate as evaluation
 builder = data.get_builder("gld_scenes/tiny", sys.argv[1])
-report = evaluation.evaluate_workdir(
+report = trained_run.evaluate_workdir(
     sys.argv[2], builder.as_data_source("test"), train_source=builder.as_data_source("train"),
     height=48, width=64, num_figures=0, batch_size=4, print_fn=lambda _: None)
 print(json.dumps({name: s["abs_inv"]["count"] for name, s in report["methods"].items()}))

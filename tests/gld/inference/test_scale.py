@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from gld import input_pipeline, records
+from gld import contract, records
 from gld.inference import scale
 
 
@@ -129,7 +129,7 @@ def test_measure_scale_recovery_scores_each_scale_against_the_metric_truth():
     test_records = [_stored_pair(rng, i, b) for i, b in enumerate(baselines)]
     perfect = [
         example["depth"] / np.linalg.norm(example["translation"])
-        for example in map(input_pipeline.decode_example, test_records)
+        for example in map(contract.decode_example, test_records)
     ]
     done = []
 

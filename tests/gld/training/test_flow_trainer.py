@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gld import flow, input_pipeline
+from gld import contract, flow
 from gld.models import flow_net
 from gld.runs import flow_config
 from gld.runs import state as state_lib
@@ -93,7 +93,7 @@ def test_config_validation_names_the_option():
 def tiny_pairs(tiny_scenes):
     """Four training pairs of gld_scenes/tiny as one batch, with their true flow."""
     source = tiny_scenes.as_data_source("train")
-    examples = [input_pipeline.decode_example(source[i], flow_source="gt") for i in range(4)]
+    examples = [contract.decode_example(source[i], flow_source="gt") for i in range(4)]
     return {
         key: jnp.asarray(np.stack([e[key] for e in examples]))
         for key in ("image1", "image2", "gt_flow", "gt_flow_valid")
@@ -143,7 +143,7 @@ def test_evaluation_scores_the_network_and_the_stored_flow_on_the_same_pixels(
     # the stored flow's EPE, pair by pair, as gld.flow computes it
     expected = []
     for index in range(len(source)):
-        example = input_pipeline.decode_example(source[index])
+        example = contract.decode_example(source[index])
         expected.append(
             flow.endpoint_error(example["flow"], example["gt_flow"], example["gt_flow_valid"])
         )
