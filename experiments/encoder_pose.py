@@ -20,6 +20,7 @@ from absl import app, flags
 
 from experiments import common
 from gld import files
+from gld.analysis import encoder_pose
 from gld.models.global_encoder import ENCODER_NORMS
 from gld.runs.config import FLOW_SOURCES
 
@@ -42,7 +43,6 @@ common.define_data_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld.analysis import probes
     from gld.runs import options
 
     try:
@@ -50,7 +50,7 @@ def main(argv):
     except ValueError as error:
         raise app.UsageError(str(error)) from None
     builder = common.prepare_dataset()
-    errors = probes.train_encoder_on_pose(
+    errors = encoder_pose.train_encoder_on_pose(
         common.data_source(builder, "train"),
         common.data_source(builder, "test"),
         steps=FLAGS.steps,

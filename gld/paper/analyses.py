@@ -19,9 +19,9 @@ import numpy as np
 
 from gld import files as files_lib
 from gld import flow as flow_lib
+from gld.analysis import encoder_pose
 from gld.analysis import filter_inspection as inspect_lib
 from gld.analysis import flow_error as flow_error_lib
-from gld.analysis import probes
 from gld.evaluation import evaluate as evaluation
 from gld.evaluation import trained_run
 from gld.models import flow_net as flow_net_lib
@@ -157,10 +157,10 @@ def pose_probe(runner: Runner) -> dict[str, Any]:
     for index, name in enumerate(PROBED_RUNS):
         model, variables, config = runner.trained(name)
         data = runner.data(config.dataset)
-        settings = probes.pose_probe_settings(
+        settings = encoder_pose.pose_probe_settings(
             data.train,
             data.test,
-            pretrained=probes.pretrained_global_encoder(model, variables),
+            pretrained=encoder_pose.pretrained_global_encoder(model, variables),
             steps=runner.scale.probe_steps,
             batch_size=runner.scale.batch_size,
             learning_rate=runner.scale.learning_rate,
@@ -168,7 +168,7 @@ def pose_probe(runner: Runner) -> dict[str, Any]:
             flow_source=config.flow_source,
             seed=0,
             settings=(
-                tuple(probes.POSE_PROBE_SETTINGS)
+                tuple(encoder_pose.POSE_PROBE_SETTINGS)
                 if index == 0
                 else ("pretrained_mlp", "pretrained_full")
             ),

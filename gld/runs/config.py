@@ -15,6 +15,7 @@ from typing import Any
 
 import optax
 
+from gld.contract import FLOW_SOURCES
 from gld.losses import photometric
 from gld.losses import supervised as losses
 from gld.models import registry
@@ -26,8 +27,6 @@ from gld.runs.options import (
     option,
 )
 from gld.runs.state import make_optimizer
-
-FLOW_SOURCES = ("estimated", "gt")
 
 
 @dataclasses.dataclass

@@ -8,7 +8,7 @@ import pytest
 from conftest import random_variables
 
 from gld import contract, geometry, input_pipeline
-from gld.analysis import probes
+from gld.analysis import encoder_pose, probes
 from gld.models import global_local as model_lib
 from gld.models import layers, registry
 
@@ -171,7 +171,7 @@ def test_the_encoder_trained_on_the_pose_is_scored_against_the_test_pairs_mean_p
     tiny_scenes,
 ):
     train, test = tiny_scenes.as_data_source("train"), tiny_scenes.as_data_source("test")
-    errors = probes.train_encoder_on_pose(
+    errors = encoder_pose.train_encoder_on_pose(
         train, test, steps=3, warmup_steps=1, batch_size=4, encoder_channels=(4, 8, 8, 8, 8)
     )
     # The reference, by hand: every test pair scored against the pairs' mean pose.
@@ -216,7 +216,7 @@ def global_local():
 
 @pytest.fixture(scope="module")
 def pretrained(global_local):
-    return probes.pretrained_global_encoder(*global_local)
+    return encoder_pose.pretrained_global_encoder(*global_local)
 
 
 @pytest.fixture(scope="module")
@@ -227,18 +227,20 @@ def splits(tiny_scenes):
 @pytest.fixture(scope="module")
 def pretrained_mlp_fit(splits, pretrained):
     """The MLP on the frozen pretrained encoder."""
-    return probes.fit_pose_probe(*splits, train_encoder=False, **pretrained, **_PROBE_TRAINING)
+    return encoder_pose.fit_pose_probe(
+        *splits, train_encoder=False, **pretrained, **_PROBE_TRAINING
+    )
 
 
 @pytest.fixture(scope="module")
 def pretrained_full_fit(splits, pretrained):
     """The pretrained encoder trained with the MLP."""
-    return probes.fit_pose_probe(*splits, train_encoder=True, **pretrained, **_PROBE_TRAINING)
+    return encoder_pose.fit_pose_probe(*splits, train_encoder=True, **pretrained, **_PROBE_TRAINING)
 
 
 @pytest.fixture(scope="module")
 def settings(splits, pretrained):
-    return probes.pose_probe_settings(*splits, pretrained=pretrained, **_PROBE_TRAINING)
+    return encoder_pose.pose_probe_settings(*splits, pretrained=pretrained, **_PROBE_TRAINING)
 
 
 def _leaves(tree):
@@ -261,11 +263,11 @@ def test_pretrained_global_encoder_refuses_models_without_a_global_encoder(globa
         dict(use_flow=False),
     ):
         with pytest.raises(ValueError, match="global encoder|flow"):
-            probes.pretrained_global_encoder(model_lib.GlobalLocal(**options), variables)
+            encoder_pose.pretrained_global_encoder(model_lib.GlobalLocal(**options), variables)
     with pytest.raises(ValueError, match="GlobalLocal"):
-        probes.pretrained_global_encoder(registry.make_model("dispnet"), variables)
+        encoder_pose.pretrained_global_encoder(registry.make_model("dispnet"), variables)
     with pytest.raises(ValueError, match="global_encoder"):
-        probes.pretrained_global_encoder(model_lib.GlobalLocal(), {"params": {}})
+        encoder_pose.pretrained_global_encoder(model_lib.GlobalLocal(), {"params": {}})
 
 
 def test_the_frozen_encoder_is_the_models_and_stays_bit_identical(
@@ -325,7 +327,7 @@ def test_the_trained_encoder_changes(pretrained_full_fit, pretrained):
 
 def test_encoder_params_must_fit_the_encoder(splits, pretrained):
     with pytest.raises(ValueError, match="do not fit"):
-        probes.fit_pose_probe(
+        encoder_pose.fit_pose_probe(
             *splits, **{**pretrained, "encoder_channels": (4, 8, 8, 8, 16)}, **_PROBE_TRAINING
         )
 
@@ -334,7 +336,7 @@ def test_each_setting_predicts_a_rotation_and_a_unit_translation_per_test_pair_i
     settings, splits
 ):
     ids, _, _ = _test_poses(splits[1])
-    assert set(settings["predicted"]) == set(probes.POSE_PROBE_SETTINGS)
+    assert set(settings["predicted"]) == set(encoder_pose.POSE_PROBE_SETTINGS)
     for poses in settings["predicted"].values():
         assert poses["rotation"].shape == (16, 3, 3) and poses["rotation"].dtype == np.float64
         assert poses["translation"].shape == (16, 3) and poses["translation"].dtype == np.float64
@@ -352,18 +354,18 @@ def test_each_setting_predicts_a_rotation_and_a_unit_translation_per_test_pair_i
 def test_the_settings_errors_are_those_of_their_poses_and_match_single_fits(
     settings, splits, pretrained_mlp_fit, pretrained_full_fit
 ):
-    assert set(settings) == {*probes.POSE_PROBE_SETTINGS, "mean_pose", "predicted"}
+    assert set(settings) == {*encoder_pose.POSE_PROBE_SETTINGS, "mean_pose", "predicted"}
     _, rotation, translation = _test_poses(splits[1])
     truth = np.concatenate([rotation, translation], -1)
-    for setting in probes.POSE_PROBE_SETTINGS:
+    for setting in encoder_pose.POSE_PROBE_SETTINGS:
         poses = settings["predicted"][setting]
         predicted = np.concatenate(
             [probes.rotation_vector(poses["rotation"]), poses["translation"]], -1
         )
-        recomputed = probes._pose_errors(predicted, truth)
+        recomputed = probes.pose_errors(predicted, truth)
         for name in ("rotation_deg", "translation_deg"):
             assert settings[setting][name] == pytest.approx(recomputed[name], rel=1e-6)
-    mean_pose = probes._pose_errors(np.broadcast_to(truth.mean(0), truth.shape), truth)
+    mean_pose = probes.pose_errors(np.broadcast_to(truth.mean(0), truth.shape), truth)
     for name in ("rotation_deg", "translation_deg"):
         assert settings["mean_pose"][name] == pytest.approx(mean_pose[name], rel=1e-4)
     # The settings run as single fits with the same options do: same data, seed, steps.
