@@ -48,6 +48,8 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
+from gld.inference import inputs
+from gld.inference import recordings as recording_lib
 
 FLAGS = flags.FLAGS
 
@@ -101,7 +103,6 @@ def _usage(flag: str, error: Exception) -> app.UsageError:
 def _frames():
     """The frame source and the image paths (None for a video), checked."""
     from data.demon import recordings
-    from gld.inference import predict
 
     if bool(FLAGS.images) == bool(FLAGS.video):
         raise app.UsageError("give exactly one of --images (a folder) or --video (a file)")
@@ -111,9 +112,11 @@ def _frames():
             paths = recordings.list_images(Path(FLAGS.images).expanduser())
         except FileNotFoundError as error:
             raise _usage("images", error) from None
-        return predict.ImageFolderFrames(paths, cache_size=cache_size), paths
+        return recording_lib.ImageFolderFrames(paths, cache_size=cache_size), paths
     try:
-        return predict.VideoFrames(Path(FLAGS.video).expanduser(), cache_size=cache_size), None
+        return recording_lib.VideoFrames(
+            Path(FLAGS.video).expanduser(), cache_size=cache_size
+        ), None
     except (FileNotFoundError, ValueError) as error:
         raise _usage("video", error) from None
 
@@ -243,21 +246,21 @@ def main(argv):
     frames, image_paths = _frames()
     try:
         first_frame = frames.read(0)
-        predict.check_image(first_frame, f"frame {frames.names[0]}")
+        inputs.check_image(first_frame, f"frame {frames.names[0]}")
     except ValueError as error:
         raise _usage("images" if FLAGS.images else "video", error) from None
     image_size = first_frame.shape[:2]
     try:
         if FLAGS.pairs:
-            pairs = predict.read_pairs_file(Path(FLAGS.pairs).expanduser(), frames.names)
+            pairs = recording_lib.read_pairs_file(Path(FLAGS.pairs).expanduser(), frames.names)
         else:
-            pairs = predict.frame_pairs(len(frames), FLAGS.frame_gap)
+            pairs = recording_lib.frame_pairs(len(frames), FLAGS.frame_gap)
     except (FileNotFoundError, ValueError) as error:
         raise _usage("pairs" if FLAGS.pairs else "frame_gap", error) from None
     ranges = camera_to_world = None
     if FLAGS.ranges:
         try:
-            ranges = predict.read_range_readings(
+            ranges = recording_lib.read_range_readings(
                 Path(FLAGS.ranges).expanduser(), frames.names, image_size, FLAGS.range_scale
             )
         except (FileNotFoundError, ValueError, OSError) as error:
@@ -290,7 +293,7 @@ def main(argv):
             ),
         )
     try:
-        plan = predict.plan_recording(
+        plan = recording_lib.plan_recording(
             pairs,
             ranges=ranges,
             camera_to_world=camera_to_world,
@@ -305,7 +308,7 @@ def main(argv):
         FLAGS.workdir, step=FLAGS.step, aspect=FLAGS.aspect
     )
     with tqdm(total=len(plan.pairs), desc="predict", unit="pair") as bar:
-        summary = predict.predict_recording(
+        summary = recording_lib.predict_recording(
             predictor,
             frames,
             plan,

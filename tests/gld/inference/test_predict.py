@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import TINY_MODEL
 
-from gld.inference import depth_io, predict
+from gld.inference import depth_io, inputs, recordings
 from gld.inference.predict import DepthPredictor
 from gld.models import global_local as model_lib
 from gld.models import registry
@@ -213,9 +213,9 @@ def test_resized_camera_projects_a_point_where_the_resized_image_shows_it():
     camera = np.array([[300.0, 0, 310.0], [0, 290.0, 250.0], [0, 0, 1]])
     point = np.array([0.4, -0.3, 2.0])
     pixel = (camera @ point)[:2] / point[2]
-    box = predict.crop_box(480, 800, 48, 64, "crop")  # top, left, 480, 640
+    box = inputs.crop_box(480, 800, 48, 64, "crop")  # top, left, 480, 640
     assert box == (0, 80, 480, 640)
-    resized = predict.resize_camera_matrix(camera, box, 48, 64)
+    resized = inputs.resize_camera_matrix(camera, box, 48, 64)
     expected = (pixel - [box[1], box[0]] + 0.5) * [64 / 640, 48 / 480] - 0.5
     np.testing.assert_allclose((resized @ point)[:2] / point[2], expected, rtol=1e-9)
 
@@ -230,42 +230,42 @@ def test_range_readings_follow_the_converters_csv(tmp_path):
         "frame,u,v,depth\n# a comment\n1305.10,3,4,1.5\n1305.10,5.5,6,2.5\n2,1,1,0.75\n"
         "1305.20,1,1,0\n1305.20,1,1,nan\n"
     )
-    readings = predict.read_range_readings(path, names, (10, 12), depth_scale=2.0)
+    readings = recordings.read_range_readings(path, names, (10, 12), depth_scale=2.0)
     assert sorted(readings) == [0, 2]  # frame 1's readings have no return
     np.testing.assert_allclose(readings[0], [[3, 4, 3.0], [5.5, 6, 5.0]])
     np.testing.assert_allclose(readings[2], [[1, 1, 1.5]])
     path.write_text("frame,u,v,depth\n1305.10,12,4,1.5\n")
     with pytest.raises(ValueError, match=r"range.csv:2: pixel \(12.0, 4.0\) outside the 12x10"):
-        predict.read_range_readings(path, names, (10, 12))
+        recordings.read_range_readings(path, names, (10, 12))
     path.write_text("1305.10,1,4,1.5\nnope,1,1,1\n")
     with pytest.raises(ValueError, match=r"range.csv:2: frame 'nope' is not a frame"):
-        predict.read_range_readings(path, names, (10, 12))
+        recordings.read_range_readings(path, names, (10, 12))
     path.write_text("1305.10,1,4\n")
     with pytest.raises(ValueError, match="range.csv:1: expected frame,u,v,depth"):
-        predict.read_range_readings(path, names, (10, 12))
+        recordings.read_range_readings(path, names, (10, 12))
     with pytest.raises(FileNotFoundError, match="missing.csv"):
-        predict.read_range_readings(tmp_path / "missing.csv", names, (10, 12))
+        recordings.read_range_readings(tmp_path / "missing.csv", names, (10, 12))
 
 
 def test_pairs_by_gap_or_file_and_the_plan_skips_pairs_without_a_measurement(tmp_path):
-    assert predict.frame_pairs(4, 2) == [(0, 2), (1, 3)]
+    assert recordings.frame_pairs(4, 2) == [(0, 2), (1, 3)]
     with pytest.raises(ValueError, match="make no pair"):
-        predict.frame_pairs(2, 2)
+        recordings.frame_pairs(2, 2)
     path = tmp_path / "pairs.txt"
     path.write_text("# frame1 frame2\na c\n1, 3\n")
-    assert predict.read_pairs_file(path, ["a", "b", "c", "d"]) == [(0, 2), (1, 3)]
+    assert recordings.read_pairs_file(path, ["a", "b", "c", "d"]) == [(0, 2), (1, 3)]
     path.write_text("a e\n")
     with pytest.raises(ValueError, match="pairs.txt:1: frame 'e' is not a frame"):
-        predict.read_pairs_file(path, ["a", "b"])
+        recordings.read_pairs_file(path, ["a", "b"])
     pairs = [(0, 1), (1, 2), (2, 3)]
-    plan = predict.plan_recording(pairs, ranges={0: np.ones((1, 3)), 2: np.ones((2, 3))})
+    plan = recordings.plan_recording(pairs, ranges={0: np.ones((1, 3)), 2: np.ones((2, 3))})
     assert plan.pairs == [(0, 1), (2, 3)] and len(plan.ranges[1]) == 2
     assert plan.skipped == {"no range reading on the first frame": 1}
     positions = np.array([[0, 0, 0], [0, 0, 0], [0.3, 0.4, 0], [0.3, 0.4, 1.0]])
-    plan = predict.plan_recording(pairs, positions=positions)
+    plan = recordings.plan_recording(pairs, positions=positions)
     assert plan.pairs == [(1, 2), (2, 3)] and plan.baselines == pytest.approx([0.5, 1.0])
     with pytest.raises(ValueError, match="no pair left"):
-        predict.plan_recording(pairs[:1], positions=positions)
+        recordings.plan_recording(pairs[:1], positions=positions)
 
 
 def test_video_frames_stream_in_order_and_seek_back(tmp_path):
@@ -274,7 +274,7 @@ def test_video_frames_stream_in_order_and_seek_back(tmp_path):
     for index in range(7):
         writer.write(np.full((24, 32, 3), 30 * index, np.uint8))
     writer.release()
-    frames = predict.VideoFrames(path, cache_size=2)
+    frames = recordings.VideoFrames(path, cache_size=2)
     assert len(frames) == 7 and frames.names[3] == "000003"
     for index in [0, 3, 1, 6, 2]:  # forward, back out of the cache, forward again
         assert abs(frames.read(index).mean() - 30 * index) < 3
@@ -289,15 +289,15 @@ def test_predict_recording_writes_every_pair_in_batches(tiny_predictor, tmp_path
         paths.append(frames_dir / f"f{index}.png")
         frames_dir.mkdir(exist_ok=True)
         cv2.imwrite(str(paths[-1]), np.roll(image, 2 * index, axis=1))
-    frames = predict.ImageFolderFrames(paths)
+    frames = recordings.ImageFolderFrames(paths)
     positions = np.array([[0.0, 0, 0], [0.5, 0, 0], [1.5, 0, 0], [1.5, 0, 0]])
-    plan = predict.plan_recording(predict.frame_pairs(4), positions=positions)
+    plan = recordings.plan_recording(recordings.frame_pairs(4), positions=positions)
     with pytest.raises(ValueError, match="needs metric depth"):
-        predict.predict_recording(
-            tiny_predictor, frames, predict.plan_recording([(0, 1)]), tmp_path / "out"
+        recordings.predict_recording(
+            tiny_predictor, frames, recordings.plan_recording([(0, 1)]), tmp_path / "out"
         )
     out = tmp_path / "out"
-    summary = predict.predict_recording(
+    summary = recordings.predict_recording(
         tiny_predictor, frames, plan, out, batch_size=3, depth_format="npy"
     )
     assert summary["pairs_written"] == 2 and summary["units"] == "metres"
@@ -321,11 +321,11 @@ def test_predict_recording_refuses_frames_outside_the_rules_before_writing(
     paths = [frames_dir / f"{index}.png" for index in range(2)]
     for path in paths:
         cv2.imwrite(str(path), np.full((HEIGHT, WIDTH, 3), 4000, np.uint16))
-    plan = predict.plan_recording([(0, 1)])
+    plan = recordings.plan_recording([(0, 1)])
     with pytest.raises(ValueError, match="frame 0 has dtype uint16"):
-        predict.predict_recording(
+        recordings.predict_recording(
             tiny_predictor,
-            predict.ImageFolderFrames(paths),
+            recordings.ImageFolderFrames(paths),
             plan,
             tmp_path / "out",
             depth_format="npy",
@@ -373,7 +373,7 @@ def test_odometry_reaches_the_model_as_the_pose_it_was_trained_given():
     camera_to_world2 = np.eye(4)
     camera_to_world2[:3, :3] = geometry.rotation_matrix(np.array([0.12, -0.15, 0.02]))
     camera_to_world2[:3, 3] = [1.3, 2.1, 0.4]
-    rotation, translation = predict.relative_motion(camera_to_world1, camera_to_world2)
+    rotation, translation = recordings.relative_motion(camera_to_world1, camera_to_world2)
     # The training convention: a world point in camera 1's frame maps to camera 2's by
     # X2 = R X1 + t.
     point = np.array([0.3, -1.0, 4.0])
@@ -432,19 +432,21 @@ def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_
         cv2.imwrite(str(path), np.roll(image, 2 * index, axis=1))
     camera_to_world = np.tile(np.eye(4), (3, 1, 1))
     camera_to_world[:, 0, 3] = [0.0, 0.2, 0.5]
-    plan = predict.plan_recording(predict.frame_pairs(3), camera_to_world=camera_to_world)
+    plan = recordings.plan_recording(recordings.frame_pairs(3), camera_to_world=camera_to_world)
     assert plan.baselines == pytest.approx([0.2, 0.3])
     with pytest.raises(ValueError, match="with camera poses"):
-        predict.predict_recording(
+        recordings.predict_recording(
             predictor,
-            predict.ImageFolderFrames(paths),
-            predict.plan_recording(predict.frame_pairs(3), positions=camera_to_world[:, :3, 3]),
+            recordings.ImageFolderFrames(paths),
+            recordings.plan_recording(
+                recordings.frame_pairs(3), positions=camera_to_world[:, :3, 3]
+            ),
             tmp_path / "refused",
             depth_format="npy",
         )
     out = tmp_path / "out"
-    predict.predict_recording(
-        predictor, predict.ImageFolderFrames(paths), plan, out, depth_format="npy"
+    recordings.predict_recording(
+        predictor, recordings.ImageFolderFrames(paths), plan, out, depth_format="npy"
     )
     read = lambda path: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)  # noqa: E731
     expected = predictor(
