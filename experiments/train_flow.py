@@ -18,6 +18,7 @@ import dataclasses
 from absl import app, flags
 
 from experiments import common
+from gld.evaluation import flow_network
 
 FLAGS = flags.FLAGS
 
@@ -112,13 +113,13 @@ def main(argv):
 
     model = config.make_model()
     variables = jax.device_get(state.variables())
-    _, _, summary = flow_training.evaluate_flow(
+    _, _, summary = flow_network.evaluate_flow(
         model, variables, test_source, batch_size=config.eval_batch_size, progress=True
     )
-    latency = flow_training.forward_latency(
+    latency = flow_network.forward_latency(
         model, variables, height, width, repeats=FLAGS.latency_repeats
     )
-    table = flow_training.write_flow_report(
+    table = flow_network.write_flow_report(
         Path(FLAGS.workdir) / "eval",
         summary,
         parameters=flow_net.parameter_count(variables["params"]),

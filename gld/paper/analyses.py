@@ -23,13 +23,12 @@ from gld.analysis import encoder_pose
 from gld.analysis import filter_inspection as inspect_lib
 from gld.analysis import flow_error as flow_error_lib
 from gld.evaluation import evaluate as evaluation
-from gld.evaluation import trained_run
+from gld.evaluation import flow_network, trained_run
 from gld.models import flow_net as flow_net_lib
 from gld.models.baselines import classical as classical_lib
 from gld.models.flow_net import FlowNet
 from gld.paper import suite as paper_suite
 from gld.runs import metrics_log
-from gld.training import flow_trainer as flow_training
 
 
 class Runner(Protocol):
@@ -93,7 +92,7 @@ def flow_net(runner: Runner) -> dict[str, Any]:
     run_dir = runner.flow_net_dir()
     runner.print(f"flow_net: {runner.scale.flow_net_steps} steps of the flow network in {run_dir}")
     model, variables, step, summary = runner.fit_flow_net(evaluate=True)
-    latency = flow_training.forward_latency(model, variables, data.height, data.width)
+    latency = flow_network.forward_latency(model, variables, data.height, data.width)
     count = min(DIS_TIMED_PAIRS, len(data.test))
     batch = next(
         evaluation.split_batches(
@@ -129,10 +128,10 @@ def flow_finetuning(runner: Runner) -> dict[str, Any]:
     epe = {}
     for name in paper_suite.FLOW_EXPERIMENT[1:]:
         _, variables, _ = runner.trained(name)
-        _, _, summary = flow_training.evaluate_flow(
+        _, _, summary = flow_network.evaluate_flow(
             FlowNet(), {"params": variables["params"]["flow_net"]}, data.test
         )
-        epe[name] = summary[flow_training.NETWORK]
+        epe[name] = summary[flow_network.NETWORK]
     return {"epe": epe}
 
 

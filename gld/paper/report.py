@@ -30,13 +30,12 @@ import numpy as np
 
 from gld import files as files_lib
 from gld.analysis import flow_error
-from gld.evaluation import metrics, reports
+from gld.evaluation import flow_network, metrics, reports
 from gld.paper import analyses as paper_analyses
 from gld.paper import numbers as paper
 from gld.paper import runner as paper_runner
 from gld.paper import suite as paper_suite
 from gld.paper.suite import Scale
-from gld.training import flow_trainer as flow_training
 
 SUPERVISED_BASELINES = ("small_encdec_1px", "eigen_1px", "dispnet_1px", "fcrn_1px")
 ABLATION_ROWS = (
@@ -578,8 +577,8 @@ class Report:
                 "|---|---|---|---|---|---|---|\n"
             )
             rows = (
-                (flow_training.NETWORK, "flow network (PWC-Net style, learned)", result),
-                (flow_training.STORED_FLOW, "DIS (OpenCV, the stored flow)", None),
+                (flow_network.NETWORK, "flow network (PWC-Net style, learned)", result),
+                (flow_network.STORED_FLOW, "DIS (OpenCV, the stored flow)", None),
             )
             for key, label, own in rows:
                 row = result["methods"][key]
@@ -599,7 +598,7 @@ class Report:
             curve = ", ".join(f"{v:.3f}" for _, v in result["curve"])
             text += (
                 f"\nEnd-point error against the exact flow over the valid pixels of the "
-                f"{result['methods'][flow_training.NETWORK]['count']} test pairs, mean over "
+                f"{result['methods'][flow_network.NETWORK]['count']} test pairs, mean over "
                 f"pairs; the network trained {recipe.steps:,} steps at batch "
                 f"{recipe.batch_size} on the training pairs' exact flow (Adam "
                 f"{recipe.learning_rate:g}, {recipe.lr_schedule}; `gld.training.flow_trainer`), "
@@ -610,8 +609,8 @@ class Report:
                 "paper uses a PWC-Net pretrained on other data "
                 f"({paper.TEXT['pwc_net_ms']} ms a pair on its GPU).\n\n"
             )
-            network = result["methods"][flow_training.NETWORK]["epe"]
-            dis = result["methods"][flow_training.STORED_FLOW]["epe"]
+            network = result["methods"][flow_network.NETWORK]["epe"]
+            dis = result["methods"][flow_network.STORED_FLOW]["epe"]
             holds = network < dis
             detail = f"{network:.3f} px against DIS's {dis:.3f} px ({network / dis:.2f}x)"
         return text + self._target(

@@ -39,6 +39,7 @@ import numpy as np
 
 from gld import files as files_lib
 from gld.evaluation import evaluate as evaluation
+from gld.evaluation import flow_network
 from gld.models import registry
 from gld.paper import analyses
 from gld.paper import suite as paper_suite
@@ -588,7 +589,7 @@ class SuiteRunner:
         *_, summary = self.fit_flow_net(evaluate=False)
         stored = read_result(self.results_dir, "flow_net")
         if stored is not None:
-            network = flow_training.NETWORK
+            network = flow_network.NETWORK
             self._note_reproduction(
                 "flow_net", [stored["methods"][network]["epe"]], [summary[network]["epe"]]
             )
@@ -610,7 +611,7 @@ class SuiteRunner:
             print_fn=self.print,
         )
         model, variables, _, step = trained_flow.load_flow_run(run_dir)
-        _, _, summary = flow_training.evaluate_flow(
+        _, _, summary = flow_network.evaluate_flow(
             model, variables, data.test, batch_size=config.eval_batch_size
         )
         return model, variables, step, summary

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from gld import contract, flow
+from gld.evaluation import flow_network
 from gld.models import flow_net
 from gld.runs import flow_config
 from gld.runs import state as state_lib
@@ -137,7 +138,7 @@ def test_evaluation_scores_the_network_and_the_stored_flow_on_the_same_pixels(
     model = flow_net.FlowNet(**TINY_NET)
     variables = {"params": flow_net.init_params(model, seed=0)}
     # 5 does not divide the 16 pairs: the padded rows must not count
-    per_example, ids, summary = flow_training.evaluate_flow(model, variables, source, batch_size=5)
+    per_example, ids, summary = flow_network.evaluate_flow(model, variables, source, batch_size=5)
     assert len(ids) == 20 and int(per_example["example_mask"].sum()) == 16
     assert summary["dis"]["count"] == summary["flow_net"]["count"] == 16
     # the stored flow's EPE, pair by pair, as gld.flow computes it
@@ -154,9 +155,9 @@ def test_evaluation_scores_the_network_and_the_stored_flow_on_the_same_pixels(
     assert summary["flow_net"]["epe"] > summary["dis"]["epe"]
     assert 0.0 <= summary["flow_net"]["outliers"] <= 1.0
 
-    latency = flow_training.forward_latency(model, variables, 48, 64, repeats=3)
+    latency = flow_network.forward_latency(model, variables, 48, 64, repeats=3)
     assert latency["median_ms"] > 0 and latency["repeats"] == 3
-    table = flow_training.write_flow_report(
+    table = flow_network.write_flow_report(
         tmp_path / "eval",
         summary,
         parameters=flow_net.parameter_count(variables["params"]),
