@@ -5,7 +5,7 @@ import numpy as np
 import optax
 import pytest
 
-from gld import geometry, input_pipeline
+from gld import contract, geometry
 from gld.losses import photometric
 
 HEIGHT, WIDTH = 24, 32
@@ -312,7 +312,7 @@ def test_warp_commutes_with_the_pipelines_augmentation(augmentation):
         "rotation": geometry.rotation_matrix(np.asarray([0.02, -0.03, 0.05])).astype(np.float32),
         "translation": np.asarray([0.3, -0.2, 0.1], np.float32),
     }
-    flipped = getattr(input_pipeline, augmentation)(example)
+    flipped = getattr(contract, augmentation)(example)
 
     def warp(example):
         warped, valid = warp_to_view1(
