@@ -9,6 +9,7 @@ function (outputs and gradients) in forms that XLA compiles to better code, four
 them with a hand-written backward pass. `default_formulation()` picks the formulation
 measured fastest on each platform (`python -m experiments.benchmark`). On a mesh, each
 device applies the banks of its own share of the batch (`gld.sharding.on_batch_shards`).
+The formulations are built from the pieces of `gld.models.convolutions`.
 """
 
 from __future__ import annotations
@@ -22,9 +23,18 @@ import jax.numpy as jnp
 from jax import lax
 
 from gld.models import layers
+from gld.models.convolutions import (
+    conv,
+    conv_single,
+    conv_valid,
+    im2col_conv_single,
+    im2col_patches,
+    input_grad_conv,
+    leaky_relu_grad,
+    pad_same,
+    shifted_conv,
+)
 from gld.sharding import on_batch_shards
-
-_DIMENSION_NUMBERS = ("NHWC", "HWIO", "NHWC")
 
 
 class FilterBank(NamedTuple):
@@ -58,63 +68,6 @@ class SharedConv(NamedTuple):
 # applied to the last bank's output without an activation.
 
 
-def _conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
-    """Plain conv of a batch with one shared kernel: [N, H, W, C_in] x [k, k, C_in, C_out]."""
-    return lax.conv_general_dilated(
-        inputs, kernel, (1, 1), "SAME", dimension_numbers=_DIMENSION_NUMBERS
-    )
-
-
-def _conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
-    """One example: [H, W, C_in] x [k, k, C_in, C_out] -> [H, W, C_out]."""
-    return _conv(image[None], kernel)[0]
-
-
-def _pad_same(images: jax.Array, kernel_size: int) -> jax.Array:
-    """Zero-pads the two spatial axes (the third- and second-last) for a 'SAME' conv."""
-    pad = kernel_size // 2
-    widths = [(0, 0)] * (images.ndim - 3) + [(pad, pad), (pad, pad), (0, 0)]
-    return jnp.pad(images, widths)
-
-
-def _shifted_conv(images: jax.Array, kernels: jax.Array) -> jax.Array:
-    """Per-example conv as a sum of k*k shifted batched matmuls (no patch tensor).
-
-    images: [B, H, W, C_in]; kernels: [B, k, k, C_in, C_out] -> [B, H, W, C_out].
-    """
-    kernel_size = kernels.shape[1]
-    height, width = images.shape[1:3]
-    padded = _pad_same(images, kernel_size)
-    out = None
-    for dy in range(kernel_size):
-        for dx in range(kernel_size):
-            view = padded[:, dy : dy + height, dx : dx + width, :]
-            term = jnp.einsum("bhwc,bcd->bhwd", view, kernels[:, dy, dx])
-            out = term if out is None else out + term
-    return out
-
-
-def _patches(image: jax.Array, kernel_size: int) -> jax.Array:
-    """im2col of one example: [H, W, C] -> [H, W, k*k*C] ordered (dy, dx, c) like HWIO."""
-    height, width = image.shape[:2]
-    padded = _pad_same(image, kernel_size)
-    return jnp.concatenate(
-        [
-            padded[dy : dy + height, dx : dx + width, :]
-            for dy in range(kernel_size)
-            for dx in range(kernel_size)
-        ],
-        axis=-1,
-    )
-
-
-def _im2col_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
-    """One example as im2col + matmul: [H, W, C_in] x [k, k, C_in, C_out]."""
-    kernel_size, _, c_in, c_out = kernel.shape
-    patches = _patches(image, kernel_size)
-    return patches @ kernel.reshape(kernel_size * kernel_size * c_in, c_out)
-
-
 def _apply_stack(
     conv: Callable[[jax.Array, jax.Array], jax.Array],
     filter_banks: Sequence[FilterBank],
@@ -134,7 +87,7 @@ def _with_head(formulation):
 
     def with_head(filter_banks, inputs, negative_slope, head):
         outputs = formulation(filter_banks, inputs, negative_slope)
-        return outputs if head is None else _conv(outputs, head.kernel) + head.bias
+        return outputs if head is None else conv(outputs, head.kernel) + head.bias
 
     with_head.__doc__ = formulation.__doc__
     return with_head
@@ -143,7 +96,7 @@ def _with_head(formulation):
 @_with_head
 def _vmap_formulation(filter_banks, inputs, negative_slope):
     """The design's reference: `jax.vmap` over `lax.conv_general_dilated`."""
-    return _apply_stack(jax.vmap(_conv_single), filter_banks, inputs, negative_slope)
+    return _apply_stack(jax.vmap(conv_single), filter_banks, inputs, negative_slope)
 
 
 def _mapped_stack(conv_single: Callable[[jax.Array, jax.Array], jax.Array]):
@@ -164,7 +117,7 @@ def _mapped_stack(conv_single: Callable[[jax.Array, jax.Array], jax.Array]):
 @_with_head
 def _shifted_formulation(filter_banks, inputs, negative_slope):
     """Whole batch at once, each conv a sum of k*k shifted batched matmuls."""
-    return _apply_stack(_shifted_conv, filter_banks, inputs, negative_slope)
+    return _apply_stack(shifted_conv, filter_banks, inputs, negative_slope)
 
 
 # --- Custom VJP of the whole stack: per-example forward, matmul gradients. ----------
@@ -200,7 +153,7 @@ def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     """
     kernel_size = kernel.shape[0]
     height, width = image.shape[:2]
-    padded = _pad_same(image, kernel_size)
+    padded = pad_same(image, kernel_size)
     taps = [
         jnp.einsum("hwc,hwd->cd", padded[dy : dy + height, dx : dx + width, :], cotangent)
         for dy in range(kernel_size)
@@ -211,7 +164,7 @@ def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
 
 def _kernel_grad_im2col(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """NHWC kernel gradient as one matmul: patches [HW, k*k*C_in]^T @ cotangent [HW, C_out]."""
-    patches = _patches(image, kernel.shape[0])
+    patches = im2col_patches(image, kernel.shape[0])
     return jnp.einsum("hwp,hwd->pd", patches, cotangent).reshape(kernel.shape)
 
 
@@ -230,33 +183,22 @@ def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     if c_in <= c_out:
         padded = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)))
         lhs = padded.transpose(2, 0, 1)[..., None]  # [C_in, H + 2p, W + 2p, 1]
-        out = _conv_valid(lhs, cotangent[:, :, None, :])  # [C_in, k, k, C_out]
+        out = conv_valid(lhs, cotangent[:, :, None, :])  # [C_in, k, k, C_out]
         return out.transpose(1, 2, 0, 3)
     # Correlating the padded cotangent with the image gives the flipped gradient.
     padded = jnp.pad(cotangent, ((pad, pad), (pad, pad), (0, 0)))
     lhs = padded.transpose(2, 0, 1)[..., None]  # [C_out, H + 2p, W + 2p, 1]
-    out = _conv_valid(lhs, image[:, :, None, :])  # [C_out, k, k, C_in]
+    out = conv_valid(lhs, image[:, :, None, :])  # [C_out, k, k, C_in]
     return jnp.flip(out.transpose(1, 2, 3, 0), (0, 1))
-
-
-def _conv_valid(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
-    return lax.conv_general_dilated(
-        inputs, kernel, (1, 1), "VALID", dimension_numbers=_DIMENSION_NUMBERS
-    )
-
-
-def _input_grad_conv(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
-    """NHWC input gradient: conv with the flipped, io-transposed kernel."""
-    return _conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
 
 
 def _nhwc_backend(kernel_grad) -> _StackBackend:
     return _StackBackend(
         to_layout=lambda x: x,
         from_layout=lambda x: x,
-        forward=lambda image, kernel, bias: _conv_single(image, kernel) + bias,
+        forward=lambda image, kernel, bias: conv_single(image, kernel) + bias,
         kernel_grad=kernel_grad,
-        input_grad=_input_grad_conv,
+        input_grad=input_grad_conv,
         bias_grad=lambda cotangent: cotangent.sum((0, 1)),
     )
 
@@ -354,7 +296,7 @@ def _make_fused_stack(backend: _StackBackend, slopes: tuple[float | None, ...]):
                 pre_grad = (
                     cotangent
                     if slope is None
-                    else _leaky_relu_grad(outputs[index], cotangent, slope)
+                    else leaky_relu_grad(outputs[index], cotangent, slope)
                 )
                 kernel_grads.append(backend.kernel_grad(conv_inputs[index], pre_grad, kernel))
                 bias_grads.append(backend.bias_grad(pre_grad))
@@ -396,16 +338,11 @@ def _fused(backend: _StackBackend):
     return formulation
 
 
-def _leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float) -> jax.Array:
-    """Cotangent through LeakyReLU, read off its output (same sign as its input)."""
-    return jnp.where(activations > 0, cotangent, slope * cotangent)
-
-
 FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "vmap": _vmap_formulation,
     # lax.map over examples of the whole stack: plain convs, or im2col + one matmul each.
-    "map_conv": _mapped_stack(_conv_single),
-    "map_im2col": _mapped_stack(_im2col_conv_single),
+    "map_conv": _mapped_stack(conv_single),
+    "map_im2col": _mapped_stack(im2col_conv_single),
     "shifted": _shifted_formulation,
     # custom_vjp, lax.map of the stack: conv forward and input gradient; kernel gradient
     # as a plain conv with channels as batch ("fused"), as k*k per-tap matmuls over

@@ -1,0 +1,85 @@
+"""Convolution pieces the filter-bank formulations are built from: a batch with one
+kernel, one example, 'SAME' padding, im2col patches, shifted matmuls, the input
+gradient, and LeakyReLU's backward pass read off its output.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+DIMENSION_NUMBERS = ("NHWC", "HWIO", "NHWC")
+
+
+def conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
+    """Plain conv of a batch with one shared kernel: [N, H, W, C_in] x [k, k, C_in, C_out]."""
+    return lax.conv_general_dilated(
+        inputs, kernel, (1, 1), "SAME", dimension_numbers=DIMENSION_NUMBERS
+    )
+
+
+def conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
+    """One example: [H, W, C_in] x [k, k, C_in, C_out] -> [H, W, C_out]."""
+    return conv(image[None], kernel)[0]
+
+
+def pad_same(images: jax.Array, kernel_size: int) -> jax.Array:
+    """Zero-pads the two spatial axes (the third- and second-last) for a 'SAME' conv."""
+    pad = kernel_size // 2
+    widths = [(0, 0)] * (images.ndim - 3) + [(pad, pad), (pad, pad), (0, 0)]
+    return jnp.pad(images, widths)
+
+
+def shifted_conv(images: jax.Array, kernels: jax.Array) -> jax.Array:
+    """Per-example conv as a sum of k*k shifted batched matmuls (no patch tensor).
+
+    images: [B, H, W, C_in]; kernels: [B, k, k, C_in, C_out] -> [B, H, W, C_out].
+    """
+    kernel_size = kernels.shape[1]
+    height, width = images.shape[1:3]
+    padded = pad_same(images, kernel_size)
+    out = None
+    for dy in range(kernel_size):
+        for dx in range(kernel_size):
+            view = padded[:, dy : dy + height, dx : dx + width, :]
+            term = jnp.einsum("bhwc,bcd->bhwd", view, kernels[:, dy, dx])
+            out = term if out is None else out + term
+    return out
+
+
+def im2col_patches(image: jax.Array, kernel_size: int) -> jax.Array:
+    """im2col of one example: [H, W, C] -> [H, W, k*k*C] ordered (dy, dx, c) like HWIO."""
+    height, width = image.shape[:2]
+    padded = pad_same(image, kernel_size)
+    return jnp.concatenate(
+        [
+            padded[dy : dy + height, dx : dx + width, :]
+            for dy in range(kernel_size)
+            for dx in range(kernel_size)
+        ],
+        axis=-1,
+    )
+
+
+def im2col_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
+    """One example as im2col + matmul: [H, W, C_in] x [k, k, C_in, C_out]."""
+    kernel_size, _, c_in, c_out = kernel.shape
+    patches = im2col_patches(image, kernel_size)
+    return patches @ kernel.reshape(kernel_size * kernel_size * c_in, c_out)
+
+
+def conv_valid(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
+    return lax.conv_general_dilated(
+        inputs, kernel, (1, 1), "VALID", dimension_numbers=DIMENSION_NUMBERS
+    )
+
+
+def input_grad_conv(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC input gradient: conv with the flipped, io-transposed kernel."""
+    return conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
+
+
+def leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float) -> jax.Array:
+    """Cotangent through LeakyReLU, read off its output (same sign as its input)."""
+    return jnp.where(activations > 0, cotangent, slope * cotangent)
