@@ -532,7 +532,7 @@ def test_any_evaluation_batch_size_runs_on_any_number_of_devices(tiny_scenes_dir
 THREE_DEVICE_WORKDIR_SCRIPT = """
 import json, sys
 import data
-from gld.evaluation import evaluate as evaluation
+from gld.evaluation import trained_run
 builder = data.get_builder("gld_scenes/tiny", sys.argv[1])
 report = trained_run.evaluate_workdir(
     sys.argv[2], builder.as_data_source("test"), train_source=builder.as_data_source("train"),
