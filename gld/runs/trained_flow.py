@@ -21,19 +21,11 @@ import numpy as np
 
 from gld import flow as flow_lib
 from gld.images import as_unit_rgb
+from gld.models.flow_depth import check_flow_net_workdir
 from gld.models.flow_net import FlowNet
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import state as state_lib
 from gld.runs.flow_config import FLOW_CONFIG_FILE, FlowTrainConfig, make_flow_optimizer
-
-
-def check_flow_run(workdir: str | Path) -> None:
-    """Raises ValueError unless `workdir` holds a flow network's run."""
-    if not (Path(workdir).expanduser() / FLOW_CONFIG_FILE).is_file():
-        raise ValueError(
-            f"{workdir} holds no flow-network run (no {FLOW_CONFIG_FILE}); train one with "
-            "python -m experiments.train_flow"
-        )
 
 
 def load_flow_run(
@@ -114,7 +106,7 @@ def load_pretrained_flow(params: dict[str, Any], flow_net_workdir: str) -> tuple
 
     if not flow_net_workdir:
         return None
-    check_flow_run(flow_net_workdir)
+    check_flow_net_workdir(flow_net_workdir)
     network = TrainedFlowNet(Path(flow_net_workdir).expanduser())
     trained = network.variables["params"]
     expected = jax.tree.map(lambda leaf: leaf.shape, params["flow_net"])
