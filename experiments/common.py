@@ -1,4 +1,9 @@
-"""Flags and set-up shared by the launchers (train, evaluate, inspect_filters, compare)."""
+"""Flags and set-up shared by the launchers (train, evaluate, inspect_filters, compare).
+
+The flags of a run's options are made by `gld.options.define_flags` from the options'
+fields (`TrainConfig`, `GlobalLocal`, `FlowTrainConfig`, `FlowNet`); this module chooses
+which a launcher has.
+"""
 
 from __future__ import annotations
 
@@ -34,102 +39,49 @@ def define_flow_source_flag() -> None:
     )
 
 
-def _define(
-    name: str,
-    default: Any,
-    help_text: str,
-    choices: Sequence[str] | None,
-    at_least: float | None = None,
-    above: float | None = None,
-) -> None:
-    """One flag, typed by its choices or its default; a bound is checked when the
-    command line is parsed, so a bad value stops the launcher before it does anything."""
-    if choices:
-        flags.DEFINE_enum(name, default, list(choices), help_text)
-    elif isinstance(default, bool):
-        flags.DEFINE_bool(name, default, help_text)
-    elif isinstance(default, int):
-        flags.DEFINE_integer(name, default, help_text, lower_bound=at_least)
-    elif isinstance(default, float):
-        flags.DEFINE_float(name, default, help_text, lower_bound=at_least)
-    elif isinstance(default, list | tuple):
-        flags.DEFINE_list(name, [str(value) for value in default], help_text)
-    else:
-        flags.DEFINE_string(name, default, help_text)
-    if above is not None:
-        flags.register_validator(
-            name,
-            lambda value: value is None or value > above,
-            message=f"--{name} must be above {above}",
-        )
-
-
 def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> None:
-    """A flag for every option of `gld.runs.config.TrainConfig` (its help, choices and
-    default) but `exclude`; `defaults` replaces a default for this launcher (the main
-    job's recipe in `experiments.train`)."""
+    """A flag for every option of `gld.runs.config.TrainConfig` but `exclude`
+    (`gld.options.define_flags`); `defaults` replaces some defaults for this launcher
+    (the main job's recipe in `experiments.train`)."""
+    from gld import options
     from gld.runs import config
 
-    fields = [field for field in config.flag_fields() if field.name not in exclude]
-    unknown = sorted(set(defaults) - {field.name for field in fields})
-    if unknown:
-        raise ValueError(f"no TrainConfig option(s) {unknown} to give a default")
-    for field in fields:
-        default = defaults.get(field.name, field.default)
-        metadata = field.metadata
-        _define(
-            field.name,
-            default,
-            metadata["help"],
-            metadata["choices"],
-            at_least=metadata["at_least"],
-            above=metadata["above"],
-        )
+    fields = [
+        field for field in options.option_fields(config.TrainConfig) if field.name not in exclude
+    ]
+    options.define_flags(fields, defaults)
 
 
 def training_options() -> dict[str, Any]:
-    """The TrainConfig fields given by this launcher's training flags."""
+    """The TrainConfig options given by this launcher's training flags."""
+    from gld import options
     from gld.runs import config
 
-    return {
-        field.name: FLAGS[field.name].value for field in config.flag_fields() if field.name in FLAGS
-    }
+    return options.flag_values(options.option_fields(config.TrainConfig))
 
 
 def define_architecture_flags(**defaults: Any) -> None:
     """A flag for every architecture option of the global-local model
-    (`gld.models.registry.architecture_options`: its default, help and choices); `defaults` replace
-    the model's defaults of some options for this launcher (the main job's recipe)."""
-    from gld.models import registry
+    (`gld.options.define_flags`); `defaults` replace the model's defaults of some options
+    for this launcher (the main job's recipe)."""
+    from gld import options
+    from gld.models.global_local import GlobalLocal
 
-    options = registry.architecture_options()
-    unknown = sorted(set(defaults) - set(options))
-    if unknown:
-        raise ValueError(f"no architecture option(s) {unknown}; valid: {sorted(options)}")
-    for name, (default, help_text, choices) in options.items():
-        minimum = registry.ARCHITECTURE_MINIMA.get(name)
-        default = defaults.get(name, default)
-        _define(name, default, help_text, choices, at_least=None if choices else minimum)
+    options.define_flags(options.option_fields(GlobalLocal), defaults)
 
 
 def architecture_options() -> dict[str, Any]:
     """The global-local model's constructor arguments from the architecture flags (lists
-    as ints; an option left at None, like the speed-only formulation, is omitted)."""
+    as numbers; an option left at None, like the speed-only formulation, is omitted)."""
     from absl import app
 
-    from gld.models import registry
+    from gld import options
+    from gld.models.global_local import GlobalLocal
 
-    values = {}
-    for name, (default, _, _) in registry.architecture_options().items():
-        value = FLAGS[name].value
-        if isinstance(default, list | tuple):
-            try:
-                value = [int(item) for item in value]
-            except ValueError:
-                raise app.UsageError(f"--{name} must be integers, got {value}") from None
-        if value is not None:
-            values[name] = value
-    return values
+    try:
+        return options.flag_values(options.option_fields(GlobalLocal))
+    except ValueError as error:
+        raise app.UsageError(f"--{error}") from None
 
 
 def define_flow_net_flags() -> None:

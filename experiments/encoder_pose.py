@@ -19,34 +19,35 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
-from gld import files
+from gld import files, options
 from gld.analysis import encoder_pose
-from gld.models.global_encoder import ENCODER_NORMS
-from gld.runs.config import FLOW_SOURCES
+from gld.models.global_local import GlobalLocal
+from gld.runs.config import TrainConfig
 
 FLAGS = flags.FLAGS
 
-flags.DEFINE_integer("steps", 600, "Training steps.", lower_bound=1)
-flags.DEFINE_integer("batch_size", 16, "Training batch size.", lower_bound=1)
-flags.DEFINE_float("learning_rate", 1e-3, "Peak Adam rate.", lower_bound=0)
-flags.DEFINE_integer("warmup_steps", 50, "Linear warm-up steps.", lower_bound=0)
-flags.DEFINE_integer("seed", 0, "Seed of initialisation and data order.", lower_bound=0)
-flags.DEFINE_enum("encoder_norm", "none", list(ENCODER_NORMS), "Normalisation in the encoder.")
-flags.DEFINE_bool("use_image_pair", True, "Feed the image pair besides the flow.")
-flags.DEFINE_bool("encoder_coordinates", False, "Feed pixel coordinates (x, y) too.")
-flags.DEFINE_float("flow_scale", 10.0, "Factor on the normalised flow.", lower_bound=0)
+# The encoder's options and the training options this check reads, each the model's or
+# the trainer's option (its help and bounds), with this check's defaults.
+ENCODER_OPTIONS = ("encoder_norm", "use_image_pair", "encoder_coordinates", "flow_scale")
+TRAINING_OPTIONS = ("steps", "batch_size", "learning_rate", "warmup_steps", "seed", "flow_source")
+options.define_flags(
+    [field for field in options.option_fields(GlobalLocal) if field.name in ENCODER_OPTIONS]
+)
+options.define_flags(
+    [field for field in options.option_fields(TrainConfig) if field.name in TRAINING_OPTIONS],
+    {"steps": 600, "learning_rate": 1e-3, "warmup_steps": 50, "flow_source": "gt"},
+)
 flags.DEFINE_string("out", None, "JSON file for the errors (default: not written).")
-flags.DEFINE_enum("flow_source", "gt", list(FLOW_SOURCES), "Which flow the encoder is given.")
 common.define_data_flags()
 
 
 def main(argv):
     del argv
     common.initialise()
-    from gld.runs import options
+    from gld.runs import optimizer
 
     try:
-        options.check_schedule("cosine", FLAGS.warmup_steps, FLAGS.steps)
+        optimizer.check_schedule("cosine", FLAGS.warmup_steps, FLAGS.steps)
     except ValueError as error:
         raise app.UsageError(str(error)) from None
     builder = common.prepare_dataset()

@@ -102,8 +102,9 @@ common.define_distributed_flags()
 def main(argv):
     del argv
     common.initialise()
-    from gld.evaluation import trained_run
-    from gld.runs import workdir as workdir_lib
+    from data.demon import file_truth
+    from gld.arguments import ArgumentError
+    from gld.evaluation import evaluation_run
 
     if FLAGS.method and FLAGS.predictions:
         raise app.UsageError("give --method or --predictions, not both")
@@ -114,78 +115,28 @@ def main(argv):
             depth_scale=FLAGS.predictions_scale,
             png_depth_scale=FLAGS.png_depth_scale,
         )
-    if FLAGS.method or predictions:
-        if not FLAGS.dataset:
-            raise app.UsageError("--dataset is needed with --method or --predictions")
-        dataset = FLAGS.dataset
-    else:
-        config = workdir_lib.load_run_config(FLAGS.workdir)
-        dataset = FLAGS.dataset or config.dataset
-    truth = None
-    if FLAGS.truth_resolution == "file":
-        if not dataset.startswith("demon/"):
-            raise app.UsageError(
-                f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
-                f"by example id; {dataset} is not a demon/* dataset, its records are its "
-                f"only ground truth (use --truth_resolution=record)"
-            )
-        if not FLAGS.manual_dir:
-            raise app.UsageError(
-                "--truth_resolution=file needs --manual_dir: the folder of the DeMoN "
-                "files the dataset was built from"
-            )
-        from data.demon import file_truth
-
-        try:
-            truth = file_truth.FileTruth(FLAGS.manual_dir)
-        except FileNotFoundError as error:
-            raise app.UsageError(f"--manual_dir: {error}") from None
-    builder = common.prepare_dataset(dataset)
-    height, width = common.dataset_resolution(builder)
-    splits = builder.info.splits
-    if FLAGS.split not in splits:
-        raise app.UsageError(
-            f"--split={FLAGS.split}: {builder.info.full_name} has only {sorted(splits)}"
+    try:
+        evaluation_run.evaluate_split(
+            FLAGS.workdir,
+            prepare_dataset=common.prepare_dataset,
+            open_file_truth=file_truth.FileTruth,
+            dataset=FLAGS.dataset,
+            method=FLAGS.method,
+            predictions=predictions,
+            truth_resolution=FLAGS.truth_resolution,
+            manual_dir=FLAGS.manual_dir,
+            split=FLAGS.split,
+            batch_size=FLAGS.batch_size,
+            num_figures=FLAGS.num_figures,
+            max_examples=FLAGS.max_examples,
+            with_dataset_mean=FLAGS.dataset_mean,
+            with_oracle=FLAGS.oracle,
+            with_sfm_flow=FLAGS.sfm_flow,
+            step=FLAGS.step,
+            flow_source=FLAGS.flow_source,
         )
-    train_source = None
-    if "train" in splits:
-        train_source = common.data_source(builder, "train")
-    elif FLAGS.method == "dataset_mean":
-        raise app.UsageError(
-            f"--method=dataset_mean is fitted on the train split, which "
-            f"{builder.info.full_name} lacks"
-        )
-    else:
-        if FLAGS.dataset_mean:
-            print(f"{builder.info.full_name} has no training split: no dataset-mean row")
-        if FLAGS.sfm_flow or FLAGS.method == "sfm_flow":
-            print(
-                f"{builder.info.full_name} has no training split: sfm_flow's failed pairs "
-                f"are predicted as a fixed inverse depth, not the training mean"
-            )
-    trained_run.evaluate_workdir(
-        FLAGS.workdir,
-        common.data_source(builder, FLAGS.split),
-        train_source=train_source,
-        dataset=builder.info.full_name,
-        height=height,
-        width=width,
-        split=FLAGS.split,
-        print_fn=print,
-        num_figures=FLAGS.num_figures,
-        with_dataset_mean=FLAGS.dataset_mean,
-        with_oracle=FLAGS.oracle,
-        with_sfm_flow=FLAGS.sfm_flow,
-        batch_size=FLAGS.batch_size,
-        max_examples=FLAGS.max_examples,
-        step=FLAGS.step,
-        classical_method=FLAGS.method,
-        predictions=predictions,
-        flow_source=FLAGS.flow_source,
-        truth=truth,
-    )
-    if truth is not None:
-        truth.close()
+    except ArgumentError as error:
+        raise app.UsageError(str(error)) from None
 
 
 if __name__ == "__main__":

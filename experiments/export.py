@@ -26,7 +26,8 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from gld.inference.export import PLATFORMS, check_platforms
+from gld.inference import workdir_export
+from gld.inference.export_interface import PLATFORMS, check_platforms
 from gld.models.filter_banks import FORMULATIONS
 
 FLAGS = flags.FLAGS
@@ -63,9 +64,7 @@ def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
-    from gld.inference import export
-
-    metadata = export.export_workdir(
+    metadata = workdir_export.export_workdir(
         FLAGS.workdir,
         FLAGS.output,
         step=FLAGS.step,

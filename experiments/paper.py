@@ -31,12 +31,12 @@ from pathlib import Path
 from absl import app, flags
 
 from experiments import common
-from gld.paper import suite as paper_suite
+from gld.paper import scales as paper_scales
 
 FLAGS = flags.FLAGS
 
 flags.DEFINE_enum(
-    "suite", "cpu", list(paper_suite.SUITES), "Which scale to run (gld.paper.suite.SUITES)."
+    "suite", "cpu", list(paper_scales.SUITES), "Which scale to run (gld.paper.scales.SUITES)."
 )
 flags.DEFINE_string("workdir", None, "The training runs (default: runs/paper_<suite>).")
 flags.DEFINE_string(
@@ -63,18 +63,19 @@ def main(argv):
 
     from gld.paper import report as paper_report
     from gld.paper import runner as paper_runner
+    from gld.paper import training_runs as paper_training_runs
 
-    scale = paper_suite.SUITES[FLAGS.suite]
+    scale = paper_scales.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")
     report_dir = Path(
         FLAGS.report_dir or ("report" if scale.name == "cpu" else f"report/{scale.name}")
     )
 
-    def data(dataset: str) -> paper_runner.Data:
+    def data(dataset: str) -> paper_training_runs.Data:
         # Built between runs, after JAX has started: in this process.
         builder = common.prepare_dataset(dataset, parallel=False)
         height, width = common.dataset_resolution(builder)
-        return paper_runner.Data(
+        return paper_training_runs.Data(
             name=builder.info.full_name,
             train=common.data_source(builder, "train"),
             test=common.data_source(builder, "test"),

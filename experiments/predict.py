@@ -42,14 +42,9 @@ sees the truth); printed and, with `--output_dir`, written to scale_recovery.jso
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 from absl import app, flags
 
 from experiments import common
-from gld.inference import inputs
-from gld.inference import recordings as recording_lib
 
 FLAGS = flags.FLAGS
 
@@ -100,115 +95,8 @@ def _usage(flag: str, error: Exception) -> app.UsageError:
     return app.UsageError(f"--{flag}: {error}")
 
 
-def _frames():
-    """The frame source and the image paths (None for a video), checked."""
-    from data.demon import recordings
-
-    if bool(FLAGS.images) == bool(FLAGS.video):
-        raise app.UsageError("give exactly one of --images (a folder) or --video (a file)")
-    cache_size = FLAGS.batch_size + FLAGS.frame_gap + 2
-    if FLAGS.images:
-        try:
-            paths = recordings.list_images(Path(FLAGS.images).expanduser())
-        except FileNotFoundError as error:
-            raise _usage("images", error) from None
-        return recording_lib.ImageFolderFrames(paths, cache_size=cache_size), paths
-    try:
-        return recording_lib.VideoFrames(
-            Path(FLAGS.video).expanduser(), cache_size=cache_size
-        ), None
-    except (FileNotFoundError, ValueError) as error:
-        raise _usage("video", error) from None
-
-
-def _camera_poses(image_paths, names) -> object:
-    """[F, 4, 4] camera-to-world poses of the frames from the --poses trajectory."""
-    from data.demon import recordings
-
-    try:
-        timestamps, camera_to_world = recordings.read_tum_trajectory(Path(FLAGS.poses).expanduser())
-        indices = recordings.associate_poses(
-            image_paths or [Path(name) for name in names],
-            timestamps if image_paths else None,
-            len(camera_to_world),
-            FLAGS.max_time_difference,
-        )
-    except (FileNotFoundError, ValueError) as error:
-        raise _usage("poses", error) from None
-    return camera_to_world[indices]
-
-
-def _model_inputs() -> tuple[str, ...]:
-    """The inputs the workdir's model reads besides the images and flow (its
-    `extra_inputs`: a given pose, or the cameras), from its stored config."""
-    from gld.models import registry
-    from gld.runs import workdir as workdir_lib
-
-    try:
-        config = workdir_lib.load_run_config(FLAGS.workdir)
-    except (FileNotFoundError, ValueError) as error:
-        raise _usage("workdir", error) from None
-    return tuple(
-        getattr(registry.make_model(config.model, **config.model_config), "extra_inputs", ())
-    )
-
-
-def _measure_scale() -> None:
-    from gld import input_pipeline
-    from gld.inference import scale
-    from gld.inference.predict import DepthPredictor
-    from gld.runs import workdir as workdir_lib
-
-    try:
-        config = workdir_lib.load_run_config(FLAGS.workdir)
-    except FileNotFoundError as error:
-        raise _usage("workdir", error) from None
-    builder = common.prepare_dataset(FLAGS.dataset or config.dataset)
-    if "train" not in builder.info.splits or "test" not in builder.info.splits:
-        raise _usage("dataset", ValueError(f"{builder.info.full_name} needs train and test splits"))
-    decoders = input_pipeline.source_decoders()
-    test_source = builder.as_data_source("test", decoders=decoders)
-    train_source = builder.as_data_source("train", decoders=decoders)
-    predictor = DepthPredictor.from_workdir(FLAGS.workdir, step=FLAGS.step)
-    from tqdm import tqdm
-
-    total = len(test_source) if FLAGS.max_examples <= 0 else FLAGS.max_examples
-    with tqdm(total=min(total, len(test_source)), desc="scale", unit="pair") as bar:
-        result = scale.measure_scale_recovery(
-            lambda image1, image2, flow: predictor(image1, image2, flow),
-            test_source,
-            train_source,
-            seed=FLAGS.seed,
-            batch_size=FLAGS.batch_size,
-            max_examples=FLAGS.max_examples,
-            progress=lambda done: bar.update(done - bar.n),
-        )
-    table = scale.scale_table(result)
-    print(f"{builder.info.full_name}, workdir {FLAGS.workdir}\n{table}")
-    if FLAGS.output_dir:
-        out_dir = Path(FLAGS.output_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        stored = {
-            "dataset": builder.info.full_name,
-            "workdir": str(FLAGS.workdir),
-            "seed": FLAGS.seed,
-            **result,
-        }
-        (out_dir / "scale_recovery.json").write_text(json.dumps(stored, indent=2) + "\n")
-        (out_dir / "scale_recovery.md").write_text(table + "\n")
-
-
-def main(argv):
-    if len(argv) > 1:
-        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
-    common.initialise()
-    if FLAGS.measure_scale:
-        _measure_scale()
-        return
-    from data.demon import recordings
-    from gld.inference import predict
-    from gld.runs import workdir as workdir_lib
-
+def _check_flags() -> None:
+    """The flags on their own; what they name is checked by the library."""
     if not FLAGS.output_dir:
         raise app.UsageError("--output_dir is needed: where the depth files go")
     if FLAGS.batch_size < 1:
@@ -221,9 +109,7 @@ def main(argv):
         raise app.UsageError("give --ranges or --poses for the scale, not both")
     if not (FLAGS.range_scale > 0):
         raise _usage("range_scale", ValueError(f"must be > 0, got {FLAGS.range_scale}"))
-    metric = bool(FLAGS.ranges or FLAGS.poses)
-    depth_format = FLAGS.format or ("png" if metric else "npy")
-    if depth_format == "png" and not metric:
+    if _depth_format() == "png" and not (FLAGS.ranges or FLAGS.poses):
         raise app.UsageError(
             "--format=png writes millimetres and needs metric depth: give --ranges or "
             "--poses, or use --format=npy"
@@ -232,99 +118,65 @@ def main(argv):
         raise app.UsageError("--range_metric=ray_length needs --intrinsics")
     if FLAGS.ply and not FLAGS.intrinsics:
         raise app.UsageError("--ply needs --intrinsics (fx,fy,cx,cy in pixels, or a file)")
-    camera_matrix = None
-    if FLAGS.intrinsics:
-        try:
-            camera_matrix = recordings.read_intrinsics(FLAGS.intrinsics)
-        except ValueError as error:
-            raise _usage("intrinsics", error) from None
-    try:
-        workdir_lib.load_run_config(FLAGS.workdir)
-    except FileNotFoundError as error:
-        raise _usage("workdir", error) from None
 
-    frames, image_paths = _frames()
-    try:
-        first_frame = frames.read(0)
-        inputs.check_image(first_frame, f"frame {frames.names[0]}")
-    except ValueError as error:
-        raise _usage("images" if FLAGS.images else "video", error) from None
-    image_size = first_frame.shape[:2]
-    try:
-        if FLAGS.pairs:
-            pairs = recording_lib.read_pairs_file(Path(FLAGS.pairs).expanduser(), frames.names)
-        else:
-            pairs = recording_lib.frame_pairs(len(frames), FLAGS.frame_gap)
-    except (FileNotFoundError, ValueError) as error:
-        raise _usage("pairs" if FLAGS.pairs else "frame_gap", error) from None
-    ranges = camera_to_world = None
-    if FLAGS.ranges:
+
+def _depth_format() -> str:
+    return FLAGS.format or ("png" if FLAGS.ranges or FLAGS.poses else "npy")
+
+
+def main(argv):
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    common.initialise()
+    from data.demon import recordings
+    from gld.arguments import ArgumentError
+    from gld.inference import recording_run, scale_recovery
+
+    if FLAGS.measure_scale:
         try:
-            ranges = recording_lib.read_range_readings(
-                Path(FLAGS.ranges).expanduser(), frames.names, image_size, FLAGS.range_scale
+            scale_recovery.measure_workdir(
+                FLAGS.workdir,
+                prepare_dataset=common.prepare_dataset,
+                dataset=FLAGS.dataset,
+                step=FLAGS.step,
+                seed=FLAGS.seed,
+                batch_size=FLAGS.batch_size,
+                max_examples=FLAGS.max_examples,
+                output_dir=FLAGS.output_dir,
             )
-        except (FileNotFoundError, ValueError, OSError) as error:
-            raise _usage("ranges", error) from None
-        if FLAGS.range_metric == "ray_length":
-            from gld.inference import scale
-
-            for readings in ranges.values():
-                readings[:, 2] = scale.ray_length_to_depth(
-                    readings[:, :2], readings[:, 2], camera_matrix
-                )
-    if FLAGS.poses:
-        camera_to_world = _camera_poses(image_paths, frames.names)
-    from gld.models import global_local as model_lib
-
-    model_inputs = _model_inputs()
-    if model_inputs == model_lib.POSE_INPUTS and camera_to_world is None:
-        raise _usage(
-            "poses",
-            ValueError(
-                "the model was trained given the relative pose: give the recording's "
-                "odometry as a TUM trajectory"
-            ),
-        )
-    if set(model_inputs) - set(model_lib.POSE_INPUTS) and camera_matrix is None:
-        raise _usage(
-            "intrinsics",
-            ValueError(
-                "the model takes the camera motion from its flow's geometry, which needs the camera"
-            ),
-        )
+        except ArgumentError as error:
+            raise app.UsageError(str(error)) from None
+        return
+    _check_flags()
     try:
-        plan = recording_lib.plan_recording(
-            pairs,
-            ranges=ranges,
-            camera_to_world=camera_to_world,
-            min_baseline=FLAGS.min_baseline,
-        )
-    except ValueError as error:
-        raise _usage("ranges" if FLAGS.ranges else "poses", error) from None
-
-    from tqdm import tqdm
-
-    predictor = predict.DepthPredictor.from_workdir(
-        FLAGS.workdir, step=FLAGS.step, aspect=FLAGS.aspect
-    )
-    with tqdm(total=len(plan.pairs), desc="predict", unit="pair") as bar:
-        summary = recording_lib.predict_recording(
-            predictor,
-            frames,
-            plan,
-            Path(FLAGS.output_dir).expanduser(),
-            batch_size=FLAGS.batch_size,
-            depth_format=depth_format,
+        summary = recording_run.predict_recording_run(
+            FLAGS.workdir,
+            FLAGS.output_dir,
+            files=recordings,
+            images=FLAGS.images,
+            video=FLAGS.video,
+            step=FLAGS.step,
+            frame_gap=FLAGS.frame_gap,
+            pairs=FLAGS.pairs,
+            depth_format=_depth_format(),
             previews=FLAGS.previews,
-            camera_matrix=camera_matrix,
             ply=FLAGS.ply,
-            progress=bar.update,
+            intrinsics=FLAGS.intrinsics,
+            ranges=FLAGS.ranges,
+            range_scale=FLAGS.range_scale,
+            range_metric=FLAGS.range_metric,
+            poses=FLAGS.poses,
+            max_time_difference=FLAGS.max_time_difference,
+            min_baseline=FLAGS.min_baseline,
+            batch_size=FLAGS.batch_size,
+            aspect=FLAGS.aspect,
         )
-    frames.close()
+    except ArgumentError as error:
+        raise app.UsageError(str(error)) from None
     skipped = sum(summary["pairs_skipped"].values())
     print(
         f"{summary['pairs_written']} pair(s) written to {FLAGS.output_dir} "
-        f"({summary['units']}, {depth_format}); {skipped} skipped"
+        f"({summary['units']}, {_depth_format()}); {skipped} skipped"
         + "".join(
             f", {count} {reason}" for reason, count in summary["pairs_skipped"].items() if count
         )

@@ -13,8 +13,6 @@ same command resumes from the last checkpoint.
 
 from __future__ import annotations
 
-import dataclasses
-
 from absl import app, flags
 
 from experiments import common
@@ -30,34 +28,14 @@ flags.DEFINE_integer(
 
 
 def _define_flags() -> None:
-    """A flag for every option of FlowTrainConfig and every FlowNet argument, each with
-    its one default and help."""
-    from gld.models import flow_net
-    from gld.runs import flow_config
+    """A flag for every option of FlowTrainConfig and every FlowNet argument
+    (`gld.options.define_flags`), each with its one default and help."""
+    from gld import options
+    from gld.models.flow_net import FlowNet
+    from gld.runs.flow_config import FlowTrainConfig
 
-    for field in flow_config.flag_fields():
-        name, default, metadata = field.name, field.default, field.metadata
-        if metadata["choices"]:
-            flags.DEFINE_enum(name, default, list(metadata["choices"]), metadata["help"])
-        elif isinstance(default, bool):
-            flags.DEFINE_bool(name, default, metadata["help"])
-        elif isinstance(default, int):
-            flags.DEFINE_integer(name, default, metadata["help"], lower_bound=metadata["at_least"])
-        else:
-            flags.DEFINE_float(name, default, metadata["help"], lower_bound=metadata["at_least"])
-        if metadata["above"] is not None:
-            above = metadata["above"]
-            flags.register_validator(
-                name, lambda value, above=above: value > above, f"--{name} must be above {above}"
-            )
-    for field in dataclasses.fields(flow_net.FlowNet):
-        if field.name not in flow_net.ARCHITECTURE_HELP:
-            continue
-        help_text = flow_net.ARCHITECTURE_HELP[field.name]
-        if isinstance(field.default, tuple):
-            flags.DEFINE_list(field.name, [str(v) for v in field.default], help_text)
-        else:
-            flags.DEFINE_integer(field.name, field.default, help_text, lower_bound=1)
+    options.define_flags(options.option_fields(FlowTrainConfig))
+    options.define_flags(options.option_fields(FlowNet))
 
 
 _define_flags()
@@ -65,30 +43,26 @@ common.define_data_flags()
 
 
 def _architecture() -> dict:
-    from gld.models import flow_net
+    from gld import options
+    from gld.models.flow_net import FlowNet
 
-    values = {}
-    for name in flow_net.ARCHITECTURE_HELP:
-        value = FLAGS[name].value
-        if isinstance(value, list):
-            try:
-                value = [int(item) for item in value]
-            except ValueError:
-                raise app.UsageError(f"--{name} must be integers, got {value}") from None
-        values[name] = value
-    return values
+    try:
+        return options.flag_values(options.option_fields(FlowNet))
+    except ValueError as error:
+        raise app.UsageError(f"--{error}") from None
 
 
 def main(argv):
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
+    from gld import options as options_lib
     from gld.models import flow_net
     from gld.runs import flow_config
     from gld.training import flow_trainer as flow_training
 
     def make_config(**values):
-        options = {field.name: FLAGS[field.name].value for field in flow_config.flag_fields()}
+        options = options_lib.flag_values(options_lib.option_fields(flow_config.FlowTrainConfig))
         try:
             return flow_config.FlowTrainConfig(
                 **options, model_config=_architecture(), dataset=FLAGS.dataset, **values

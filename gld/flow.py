@@ -118,8 +118,9 @@ ESTIMATORS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
 
 # A trained flow network: "flow_net:<workdir of experiments.train_flow>".
 LEARNED_PREFIX = "flow_net:"
-# The file that marks a flow network's workdir (`gld.runs.flow_config.FLOW_CONFIG_FILE`).
-_FLOW_RUN_MARKER = "flow_config.json"
+# The file a flow network's run stores its config in, which marks its workdir
+# (written by `gld.training.flow_trainer`, read by `gld.runs.flow_config`).
+FLOW_CONFIG_FILE = "flow_config.json"
 
 
 def is_learned(method: str) -> bool:
@@ -134,10 +135,10 @@ def check_estimator(method: str) -> None:
         return
     if is_learned(method):
         workdir = Path(method[len(LEARNED_PREFIX) :]).expanduser()
-        if not (workdir / _FLOW_RUN_MARKER).is_file():
+        if not (workdir / FLOW_CONFIG_FILE).is_file():
             raise ValueError(
                 f"flow estimator {method!r}: {workdir} holds no flow-network run (no "
-                f"{_FLOW_RUN_MARKER}); train one with python -m experiments.train_flow"
+                f"{FLOW_CONFIG_FILE}); train one with python -m experiments.train_flow"
             )
         return
     raise ValueError(

@@ -38,7 +38,7 @@ def render_pair(rng: np.random.Generator, settings: SceneSettings) -> dict[str, 
       [3, 3], translation [3] float32 (X2 = R X1 + t, metres); gt_flow [H, W, 2]
       float32 pixels I1 -> I2 and gt_flow_valid [H, W] bool (lands inside view 2,
       in front of it and not occluded there); texture_kind1 [H, W] int8, the texture
-      kind of view 1's surface at each pixel (an index into `raycast.TEXTURES`; not
+      kind of view 1's surface at each pixel (an index into `textures.TEXTURES`; not
       stored in the records).
     """
     scene, camera1, camera2, image1, depth1, surface1 = scenes.sample_pair(rng, settings)

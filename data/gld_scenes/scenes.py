@@ -16,14 +16,14 @@ import numpy as np
 
 from gld import geometry
 
-from . import raycast
+from . import raycast, shapes, textures
 
 # DeMoN's nominal normalised intrinsics [fx/W, fy/H, cx/W, cy/H] (256x192 images).
 NOMINAL_INTRINSICS = (0.89115971, 1.18821287, 0.5, 0.5)
 
 SHAPES = ("box", "sphere", "cylinder")
 _NOISE_LATTICE = 8  # periodic value-noise lattice size per axis
-# The surface detail's largest relative change of the albedo (`raycast.SurfaceDetail`).
+# The surface detail's largest relative change of the albedo (`textures.SurfaceDetail`).
 DETAIL_CONTRAST = 1.0
 
 
@@ -46,7 +46,7 @@ class SceneSettings:
       min_objects, max_objects: number of objects drawn (inclusive); an object that
         would come too close to the first camera is dropped.
       surface_detail: every surface carries band-limited detail that flow can track
-        (`raycast.SurfaceDetail`); False renders the surfaces' textures alone (large
+        (`textures.SurfaceDetail`); False renders the surfaces' textures alone (large
         untextured areas). The detail draws nothing from the scene's generator, so
         geometry, poses, depth and true flow are the same either way.
     """
@@ -88,25 +88,25 @@ def _unit_vector(rng: np.random.Generator) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
 
-def surface_detail(color: np.ndarray, offset: np.ndarray) -> raycast.SurfaceDetail:
+def surface_detail(color: np.ndarray, offset: np.ndarray) -> textures.SurfaceDetail:
     """The detail of a material, seeded by its drawn colour and offset (so that adding it
     draws nothing from the scene's generator and leaves the rest of the scene as it was)."""
     seed = zlib.crc32(np.asarray(color, np.float32).tobytes() + np.asarray(offset).tobytes())
     rng = np.random.default_rng(seed)
-    octaves = len(raycast.DETAIL_SPACINGS)
-    return raycast.SurfaceDetail(
-        lattice=rng.uniform(0.0, 1.0, (raycast.DETAIL_LATTICE,) * 3).astype(np.float32),
-        octave_offsets=rng.uniform(0.0, raycast.DETAIL_LATTICE, (octaves, 3)).astype(np.float32),
+    octaves = len(textures.DETAIL_SPACINGS)
+    return textures.SurfaceDetail(
+        lattice=rng.uniform(0.0, 1.0, (textures.DETAIL_LATTICE,) * 3).astype(np.float32),
+        octave_offsets=rng.uniform(0.0, textures.DETAIL_LATTICE, (octaves, 3)).astype(np.float32),
         contrast=DETAIL_CONTRAST,
     )
 
 
 def random_material(
     rng: np.random.Generator, texture_probabilities: np.ndarray, detail: bool = True
-) -> raycast.Material:
-    """A random solid texture; `texture_probabilities` [len(raycast.TEXTURES)] weights the
+) -> textures.Material:
+    """A random solid texture; `texture_probabilities` [len(textures.TEXTURES)] weights the
     kinds; `detail` adds its surface detail (`surface_detail`)."""
-    kind = raycast.TEXTURES[rng.choice(len(raycast.TEXTURES), p=texture_probabilities)]
+    kind = textures.TEXTURES[rng.choice(len(textures.TEXTURES), p=texture_probabilities)]
     color_a = _random_color(rng)
     color_b = _random_color(rng)
     # Keep patterned surfaces contrasted enough to be visibly patterned.
@@ -118,7 +118,7 @@ def random_material(
     )
     direction = _unit_vector(rng).astype(np.float32)
     offset = rng.uniform(0.0, 10.0, 3).astype(np.float32)
-    return raycast.Material(
+    return textures.Material(
         kind=kind,
         color_a=color_a,
         color_b=color_b,
@@ -218,7 +218,7 @@ def sample_scene(
             object_rotation = geometry.rotation_matrix(np.array([0.0, rng.uniform(0, np.pi), 0.0]))
         else:
             object_rotation = geometry.rotation_matrix(_unit_vector(rng) * rng.uniform(0, np.pi))
-        obj = raycast.SceneObject(
+        obj = shapes.SceneObject(
             shape=shape,
             center=np.zeros(3),
             rotation=object_rotation.astype(np.float32),

@@ -87,6 +87,7 @@ def measure_one(
     from gld.losses import supervised as losses
     from gld.models import registry
     from gld.runs import state as state_lib
+    from gld.runs.optimizer import make_optimizer
     from gld.training import trainer as train_lib
 
     config = {"filter_formulation": formulation} if formulation is not None else {}
@@ -113,7 +114,7 @@ def measure_one(
             "sparse_mask": jnp.asarray(sparse_mask),
         }
 
-    optimizer = state_lib.make_optimizer(1e-4)
+    optimizer = make_optimizer(1e-4)
     state = state_lib.create_train_state(model, optimizer, height, width, seed=0)
     params = state.params
     # Every collection (batch-norm statistics too), with the parameters swapped in.

@@ -19,8 +19,7 @@ from typing import Any
 from absl import app, flags
 
 import data
-from data.gld_scenes import gld_scenes_dataset_builder as builder_module
-from data.gld_scenes import renderer, scenes
+from data.gld_scenes import example_records, renderer, scene_configs, scenes
 from experiments.benchmarks import format_table
 from gld import flow
 
@@ -65,7 +64,7 @@ def run(
       `dis_ms`, and for the build `build_s`, `build_bytes`, `flow_epe_test`.
     """
     settings = scenes.SceneSettings(height=height, width=width)
-    config = builder_module.SceneConfig(name="benchmark", height=height, width=width)
+    config = scene_configs.SceneConfig(name="benchmark", height=height, width=width)
     results: dict[str, Any] = {"height": height, "width": width, "num_pairs": num_pairs}
 
     renderer.render_pair(renderer.example_rng(0, "warmup", 0), settings)
@@ -79,14 +78,14 @@ def run(
     tasks = [(config, "bench", index) for index in range(num_pairs)]
     for count in workers:
         if count == 1:
-            wall, cpu = _timed(lambda index: builder_module._render_record(tasks[index]), num_pairs)
+            wall, cpu = _timed(lambda index: example_records.render_record(tasks[index]), num_pairs)
             results["dis_pairs_per_s_w1"] = num_pairs / wall
             results["dis_pairs_per_cpu_s_w1"] = num_pairs / cpu
         else:
             with multiprocessing.get_context("fork").Pool(count) as pool:
-                pool.map(builder_module._render_record, tasks[:count])  # start the workers
+                pool.map(example_records.render_record, tasks[:count])  # start the workers
                 wall = time.perf_counter()
-                list(pool.imap(builder_module._render_record, tasks, chunksize=4))
+                list(pool.imap(example_records.render_record, tasks, chunksize=4))
                 results[f"dis_pairs_per_s_w{count}"] = num_pairs / (time.perf_counter() - wall)
 
     example = renderer.render_pair(renderer.example_rng(0, "bench", 0), settings)

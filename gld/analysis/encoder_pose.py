@@ -27,7 +27,7 @@ from gld.analysis.probes import PoseMLP, pose_errors, rotation_vector
 from gld.models import global_local as model_lib
 from gld.models import layers
 from gld.models.global_encoder import GlobalEncoder
-from gld.runs import state
+from gld.runs.optimizer import make_optimizer
 
 # Options of the probe's global encoder that must match a trained model's for its
 # parameters to fit and see the inputs it was trained on (`pretrained_global_encoder`).
@@ -136,7 +136,7 @@ def _pose_probe_fitter(
     encoder_norm: str = "none",
     use_image_pair: bool = True,
     encoder_coordinates: bool = False,
-    flow_scale: float = 10.0,
+    flow_scale: float = layers.FLOW_SCALE,
     flow_source: str = "gt",
     batch_size: int = 16,
     learning_rate: float = 1e-3,
@@ -178,9 +178,7 @@ def _pose_probe_fitter(
         standardised = (global_params - statistics["mean"]) / statistics["std"]
         return head.apply({"params": params["head"]}, standardised)
 
-    optimizer = state.make_optimizer(
-        learning_rate, "cosine", steps=steps, warmup_steps=warmup_steps
-    )
+    optimizer = make_optimizer(learning_rate, "cosine", steps=steps, warmup_steps=warmup_steps)
     encode = jax.jit(encoder.apply)
     forward = jax.jit(predict)
 
@@ -292,7 +290,7 @@ def fit_pose_probe(
     initialisation; the MLP always starts from a random one. Both are trained (or the
     MLP alone, with `train_encoder=False`) on augmented training batches, on the L1
     error of [10 x the rotation vector, the translation direction], with Adam, warm-up
-    and cosine decay (`gld.runs.state.make_optimizer`, as the trainers). The test pairs are
+    and cosine decay (`gld.runs.optimizer.make_optimizer`, as the trainers). The test pairs are
     scored in degrees.
 
     With `standardise_global_params`, the MLP reads g standardised per dimension with
@@ -416,7 +414,7 @@ def train_encoder_on_pose(
     use_image_pair: bool = True,
     encoder_coordinates: bool = False,
     flow_source: str = "gt",
-    flow_scale: float = 10.0,
+    flow_scale: float = layers.FLOW_SCALE,
     batch_size: int = 16,
     learning_rate: float = 1e-3,
     warmup_steps: int = 50,

@@ -37,7 +37,7 @@ from gld.models.global_local import GlobalLocal
 HEAD_CHANNELS = (32, 16, 1)
 # The head sees the flow in tenths of the image size, as the global-local model
 # (its `flow_scale` default).
-HEAD_FLOW_SCALE = 10.0
+HEAD_FLOW_SCALE = layers.FLOW_SCALE
 
 
 def check_flow_net_workdir(flow_net_workdir: str) -> None:

@@ -27,20 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from gld.models.layers import leaky_relu
-
-# The help of every architecture option of `FlowNet` (the defaults are the module's);
-# launchers derive their flags from both.
-ARCHITECTURE_HELP = {
-    "feature_channels": "Channels of each feature-pyramid level, finest first; one level "
-    "per entry, each halving the resolution (inputs must be divisible by 2**levels).",
-    "estimator_channels": "Channels of the convolutions of each level's flow estimator.",
-    "context_channels": "Channels of the context network's dilated convolutions at the "
-    "finest estimated level (dilations 1, 2, 4, 8, ...); empty: no context network.",
-    "max_displacement": "Largest displacement (feature pixels) of the correlation cost "
-    "volume at each level: (2d + 1)**2 channels.",
-    "finest_level": "The finest level whose flow is estimated (1 = half resolution); "
-    "the output is its flow upsampled by 2**finest_level.",
-}
+from gld.options import option
 
 
 def check_architecture(
@@ -231,18 +218,41 @@ class FlowNet(nn.Module):
     """Coarse-to-fine flow: pyramid, warp, cost volume, estimator per level, context.
 
     Attributes:
-      feature_channels: channels per pyramid level, finest first (see ARCHITECTURE_HELP).
+      feature_channels: channels per pyramid level, finest first.
       estimator_channels: convolutions of each level's estimator.
       context_channels: the context network's convolutions (empty: none).
       max_displacement: the cost volume's reach per level, in that level's pixels.
       finest_level: the finest estimated level (1-based; 1 = half resolution).
     """
 
-    feature_channels: Sequence[int] = (16, 32, 48, 64)
-    estimator_channels: Sequence[int] = (48, 32, 16)
-    context_channels: Sequence[int] = (32, 32, 32, 16)
-    max_displacement: int = 4
-    finest_level: int = 2
+    feature_channels: Sequence[int] = option(
+        (16, 32, 48, 64),
+        "Channels of each feature-pyramid level, finest first; one level per entry, each "
+        "halving the resolution (inputs must be divisible by 2**levels).",
+        at_least=1,
+    )
+    estimator_channels: Sequence[int] = option(
+        (48, 32, 16), "Channels of the convolutions of each level's flow estimator.", at_least=1
+    )
+    context_channels: Sequence[int] = option(
+        (32, 32, 32, 16),
+        "Channels of the context network's dilated convolutions at the finest estimated "
+        "level (dilations 1, 2, 4, 8, ...); empty: no context network.",
+        at_least=1,
+        may_be_empty=True,
+    )
+    max_displacement: int = option(
+        4,
+        "Largest displacement (feature pixels) of the correlation cost volume at each "
+        "level: (2d + 1)**2 channels.",
+        at_least=1,
+    )
+    finest_level: int = option(
+        2,
+        "The finest level whose flow is estimated (1 = half resolution); the output is its "
+        "flow upsampled by 2**finest_level.",
+        at_least=1,
+    )
 
     @property
     def levels(self) -> int:

@@ -20,8 +20,8 @@ import numpy as np
 from gld import geometry, pose_refinement
 from gld.flow_pose import FLOW_POSE_KEYS
 from gld.models import layers
-from gld.models.filter_banks import SharedConv, apply_filter_banks
-from gld.models.global_encoder import GlobalEncoder
+from gld.models.filter_banks import FORMULATIONS, SharedConv, apply_filter_banks
+from gld.models.global_encoder import ENCODER_NORMS, GlobalEncoder
 from gld.models.global_pose import (  # noqa: F401  (POSE_ROTATION_SCALE: read as model.POSE_ROTATION_SCALE)
     POSE_ROTATION_SCALE,
     _unit,
@@ -29,6 +29,7 @@ from gld.models.global_pose import (  # noqa: F401  (POSE_ROTATION_SCALE: read a
     pose_parameters,
 )
 from gld.models.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
+from gld.options import option
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
@@ -143,26 +144,60 @@ class GlobalLocal(nn.Module):
         None picks the fastest for the platform.
     """
 
-    encoder_channels: Sequence[int] = (16, 32, 64, 128, 256)
-    encoder_strides: Sequence[int] = (2, 2, 2, 2, 1)
-    global_dim: int = 6
-    bank_channels: Sequence[int] = (20, 10, 20)
-    kernel_size: int = 3
-    use_image_pair: bool = True
-    use_coordinates: bool = True
-    use_global_module: bool = True
-    use_flow: bool = True
-    local_flow_units: str = "normalised"
-    flow_scale: float = 10.0
-    global_source: str = "encoder"
-    pose_rotation_error: float = 0.0
-    pose_translation_error: float = 0.0
-    encoder_norm: str = "none"
-    encoder_coordinates: bool = False
-    pose_refinement_steps: int = 0
-    global_norm: str = "none"
-    modulation_scale: float = MODULATION_SCALE
-    filter_formulation: str | None = None
+    encoder_channels: Sequence[int] = option(
+        (16, 32, 64, 128, 256), "Global encoder channels.", at_least=1
+    )
+    encoder_strides: Sequence[int] = option((2, 2, 2, 2, 1), "Global encoder strides.", at_least=1)
+    global_dim: int = option(6, "Size of the global parameter vector.", at_least=1)
+    bank_channels: Sequence[int] = option(
+        (20, 10, 20), "Output channels of the generated banks.", at_least=1
+    )
+    kernel_size: int = option(3, "Kernel size of generated filters and the final conv.", at_least=1)
+    use_image_pair: bool = option(True, "Ablation switch: image pair into the global module.")
+    use_coordinates: bool = option(True, "Ablation switch: CoordConv channels.")
+    use_global_module: bool = option(True, "Ablation switch: filters generated from g.")
+    use_flow: bool = option(True, "Ablation switch: optical flow as the local input.")
+    local_flow_units: str = option(
+        "normalised", "Units of the local network's flow.", LOCAL_FLOW_UNITS
+    )
+    flow_scale: float = option(
+        layers.FLOW_SCALE, "Factor on the normalised flow fed to both modules.", above=0
+    )
+    global_source: str = option(
+        "encoder",
+        "Where g comes from: the global encoder, the true relative pose (odometry), or the "
+        "essential matrix's pose from the input flow.",
+        GLOBAL_SOURCES,
+    )
+    pose_rotation_error: float = option(
+        0.0,
+        "With global_source=pose: the given rotation's error, degrees (0-180; fixed per "
+        "pair and augmented copy).",
+        at_least=0,
+        at_most=180,
+    )
+    pose_translation_error: float = option(
+        0.0,
+        "With global_source=pose: the given translation direction's error, degrees (0-180; "
+        "fixed per pair and augmented copy).",
+        at_least=0,
+        at_most=180,
+    )
+    encoder_norm: str = option("none", "Normalisation inside the global encoder.", ENCODER_NORMS)
+    encoder_coordinates: bool = option(False, "CoordConv channels (x, y) into the global encoder.")
+    pose_refinement_steps: int = option(
+        0,
+        "Gauss-Newton steps refining the encoder's pose on the flow's epipolar geometry into "
+        "g (0 = the encoder's output is g).",
+        at_least=0,
+    )
+    global_norm: str = option("none", "Normalisation of g.", GLOBAL_NORMS)
+    modulation_scale: float = option(
+        MODULATION_SCALE, "Initial modulation of the filters by g.", at_least=0
+    )
+    filter_formulation: str | None = option(
+        None, "apply_filter_banks formulation (default: the platform's).", tuple(FORMULATIONS)
+    )
 
     @property
     def local_in_channels(self) -> int:

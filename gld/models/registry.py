@@ -4,33 +4,23 @@
     values = registry.full_config("global_local", config)   # every argument, defaults in
 
 `MODELS` maps `--model` names to modules; `full_config` and `check_config` complete and
-check a model's options before anything is built, and `FIELDS_ADDED_LATER` completes a
+check a model's options before anything is built (each option's help, choices and bounds
+sit beside its field in the model, `gld.options`), and `FIELDS_ADDED_LATER` completes a
 stored config that predates an option with the value its run was trained with. The
-global-local model's options that launchers expose as flags are described here
-(`ARCHITECTURE_FLAGS`, `ARCHITECTURE_CHOICES`, `ARCHITECTURE_MINIMA`). The models
-themselves know nothing of the registry.
+models themselves know nothing of the registry.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-from typing import Any
 
 import flax.linen as nn
 import jax
 
 from gld.models import baselines
-from gld.models.filter_banks import FORMULATIONS
 from gld.models.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
-from gld.models.global_encoder import ENCODER_NORMS
-from gld.models.global_local import (
-    GIVEN_POSE_INPUTS,
-    GLOBAL_NORMS,
-    GLOBAL_SOURCES,
-    LOCAL_FLOW_UNITS,
-    GlobalLocal,
-)
+from gld.models.global_local import GIVEN_POSE_INPUTS, GlobalLocal
+from gld.options import check_options
 
 # Every learned depth network, by name (`--model`).
 MODELS: dict[str, type[nn.Module]] = {
@@ -40,52 +30,6 @@ MODELS: dict[str, type[nn.Module]] = {
     "global_local_flow_net": GlobalLocalFlowNet,
     "flow_net_head": FlowNetHead,
 }
-
-# Help of GlobalLocal's options that launchers expose as flags (`--<name>`); defaults
-# and types come from the class, choices from `ARCHITECTURE_CHOICES`.
-ARCHITECTURE_FLAGS = {
-    "encoder_channels": "Global encoder channels.",
-    "encoder_strides": "Global encoder strides.",
-    "global_dim": "Size of the global parameter vector.",
-    "bank_channels": "Output channels of the generated banks.",
-    "kernel_size": "Kernel size of generated filters and the final conv.",
-    "use_image_pair": "Ablation switch: image pair into the global module.",
-    "use_coordinates": "Ablation switch: CoordConv channels.",
-    "use_global_module": "Ablation switch: filters generated from g.",
-    "use_flow": "Ablation switch: optical flow as the local input.",
-    "local_flow_units": "Units of the local network's flow.",
-    "flow_scale": "Factor on the normalised flow fed to both modules.",
-    "global_source": "Where g comes from: the global encoder, the true relative pose "
-    "(odometry), or the essential matrix's pose from the input flow.",
-    "pose_rotation_error": "With global_source=pose: the given rotation's error, degrees "
-    "(0-180; fixed per pair and augmented copy).",
-    "pose_translation_error": "With global_source=pose: the given translation direction's "
-    "error, degrees (0-180; fixed per pair and augmented copy).",
-    "encoder_norm": "Normalisation inside the global encoder.",
-    "encoder_coordinates": "CoordConv channels (x, y) into the global encoder.",
-    "pose_refinement_steps": "Gauss-Newton steps refining the encoder's pose on the flow's "
-    "epipolar geometry into g (0 = the encoder's output is g).",
-    "global_norm": "Normalisation of g.",
-    "modulation_scale": "Initial modulation of the filters by g.",
-    "filter_formulation": "apply_filter_banks formulation (default: the platform's).",
-}
-ARCHITECTURE_CHOICES = {
-    "local_flow_units": LOCAL_FLOW_UNITS,
-    "encoder_norm": ENCODER_NORMS,
-    "global_norm": GLOBAL_NORMS,
-    "global_source": GLOBAL_SOURCES,
-    "filter_formulation": tuple(FORMULATIONS),
-}
-
-
-def architecture_options() -> dict[str, tuple[Any, str, tuple[str, ...] | None]]:
-    """name -> (default, help, choices) of every GlobalLocal option with a flag."""
-    defaults = {field.name: field.default for field in dataclasses.fields(GlobalLocal)}
-    return {
-        name: (defaults[name], help_text, ARCHITECTURE_CHOICES.get(name))
-        for name, help_text in ARCHITECTURE_FLAGS.items()
-    }
-
 
 # Architecture fields added after the first runs were written, with the value those
 # runs were trained with: a stored config without the field was trained with this.
@@ -133,20 +77,6 @@ def full_config(name: str, config: dict) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
 
 
-# Lowest sound value of GlobalLocal's numeric options (each item, for the lists).
-ARCHITECTURE_MINIMA: dict[str, float] = {
-    "encoder_channels": 1,
-    "encoder_strides": 1,
-    "global_dim": 1,
-    "bank_channels": 1,
-    "kernel_size": 1,
-    "modulation_scale": 0,
-    "pose_rotation_error": 0,
-    "pose_translation_error": 0,
-    "pose_refinement_steps": 0,
-}
-
-
 def check_config(name: str, config: dict) -> None:
     """Raises ValueError naming the first option of `config` a registered model cannot be
     built with: unknown, a choice or bound broken, lists of mismatched length."""
@@ -160,21 +90,8 @@ def check_config(name: str, config: dict) -> None:
             raise ValueError(f"global_local: {error}") from None
     if name != "global_local":
         return
-    for option, choices in ARCHITECTURE_CHOICES.items():
-        if values[option] is not None and values[option] not in choices:
-            raise ValueError(f"{option} must be one of {list(choices)}, got {values[option]!r}")
-    for option, minimum in ARCHITECTURE_MINIMA.items():
-        items = values[option] if isinstance(values[option], list) else [values[option]]
-        if not items or any(not item >= minimum for item in items):
-            each = " (every item)" if isinstance(values[option], list) else ""
-            raise ValueError(f"{option} must be at least {minimum}{each}, got {values[option]!r}")
-    if not (values["flow_scale"] > 0 and math.isfinite(values["flow_scale"])):
-        raise ValueError(f"flow_scale must be positive and finite, got {values['flow_scale']}")
+    check_options(GlobalLocal, values)
     for option in ("pose_rotation_error", "pose_translation_error"):
-        if not values[option] <= 180:
-            raise ValueError(
-                f"{option} must be an angle of at most 180 degrees, got {values[option]}"
-            )
         if values[option] and not (
             values["use_global_module"] and values["global_source"] == "pose"
         ):

@@ -1,4 +1,4 @@
-"""What each analysis of a paper suite computes (`gld.paper.runner` schedules them).
+"""What each analysis of a paper suite computes (`gld.paper.tasks` schedules them).
 
 Each function takes the suite's runner (its data, its trained runs, its results
 directory) and returns the analysis's result: the classical references, the pose probe
@@ -27,15 +27,17 @@ from gld.evaluation import flow_network, trained_run
 from gld.models import flow_net as flow_net_lib
 from gld.models.baselines import classical as classical_lib
 from gld.models.flow_net import FlowNet
+from gld.paper import run_configs
 from gld.paper import suite as paper_suite
+from gld.paper.scales import Scale
 from gld.runs import metrics_log
 
 
 class Runner(Protocol):
-    """What an analysis reads of the suite's runner (`gld.paper.runner.SuiteRunner`,
-    which calls the analyses)."""
+    """What an analysis reads of the suite's training runs
+    (`gld.paper.training_runs.TrainingRuns`; the suite's runner is one)."""
 
-    scale: paper_suite.Scale
+    scale: Scale
     results_dir: Path
     print: Callable[[str], None]
 
@@ -163,7 +165,7 @@ def pose_probe(runner: Runner) -> dict[str, Any]:
             steps=runner.scale.probe_steps,
             batch_size=runner.scale.batch_size,
             learning_rate=runner.scale.learning_rate,
-            warmup_steps=paper_suite.warmup_steps(runner.scale, runner.scale.probe_steps),
+            warmup_steps=run_configs.warmup_steps(runner.scale, runner.scale.probe_steps),
             flow_source=config.flow_source,
             seed=0,
             settings=(

@@ -1,23 +1,15 @@
 """The paper's experimental section as one list of runs: what each suite trains and scores.
 
-A suite (`SUITES`) is a scale — dataset, resolution, budget — and `suite_runs` gives its
-training runs: the main table's models at one pixel per image, the ablations, the
-supervision densities, the given flow and given pose, and the varying intrinsics. Every
-learned model of a suite gets the same pipeline, loss, optimiser, learning rate,
-schedule and budget, except the two large baselines (DispNet, FCRN), whose budget
-(`Scale.large_steps`) is the largest the suite's machine affords; the report says so.
+A suite (`gld.paper.scales.SUITES`) is a scale — dataset, resolution, budget — and
+`suite_runs` gives its training runs: the main table's models at one pixel per image,
+the ablations, the supervision densities, the given flow and given pose, and the varying
+intrinsics. Every learned model of the main table is also trained at a second, lower
+rate (`gld.paper.rate_check`: runs `<run>_low_lr`); the model's runs at the other
+densities and on the varying intrinsics train at the rate its check chose (`Run.rate_of`,
+`with_compared_rate`); the ablations, at the suite's rate (global-local's check chose it
+on the CPU suite).
 
-One shared rate could suit one model and starve another (Eigen's network collapses at
-the CPU suite's 1e-3, DispNet's too: the output saturates and the gradient vanishes), so
-every learned model of the main table is also trained at a second, lower rate
-(`Scale.check_learning_rate`, runs `<run>_low_lr`); the report shows both and compares
-each model at the rate with the lower training loss (`compared_run`; never chosen on the
-test split), and the over-fitting figure and the qualitative grid show that run. The
-model's runs at the other densities and on the varying intrinsics train at that rate too
-(`Run.rate_of`, `with_compared_rate`); the ablations, at the suite's rate (global-local's
-check chose it on the CPU suite).
-
-The global-local runs use the main job's recipe (`experiments/flags/demo.flags`): a
+The global-local runs use the main job's recipe (`gld.runs.recipe`): a
 global encoder with instance normalisation that sees the flow alone, and a global
 module that learns the motion: the epipolar term at 0.1, the classical pose teacher
 (`pose_teacher_weight`) and ten refinement steps of the encoder's pose on the flow
@@ -32,16 +24,17 @@ A suite with the further runs (`Scale.further`; all but cpu) adds the control of
 fixed pixel per image to the densities, and closes with the paper's remaining
 comparisons: the self-supervised baseline (Struct2Depth, with and without flow; no depth
 labels) in the main table and its learning-rate check, and the flow experiment. That
-one trains the learned flow network on the exact flow (`flow_net_config`), then the
-global-local model on its flow, the network fixed or fine-tuned with the sparse depth
-loss, and the network with a (32, 16, 1) conv head trained by the sparse loss alone;
-beside them the same model on the stored DIS flow. Every run of the flow experiment
-trains at the lower rate of the learning-rate check (fine-tuning the flow network at
-the CPU suite's 1e-3 collapsed) and without the epipolar term, the teacher and the
-refinement (they read the stored flow).
+one trains the learned flow network on the exact flow
+(`gld.paper.run_configs.flow_net_config`), then the global-local model on its flow, the
+network fixed or fine-tuned with the sparse depth loss, and the network with a
+(32, 16, 1) conv head trained by the sparse loss alone; beside them the same model on
+the stored DIS flow. Every run of the flow experiment trains at the lower rate of the
+learning-rate check (fine-tuning the flow network at the CPU suite's 1e-3 collapsed)
+and without the epipolar term, the teacher and the refinement (they read the stored
+flow).
 
-`run_config` turns a run into its `gld.runs.config.TrainConfig`; `gld.paper.runner` trains,
-reuses and scores them.
+`gld.paper.run_configs` turns a run into its `gld.runs.config.TrainConfig`;
+`gld.paper.runner` trains, reuses and scores them.
 """
 
 from __future__ import annotations
@@ -50,133 +43,12 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
+from gld.paper.rate_check import RATE_CHECKED, compared_run, low_rate_name
+from gld.paper.scales import DENSITIES, Scale
+from gld.runs import recipe
 
-from gld.runs import config, flow_config
-
-# The main job's recipe for the global-local model (experiments/flags/demo.flags): its
-# architecture, and the loss weights by which its global module learns the motion.
-MAIN_RECIPE = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
-MAIN_MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
-# The recipe for a model without an encoder's pose to refine, or without the flow.
-MAIN_RECIPE_WITHOUT_MOTION = {**MAIN_RECIPE, "pose_refinement_steps": 0}
 # The depth models that run the learned flow network (and start from the suite's).
 FLOW_NET_MODELS = ("global_local_flow_net", "flow_net_head")
-
-DENSITIES = (1, 4, 16, 64, 0)  # supervised pixels per image; 0 = dense
-LARGE_MODELS = ("dispnet", "fcrn")
-
-
-@dataclasses.dataclass(frozen=True)
-class Scale:
-    """A suite's data and budget.
-
-    Attributes:
-      name: the suite's name (`--suite`).
-      dataset, varying_dataset: TFDS names of the benchmark and of its varying-intrinsics
-        config.
-      steps: training steps of every learned model but the large ones.
-      large_steps: training steps of DispNet and FCRN.
-      batch_size, learning_rate: Adam's batch and peak rate (cosine decay to 1%).
-      check_learning_rate: the second peak rate of the main table's learning-rate check
-        (None: no check).
-      warmup_fraction: linear warm-up, as a fraction of a run's steps.
-      curve_evaluations: test evaluations over training of the runs of the over-fitting
-        figure (the main global-local run and the large baselines).
-      curve_examples: test pairs of those evaluations (0 = all).
-      probe_steps: training steps of each pose-probe setting.
-      flow_net_steps: training steps of the learned flow network (batch 8).
-      large_densities: the supervision densities DispNet is trained at.
-      global_local: extra options of every global-local run (e.g. a smaller encoder).
-      figure_pairs: test pairs of the qualitative grid.
-      further: the runs beyond the paper's main experiments: the one-fixed-pixel control
-        of the densities, the self-supervised baseline and the flow experiment.
-      hours: what the suite takes on the machine it was sized for, for the report.
-    """
-
-    name: str
-    dataset: str
-    varying_dataset: str
-    steps: int
-    large_steps: int
-    batch_size: int = 16
-    learning_rate: float = 1e-3
-    check_learning_rate: float | None = None
-    warmup_fraction: float = 0.05
-    curve_evaluations: int = 8
-    curve_examples: int = 0
-    probe_steps: int = 2000
-    flow_net_steps: int = 5000
-    large_densities: tuple[int, ...] = DENSITIES
-    global_local: dict[str, Any] = dataclasses.field(default_factory=dict)
-    figure_pairs: int = 4
-    further: bool = True
-    hours: str = ""
-
-
-SUITES: dict[str, Scale] = {
-    # The paper's main experiments in about 3 hours on the 2-core CPU machine at 128x96
-    # (step times: experiments.benchmark): half of cpu_full's budget, no further runs;
-    # DispNet and FCRN 60 steps, and the over-fitting curves on 50 test pairs (a DispNet
-    # evaluation of all 200 takes 40 s, as long as 7 of its steps).
-    "cpu": Scale(
-        name="cpu",
-        dataset="gld_scenes/small",
-        varying_dataset="gld_scenes/small_varying",
-        steps=1000,
-        large_steps=60,
-        check_learning_rate=3e-4,
-        curve_examples=50,
-        probe_steps=1000,
-        large_densities=(1, 0),
-        further=False,
-        hours="about 3 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
-    ),
-    # Every run at twice the cpu suite's budget, with the further runs: about 11 hours.
-    "cpu_full": Scale(
-        name="cpu_full",
-        dataset="gld_scenes/small",
-        varying_dataset="gld_scenes/small_varying",
-        steps=2000,
-        large_steps=150,
-        check_learning_rate=3e-4,
-        large_densities=(1, 0),
-        hours="about 11 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
-    ),
-    # The paper's scale: 256x192 and its 94K steps for every model, on a GPU or hosts.
-    "paper": Scale(
-        name="paper",
-        dataset="gld_scenes/full",
-        varying_dataset="gld_scenes/full_varying",
-        steps=94_000,
-        large_steps=94_000,
-        learning_rate=3e-4,
-        check_learning_rate=1e-4,
-        warmup_fraction=0.01,
-        curve_evaluations=20,
-        curve_examples=200,
-        probe_steps=20_000,
-        flow_net_steps=50_000,
-        hours="days on a CPU; about a day on one GPU",
-    ),
-    # A few steps on the tiny benchmark: the suite's machinery, not its numbers.
-    "tiny": Scale(
-        name="tiny",
-        dataset="gld_scenes/tiny",
-        varying_dataset="gld_scenes/tiny_varying",
-        steps=4,
-        large_steps=2,
-        batch_size=4,
-        check_learning_rate=3e-4,
-        curve_evaluations=2,
-        probe_steps=4,
-        flow_net_steps=4,
-        large_densities=(1, 0),
-        global_local={"encoder_channels": [4, 8, 8, 8, 8]},
-        figure_pairs=2,
-        hours="about a minute",
-    ),
-}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,20 +77,6 @@ class Run:
     rate_of: str | None = None
 
 
-def low_rate_name(name: str) -> str:
-    """The learning-rate check's run of a main-table run."""
-    return f"{name}_low_lr"
-
-
-RATE_CHECKED = (
-    "global_local_1px",
-    "small_encdec_1px",
-    "eigen_1px",
-    "dispnet_1px",
-    "fcrn_1px",
-    "struct2depth",
-    "struct2depth_flow",
-)
 # The flow experiment's runs: the model on the stored DIS flow, then on the network's.
 FLOW_EXPERIMENT = ("flow_dis", "flow_net_fixed", "flow_net_finetuned", "flow_net_head")
 
@@ -238,9 +96,9 @@ def density_name(gt_pixels: int) -> str:
 def _global_local(name: str, label: str, *, motion: bool = True, **kwargs) -> Run:
     """A global-local run of the main recipe; `motion=False` drops what teaches g the
     motion (the epipolar term, the pose teacher, the refinement)."""
-    recipe = MAIN_RECIPE if motion else MAIN_RECIPE_WITHOUT_MOTION
-    model_config = {**recipe, **kwargs.pop("model_config", {})}
-    options = {key: value if motion else 0.0 for key, value in MAIN_MOTION_WEIGHTS.items()}
+    architecture = recipe.ARCHITECTURE if motion else recipe.ARCHITECTURE_WITHOUT_MOTION
+    model_config = {**architecture, **kwargs.pop("model_config", {})}
+    options = {key: value if motion else 0.0 for key, value in recipe.MOTION_WEIGHTS.items()}
     options.update(kwargs.pop("options", {}))
     return Run(name, "global_local", label, options=options, model_config=model_config, **kwargs)
 
@@ -395,7 +253,7 @@ def suite_runs(scale: Scale) -> list[Run]:
                 f"global-local, flow network {label}",
                 options=rate,
                 model_config={
-                    "global_local": MAIN_RECIPE_WITHOUT_MOTION,
+                    "global_local": recipe.ARCHITECTURE_WITHOUT_MOTION,
                     "flow_trainable": trainable,
                 },
             )
@@ -425,74 +283,6 @@ def _rate_checks(scale: Scale, runs: list[Run]) -> list[Run]:
     ]
 
 
-# Training losses a run logs at least (one every 50 steps, more often in a shorter run):
-# the learning-rate check averages the last quarter of them, so a 150-step run is
-# compared on a dozen batches, not one.
-TRAINING_RECORDS = 40
-
-
-def training_loss(result: dict) -> float | None:
-    """A run's mean loss on its supervised training pixels (a self-supervised run's: its
-    photometric loss) over the last quarter of its logged steps (what the learning-rate
-    check compares; never the test split)."""
-    curves = result["curves"]
-    values = [value for _, value in curves["train"] or curves.get("loss", [])]
-    if not values:
-        return None
-    return float(np.mean(values[-max(1, len(values) // 4) :]))
-
-
-# A logged gradient norm below this fraction of the run's largest one has vanished. On
-# the cpu_full suite the learning runs keep a quarter of their records above 1e-2 of their
-# largest norm (FCRN the lowest, at 1e-2); a self-supervised run with every pixel out of
-# view sits at 3e-4 to 5e-4 of it, with a rare record of 5e-2 when a batch lands a
-# pixel back in view, and a saturated output at 0.
-VANISHED_GRADIENT = 1e-3
-
-
-def collapse(result: dict) -> tuple[int, int, int] | None:
-    """(first step, count, logged steps) of the vanished gradients of a run that
-    collapsed: its gradient norm is below `VANISHED_GRADIENT` of its largest logged one
-    at a quarter or more of its logged steps (a saturated output no longer learns). The
-    first step is the first whose norm has vanished against the largest one logged up to
-    it (an early step of a run whose gradient spiked later is small against the spike,
-    not vanished). None otherwise, or without a logged gradient."""
-    norms = result["curves"].get("grad_norm", [])
-    if not norms:
-        return None
-    so_far = np.maximum.accumulate([norm for _, norm in norms])
-    vanished = [step for step, norm in norms if norm <= VANISHED_GRADIENT * so_far[-1]]
-    if 4 * len(vanished) < len(norms):
-        return None
-    first = next(
-        step
-        for (step, norm), top in zip(norms, so_far, strict=True)
-        if norm <= VANISHED_GRADIENT * top
-    )
-    return int(first), len(vanished), len(norms)
-
-
-def compared_run(scale: Scale, name: str, result_of: Callable[[str], dict | None]) -> str | None:
-    """The run of a main-table model that the comparisons use: with a learning-rate
-    check, the one of its two rates with the lower training loss, unless that one
-    collapsed and the other did not (a collapsed self-supervised run can have the lower
-    photometric loss); None until both have finished. Else the run itself. `result_of`
-    gives a run's result by its name."""
-    candidates = rate_runs(scale, name)
-    if len(candidates) == 1:
-        return name
-    results = [result_of(n) for n in candidates]
-    if None in results:
-        return None
-    losses = [training_loss(r) for r in results]
-    if None in losses:
-        return None
-    collapsed = [collapse(r) is not None for r in results]
-    if collapsed.count(True) == 1:
-        return candidates[collapsed.index(False)]
-    return candidates[int(np.argmin(losses))]
-
-
 def with_compared_rate(
     scale: Scale, run: Run, result_of: Callable[[str], dict | None]
 ) -> Run | None:
@@ -508,78 +298,3 @@ def with_compared_rate(
     low = compared != run.rate_of
     rate = scale.check_learning_rate if low else scale.learning_rate
     return dataclasses.replace(run, options={**run.options, "learning_rate": rate})
-
-
-def rate_runs(scale: Scale, name: str) -> list[str]:
-    """The runs a model's comparisons may use: both rates of a checked model."""
-    if scale.check_learning_rate is None or name not in RATE_CHECKED:
-        return [name]
-    return [name, low_rate_name(name)]
-
-
-def run_steps(scale: Scale, run: Run) -> int:
-    """A run's training steps: the suite's, or the large models' budget."""
-    return scale.large_steps if run.model in LARGE_MODELS else scale.steps
-
-
-def warmup_steps(scale: Scale, steps: int) -> int:
-    """The linear warm-up of a run of `steps` (at least one step, and fewer than `steps`)."""
-    return max(1, round(steps * scale.warmup_fraction)) if steps > 1 else 0
-
-
-def run_config(scale: Scale, run: Run, *, height: int, width: int, flow_net_workdir: str = ""):
-    """The run's `gld.runs.config.TrainConfig` (validated); the models of `FLOW_NET_MODELS`
-    start from the flow network of `flow_net_workdir` (which the trainer checks: the
-    suite names it before the network is trained)."""
-
-    steps = run_steps(scale, run)
-    # A run's own options (an ablation's switch) win over the suite's.
-    model_config = {**(scale.global_local if run.model == "global_local" else {})}
-    model_config.update(run.model_config)
-    if run.model == "global_local_flow_net":
-        model_config["global_local"] = {**scale.global_local, **model_config["global_local"]}
-    options = {
-        "model": run.model,
-        "model_config": model_config,
-        "dataset": scale.varying_dataset if run.varying else scale.dataset,
-        "height": height,
-        "width": width,
-        "steps": steps,
-        "batch_size": scale.batch_size,
-        "learning_rate": scale.learning_rate,
-        "lr_schedule": "cosine",
-        "warmup_steps": warmup_steps(scale, steps),
-        "gt_pixels": 1,
-        "checkpoint_every": max(1, min(250, steps // 4)),
-        "log_every": max(1, min(50, steps // TRAINING_RECORDS)),
-        "eval_every": max(1, steps // scale.curve_evaluations) if run.curve else 0,
-        "eval_examples": scale.curve_examples if run.curve else 0,
-        "seed": 0,
-    }
-    options.update(run.options)
-    validated = config.TrainConfig(**options).validate()
-    if run.model in FLOW_NET_MODELS:
-        validated.model_config["flow_net_workdir"] = flow_net_workdir
-    return validated
-
-
-def flow_net_config(scale: Scale, *, height: int, width: int):
-    """The learned flow network's `gld.runs.flow_config.FlowTrainConfig` (validated): its own
-    recipe (`experiments/flags/flow/flow_net_small.flags`), trained on the exact flow of
-    the suite's training pairs."""
-
-    steps = scale.flow_net_steps
-    return flow_config.FlowTrainConfig(
-        dataset=scale.dataset,
-        height=height,
-        width=width,
-        steps=steps,
-        batch_size=8,
-        learning_rate=1e-3,
-        lr_schedule="cosine",
-        warmup_steps=max(1, round(steps * 0.02)) if steps > 1 else 0,
-        checkpoint_every=max(1, min(500, steps // 4)),
-        eval_every=max(1, steps // 5),
-        eval_examples=scale.curve_examples,
-        seed=0,
-    ).validate()

@@ -38,6 +38,17 @@ CHECKPOINTS_DIR = "checkpoints"
 CORRUPT_CHECKPOINTS_DIR = "corrupt_checkpoints"
 
 
+def last_checkpointed_step(workdir: str | Path) -> int:
+    """The newest checkpoint's step of a run's workdir (0 without one). Orbax names a
+    step's directory by its number once the step is written, so no manager is needed."""
+    steps = (
+        int(path.name)
+        for path in (Path(workdir) / CHECKPOINTS_DIR).glob("*")
+        if path.name.isdigit()
+    )
+    return max(steps, default=0)
+
+
 class CorruptCheckpointError(ValueError):
     """A checkpoint's files do not match what was saved, or no checkpoint is intact."""
 

@@ -1,11 +1,12 @@
 """A training run's configuration: one definition of every option, with its help text.
 
 `TrainConfig` is the single source: the launchers derive their command-line flags from
-its fields (`experiments.common.define_training_flags`), and a workdir's `config.json`
-stores it (`gld.runs.workdir`). A field's metadata holds the flag's help and choices; fields
-without help (the model's constructor arguments, the dataset and its resolution) are
-set by the launcher, not by a flag. Defaults are the paper's; a launcher may give its
-own (the main job's recipe in `experiments.train`).
+its fields (`gld.options.define_flags`), and a workdir's `config.json` stores it
+(`gld.runs.workdir`). A field's metadata holds the flag's help, choices and bounds;
+fields without help (the model's constructor arguments, the dataset and its resolution)
+are set by the launcher, not by a flag. The loop's and the optimiser's options are
+shared with the flow trainer (`gld.runs.trainer_options`). Defaults are the paper's; the
+main job's recipe is `gld.runs.recipe`.
 """
 
 from __future__ import annotations
@@ -13,35 +14,20 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import optax
-
 from gld.contract import FLOW_SOURCES
 from gld.losses import photometric
 from gld.losses import supervised as losses
 from gld.models import registry
-from gld.runs.options import (
-    LR_SCHEDULES,
-    LoopOptions,
-    check_option,
-    check_schedule,
-    option,
-)
-from gld.runs.state import make_optimizer
+from gld.options import option
+from gld.runs.trainer_options import TrainerOptions
 
 
 @dataclasses.dataclass
-class TrainConfig(LoopOptions):
+class TrainConfig(TrainerOptions):
     """A training run, as plain values."""
 
     model: str = option("global_local", "Learned model.", tuple(registry.MODELS))
     model_config: dict[str, Any] = dataclasses.field(default_factory=dict)
-    batch_size: int = option(16, "Global batch size, over all processes and devices.", at_least=1)
-    steps: int = option(94_000, "Training steps (the paper: 94000 at 256x192).", at_least=1)
-    learning_rate: float = option(1e-4, "Adam (peak) learning rate.", above=0)
-    lr_schedule: str = option(
-        "constant", "constant (the paper) or cosine (warm-up, then decay).", LR_SCHEDULES
-    )
-    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
     depth_weight: float = option(5.0, "Weight of the sparse L1 inverse-depth loss.", at_least=0)
     smoothness_weight: float = option(2.0, "Weight of the edge-aware smoothness loss.", at_least=0)
     epipolar_weight: float = option(
@@ -62,19 +48,11 @@ class TrainConfig(LoopOptions):
     gt_pixels: int = option(1, "Supervised pixels per image (1, 4, 16, 64); 0 = dense.", at_least=0)
     fixed_sparse_pixels: bool = option(False, "Keep the same supervised pixels every epoch.")
     flow_source: str = option("estimated", "Which flow the model is given.", FLOW_SOURCES)
-    augment: bool = option(True, "Rotate-180 / mirror-x augmentation.")
-    seed: int = option(0, "Seed of initialisation, data order, augmentation, sparsity.", at_least=0)
 
     def validate(self) -> TrainConfig:
         """Raises ValueError naming the first option whose value cannot give a sound run
         (a bound, a choice, the architecture, the schedule); returns the config."""
-        for field in flag_fields():
-            value = getattr(self, field.name)
-            check_option(field, value)
-        check_schedule(self.lr_schedule, self.warmup_steps, self.steps)
-        for name in ("height", "width"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        self.check()
         registry.check_config(self.model, self.model_config)
         for name in ("epipolar_weight", "pose_teacher_weight"):
             if getattr(self, name) > 0 and not infers_pose(self.model, self.model_config):
@@ -123,11 +101,6 @@ def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
     return bool(registry.full_config(model, model_config)["use_flow"])
 
 
-def flag_fields() -> list[dataclasses.Field]:
-    """The TrainConfig fields that are command-line options."""
-    return [field for field in dataclasses.fields(TrainConfig) if "help" in field.metadata]
-
-
 # Stored config keys renamed since the first workdirs were written: old name -> new.
 RENAMED_FIELDS = {"flow": "flow_source"}
 
@@ -141,13 +114,3 @@ def from_stored(values: dict[str, Any]) -> TrainConfig:
         values.get("model", "global_local"), values.get("model_config", {})
     )
     return TrainConfig(**values)
-
-
-def config_optimizer(config: TrainConfig) -> optax.GradientTransformation:
-    """The optimiser of a run."""
-    return make_optimizer(
-        config.learning_rate,
-        config.lr_schedule,
-        steps=config.steps,
-        warmup_steps=config.warmup_steps,
-    )

@@ -1,8 +1,8 @@
-"""The training state and its optimiser: what a checkpoint holds and how it is updated.
+"""The training state: what a checkpoint holds and how a fresh one is made.
 
 `TrainState` carries everything a run needs to continue exactly where it stopped;
 `create_train_state` makes a fresh one (initial parameters, Adam's state, step 0, the
-run's base key); `make_optimizer` is the paper's Adam with the run's schedule.
+run's base key); the optimiser is `gld.runs.optimizer`'s.
 """
 
 from __future__ import annotations
@@ -19,8 +19,6 @@ import optax
 from gld.models import global_local as model_lib
 from gld.models import layers
 from gld.models.flow_net import FlowNet, check_image_pair, init_params
-from gld.runs import options
-from gld.runs.options import LR_SCHEDULES
 
 
 @flax.struct.dataclass
@@ -80,36 +78,6 @@ def create_train_state(
         opt_state=optimizer.init(params),
         rng=jax.random.key_data(jax.random.key(seed + 1)),
     )
-
-
-def learning_rate_schedule(
-    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
-) -> optax.Schedule:
-    """The learning rate per step.
-
-    "constant" is the paper's. "cosine" rises linearly from 0 over `warmup_steps`, then
-    decays along a cosine to 1% of `learning_rate` at `steps`.
-    """
-    if schedule == "constant":
-        return optax.constant_schedule(learning_rate)
-    if schedule == "cosine":
-        options.check_schedule(schedule, warmup_steps, steps)
-        return optax.warmup_cosine_decay_schedule(
-            init_value=0.0,
-            peak_value=learning_rate,
-            warmup_steps=warmup_steps,
-            decay_steps=steps,
-            end_value=0.01 * learning_rate,
-        )
-    raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {schedule!r}")
-
-
-def make_optimizer(
-    learning_rate: float, schedule: str = "constant", *, steps: int = 0, warmup_steps: int = 0
-) -> optax.GradientTransformation:
-    """Adam (the paper's optimiser) with the given schedule; the rate is logged."""
-    rate = learning_rate_schedule(learning_rate, schedule, steps=steps, warmup_steps=warmup_steps)
-    return optax.inject_hyperparams(optax.adam)(learning_rate=rate)
 
 
 def create_flow_state(

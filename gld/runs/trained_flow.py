@@ -20,12 +20,13 @@ import jax
 import numpy as np
 
 from gld import flow as flow_lib
+from gld.flow import FLOW_CONFIG_FILE
 from gld.images import as_unit_rgb
 from gld.models.flow_depth import check_flow_net_workdir
 from gld.models.flow_net import FlowNet
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import state as state_lib
-from gld.runs.flow_config import FLOW_CONFIG_FILE, FlowTrainConfig, make_flow_optimizer
+from gld.runs.flow_config import FlowTrainConfig
 
 
 def load_flow_run(
@@ -42,7 +43,7 @@ def load_flow_run(
     model = config.make_model()
     template = state_lib.create_flow_state(
         model,
-        make_flow_optimizer(config),
+        config.optimizer(),
         config.height,
         config.width,
         config.seed,

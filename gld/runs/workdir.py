@@ -271,7 +271,7 @@ def restore_trained(
     workdir = Path(workdir)
     config = load_run_config(workdir)
     model = registry.make_model(config.model, **config.model_config)
-    optimizer = config_lib.config_optimizer(config)
+    optimizer = config.optimizer()
     # Shapes and dtypes are all a restore needs: building the real initial state would
     # compile every initialiser (seconds) only to be overwritten.
     template = jax.eval_shape(

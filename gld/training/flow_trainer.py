@@ -5,10 +5,10 @@ The loss is the end-point error (or PWC-Net's robust fine-tuning loss) against
 `gt_flow`, over `gt_flow_valid` pixels, at the output's full resolution plus, weighted
 by `pyramid_weight`, at every estimated level against the truth averaged over each
 level's pixel blocks (`flow_loss`). `make_flow_train_step` builds the pure step;
-`train_flow` runs it over a mesh of all devices (`gld.sharding`), resuming from and
-saving to a workdir with the depth trainer's verified orbax checkpoints
-(`gld.runs.checkpoints`: the `TrainState` and the grain iterator), and evaluates periodically
-and at the end with `gld.evaluation.flow_network`.
+`FlowRun` is what a flow run adds to the skeleton every trainer runs (`gld.training.loop`:
+over a mesh of all devices, resuming from and saving to a workdir with verified orbax
+checkpoints of the `TrainState` and the grain iterator), and `train_flow` runs it; it
+evaluates with `gld.evaluation.flow_network`.
 
 A flow run's workdir:
 
@@ -33,7 +33,6 @@ import optax
 from jax.sharding import Mesh
 
 from gld import files as files_lib
-from gld import input_pipeline, sharding
 from gld.evaluation import evaluate as evaluation
 from gld.evaluation.flow_network import (
     NETWORK,
@@ -41,14 +40,15 @@ from gld.evaluation.flow_network import (
     evaluate_flow,
     make_flow_eval_step,
 )
+from gld.flow import FLOW_CONFIG_FILE
 from gld.models.flow_net import (
     FlowNet,
     parameter_count,
 )
 from gld.runs import workdir as workdir_lib
-from gld.runs.flow_config import FLOW_CONFIG_FILE, LOSSES, FlowTrainConfig, make_flow_optimizer
+from gld.runs.flow_config import LOSSES, FlowTrainConfig
 from gld.runs.state import TrainState, create_flow_state
-from gld.training import trainer as train_lib
+from gld.training import loop
 
 # Keys of a training batch the step reads (the truth; no estimated flow).
 FLOW_TRAIN_KEYS = ("image1", "image2", "gt_flow", "gt_flow_valid")
@@ -147,7 +147,7 @@ def make_flow_train_step(
     """Builds the pure `train_step(state, batch, rng) -> (state, metrics)`.
 
     The batch holds FLOW_TRAIN_KEYS; `rng` is unused (the network has no randomness) and
-    kept so the step compiles like the depth trainer's (`gld.training.trainer.jit_train_step`).
+    kept so the step compiles like the depth trainer's (`gld.training.loop.jit_train_step`).
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
@@ -250,6 +250,90 @@ def write_flow_config(workdir: str | Path, config: FlowTrainConfig) -> None:
 # ---------------------------------------------------------------------------- training
 
 
+class FlowRun(loop.TrainingRun):
+    """A flow network's run in the trainers' skeleton (`gld.training.loop`)."""
+
+    config: FlowTrainConfig
+    description = "train flow"
+    postfix = "epe"
+
+    def make_model(self) -> FlowNet:
+        if not self.config.height or not self.config.width:
+            raise ValueError("config.height and config.width must be the dataset's resolution")
+        return self.config.make_model()
+
+    def check_workdir(self, workdir: Path) -> dict[str, tuple]:
+        return check_flow_workdir(workdir, self.config)
+
+    def fresh_state(
+        self,
+        model: FlowNet,
+        optimizer: optax.GradientTransformation,
+        workdir: Path,
+        print_fn: Callable[[str], None],
+    ) -> TrainState:
+        config = self.config
+        return create_flow_state(model, optimizer, config.height, config.width, config.seed)
+
+    def parameter_counts(self, state: TrainState) -> dict[str, int]:
+        return {"flow_net": parameter_count(state.params)}
+
+    def batch_keys(self, model: FlowNet) -> tuple[str, ...]:
+        return FLOW_TRAIN_KEYS
+
+    def data_options(self) -> dict[str, Any]:
+        return {"gt_pixels": 0, "flow_source": "gt"}
+
+    def train_step(self, model: FlowNet, optimizer: optax.GradientTransformation) -> Callable:
+        return make_flow_train_step(
+            model=model,
+            optimizer=optimizer,
+            loss=self.config.loss,
+            pyramid_weight=self.config.pyramid_weight,
+        )
+
+    def evaluation(self, model: FlowNet, mesh: Mesh, test_source) -> loop.Evaluation:
+        config = self.config
+        eval_step = evaluation.jit_eval_step(make_flow_eval_step(model=model), mesh)
+
+        def evaluate(state: TrainState) -> tuple[dict[str, float], str]:
+            _, _, summary = evaluate_flow(
+                model,
+                state.variables(),
+                test_source,
+                batch_size=config.eval_batch_size,
+                max_examples=config.eval_examples,
+                mesh=mesh,
+                eval_step=eval_step,
+            )
+            values = {
+                "epe": summary[NETWORK]["epe"],
+                "outliers": summary[NETWORK]["outliers"],
+                "dis_epe": summary[STORED_FLOW]["epe"],
+            }
+            message = (
+                f"test EPE {summary[NETWORK]['epe']:.3f} px "
+                f"(DIS {summary[STORED_FLOW]['epe']:.3f} px)"
+            )
+            return values, message
+
+        return evaluate
+
+    def begin(
+        self,
+        workdir: Path,
+        start_step: int,
+        changes: dict[str, tuple] | None,
+        print_fn: Callable[[str], None],
+    ) -> None:
+        """`flow_config.json`, with the options in force, before the first step."""
+        if changes:
+            print_fn(
+                f"options changed since the stored config: {workdir_lib.describe_changes(changes)}"
+            )
+        write_flow_config(workdir, self.config)
+
+
 def train_flow(
     config: FlowTrainConfig,
     workdir: str | Path,
@@ -260,7 +344,7 @@ def train_flow(
     print_fn: Callable[[str], None] = print,
 ) -> TrainState:
     """Trains the flow network (resuming from the workdir's newest intact checkpoint) and
-    evaluates it every `eval_every` steps on `test_source`.
+    evaluates it every `eval_every` steps on `test_source` (`gld.training.loop.train`).
 
     Everything is checked before anything is written: the options, the network, the
     workdir's stored config, the lock. `flow_config.json` is then written (with the
@@ -273,112 +357,8 @@ def train_flow(
       ValueError: a bad option, or a workdir holding another run (nothing is written).
       gld.runs.lock.WorkdirLockedError: another process trains in the workdir.
       gld.runs.checkpoints.CorruptCheckpointError: no checkpoint of the workdir is intact.
-      gld.training.trainer.NonFiniteLossError: the loss became NaN/inf (the step is named).
+      gld.training.loop.NonFiniteLossError: the loss became NaN/inf (the step is named).
     """
-    workdir = Path(workdir)
-    config.validate()
-    if not config.height or not config.width:
-        raise ValueError("config.height and config.width must be the dataset's resolution")
-    mesh = sharding.make_mesh()
-    local_batch = sharding.per_process_batch_size(config.batch_size, mesh)
-    model = config.make_model()
-    optimizer = make_flow_optimizer(config)
-    check_flow_workdir(workdir, config)
-    state = create_flow_state(model, optimizer, config.height, config.width, config.seed)
-    if jax.process_index() == 0:
-        print_fn(f"parameters flow_net: {parameter_count(state.params):,}")
-    dataset = input_pipeline.train_dataset(
-        train_source,
-        batch_size=local_batch,
-        seed=config.seed,
-        gt_pixels=0,
-        flow_source="gt",
-        augment=config.augment,
-        worker_count=config.worker_count,
-        keys=FLOW_TRAIN_KEYS,
-        process_index=jax.process_index(),
-        process_count=jax.process_count(),
-    )
-    iterator = iter(dataset)
-    with workdir_lib.held_run(
-        workdir, config.keep_checkpoints, lambda: check_flow_workdir(workdir, config)
-    ) as (changes, manager):
-        if changes:
-            print_fn(
-                f"options changed since the stored config: {workdir_lib.describe_changes(changes)}"
-            )
-        state = train_lib.resume(workdir, manager, state, iterator, print_fn)
-        write_flow_config(workdir, config)
-        return _train_loop(
-            config,
-            workdir,
-            state,
-            iterator,
-            manager,
-            model=model,
-            optimizer=optimizer,
-            mesh=mesh,
-            test_source=test_source,
-            progress=progress,
-            print_fn=print_fn,
-        )
-
-
-def _train_loop(
-    config: FlowTrainConfig,
-    workdir: Path,
-    state: TrainState,
-    iterator,
-    manager,
-    *,
-    model: FlowNet,
-    optimizer: optax.GradientTransformation,
-    mesh: Mesh,
-    test_source,
-    progress: bool,
-    print_fn: Callable[[str], None],
-) -> TrainState:
-    """The flow network's step and evaluation in the trainers' shared loop."""
-    eval_step = evaluation.jit_eval_step(make_flow_eval_step(model=model), mesh)
-
-    def evaluate(state: TrainState) -> tuple[dict[str, float], str]:
-        _, _, summary = evaluate_flow(
-            model,
-            state.variables(),
-            test_source,
-            batch_size=config.eval_batch_size,
-            max_examples=config.eval_examples,
-            mesh=mesh,
-            eval_step=eval_step,
-        )
-        values = {
-            "epe": summary[NETWORK]["epe"],
-            "outliers": summary[NETWORK]["outliers"],
-            "dis_epe": summary[STORED_FLOW]["epe"],
-        }
-        message = (
-            f"test EPE {summary[NETWORK]['epe']:.3f} px (DIS {summary[STORED_FLOW]['epe']:.3f} px)"
-        )
-        return values, message
-
-    train_step = make_flow_train_step(
-        model=model,
-        optimizer=optimizer,
-        loss=config.loss,
-        pyramid_weight=config.pyramid_weight,
-    )
-    return train_lib.run_loop(
-        state,
-        iterator,
-        manager,
-        workdir=workdir,
-        mesh=mesh,
-        train_step=train_step,
-        batch_keys=FLOW_TRAIN_KEYS,
-        schedule=config,
-        evaluate=evaluate if test_source is not None else None,
-        progress=progress,
-        description="train flow",
-        postfix="epe",
-        print_fn=print_fn,
+    return loop.train(
+        FlowRun(config), workdir, train_source, test_source, progress=progress, print_fn=print_fn
     )

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import data
+from data.gld_scenes import dataset_card, example_records, scenes, textures
 from data.gld_scenes import gld_scenes_dataset_builder as builder_module
-from data.gld_scenes import raycast, scenes
 from gld import geometry, records
 
 HEIGHT, WIDTH = 48, 64
@@ -64,7 +64,7 @@ def test_stored_records_equal_a_fresh_render(tiny_test_split):
     config = data.builder_class("gld_scenes").builder_configs["tiny"]
     for example in tiny_test_split[:3]:
         index = int(example["id"].rsplit("/", 1)[1])
-        _, fresh, _, _ = builder_module.render_example(config, "test", index)
+        _, fresh, _, _ = example_records.render_example(config, "test", index)
         for key in ("image1", "image2", "depth1", "depth2", "gt_flow", "gt_flow_valid"):
             np.testing.assert_array_equal(example[key], fresh[key], err_msg=key)
         np.testing.assert_array_equal(example["flow"], fresh["flow"].astype(np.float16))
@@ -96,9 +96,9 @@ def test_metadata_records_settings_and_flow_epe(tiny, tiny_test_split):
     assert metadata["generator"]["surface_detail"] is True
     assert metadata["texture"]["surface_detail"] is True
     assert metadata["texture"]["detail_contrast"] == scenes.DETAIL_CONTRAST
-    assert metadata["texture"]["kinds"] == list(raycast.TEXTURES)
-    assert builder_module.texture_card(False) == {
-        "kinds": list(raycast.TEXTURES),
+    assert metadata["texture"]["kinds"] == list(textures.TEXTURES)
+    assert dataset_card.texture_card(False) == {
+        "kinds": list(textures.TEXTURES),
         "surface_detail": False,
     }
     assert metadata["generator"]["width"] == WIDTH
@@ -130,7 +130,7 @@ def test_varying_configs_perturb_intrinsics():
     for name in ("tiny", "small", "full"):
         assert configs[name].intrinsics_jitter == 0.0
         assert configs[f"{name}_varying"].intrinsics_jitter == pytest.approx(0.2)
-    _, example, _, _ = builder_module.render_example(configs["tiny_varying"], "train", 0)
+    _, example, _, _ = example_records.render_example(configs["tiny_varying"], "train", 0)
     assert not np.allclose(example["intrinsics1"], example["intrinsics2"])
 
 
@@ -142,127 +142,6 @@ def test_unknown_config_lists_valid_ones():
 def test_bad_worker_count_raises(tmp_path):
     with pytest.raises(ValueError, match="workers"):
         builder_module.Builder(config="tiny", data_dir=str(tmp_path), workers=0)
-
-
-def _moving_pair(rotation, translation, seed=0):
-    """A hand-made example: random depth 2-6 m seen by a camera that moves by (R, t), its
-    exact flow and an estimate off by 0.5 px."""
-    rng = np.random.default_rng(seed)
-    depth = rng.uniform(2.0, 6.0, (HEIGHT, WIDTH))
-    intrinsics = np.array([0.9, 1.2, 0.5, 0.5])
-    camera_matrix = geometry.intrinsics_matrix(intrinsics, HEIGHT, WIDTH)
-    gt_flow, _ = geometry.depth_to_flow(depth, camera_matrix, camera_matrix, rotation, translation)
-    return {
-        "depth1": depth.astype(np.float32),
-        "flow": (gt_flow + 0.5).astype(np.float32),
-        "gt_flow": gt_flow.astype(np.float32),
-        "gt_flow_valid": np.ones((HEIGHT, WIDTH), bool),
-        "intrinsics1": intrinsics,
-        "intrinsics2": intrinsics,
-        "rotation": np.asarray(rotation, np.float64),
-        "translation": np.asarray(translation, np.float64),
-    }
-
-
-def test_signal_of_a_pure_translation_is_all_parallax():
-    example = _moving_pair(np.eye(3), np.array([0.3, 0.1, 0.05]))
-    signal = builder_module.signal_statistics(example)
-    magnitude = np.linalg.norm(example["gt_flow"], axis=-1)
-    assert signal["gt_flow_px_mean"] == pytest.approx(magnitude.mean(), rel=1e-6)
-    assert signal["gt_flow_px_median"] == pytest.approx(np.median(magnitude), rel=1e-6)
-    assert signal["translational_flow_px_mean"] == pytest.approx(magnitude.mean(), rel=1e-5)
-    assert signal["triangulation_abs_inv_gt_flow"] < 1e-5
-    assert signal["triangulation_abs_inv_estimated_flow"] > 100 * max(
-        signal["triangulation_abs_inv_gt_flow"], 1e-6
-    )
-
-
-def test_signal_scale_error_and_oracle_constant_by_hand():
-    example = _moving_pair(np.eye(3), np.array([0.3, 0.0, 0.0]))
-    true_inv_depth = 0.3 / example["depth1"].astype(np.float64)
-    oracle = np.abs(true_inv_depth - np.median(true_inv_depth)).mean()
-    exact = builder_module.signal_statistics({**example, "flow": example["gt_flow"]})
-    assert exact["triangulation_scale_log_error_estimated_flow"] == pytest.approx(0.0, abs=1e-4)
-    assert exact["oracle_constant_abs_inv"] == pytest.approx(oracle, rel=1e-6)
-    # A sideways translation: twice the flow is twice the parallax, so twice the inverse
-    # depth everywhere (log 2).
-    doubled = builder_module.signal_statistics({**example, "flow": 2.0 * example["gt_flow"]})
-    assert doubled["triangulation_scale_log_error_estimated_flow"] == pytest.approx(
-        np.log(2.0), abs=1e-3
-    )
-
-
-def test_signal_of_a_pure_rotation_has_no_parallax():
-    rotation = geometry.rotation_matrix(np.radians([1.0, 2.0, 0.5]))
-    example = _moving_pair(rotation, np.array([1e-9, 0.0, 0.0]))
-    signal = builder_module.signal_statistics(example)
-    assert signal["gt_flow_px_mean"] > 1.0
-    assert signal["translational_flow_px_mean"] < 1e-4
-    # No translation: the classical pipeline's pose (and so its values) may be undefined.
-    assert all(
-        np.isfinite(value) for name, value in signal.items() if not name.startswith("sfm_flow")
-    )
-
-
-def test_signal_scores_the_classical_pipeline_on_the_estimated_flow():
-    rotation = geometry.rotation_matrix(np.radians([1.0, -2.0, 0.5]))
-    example = _moving_pair(rotation, np.array([0.3, 0.1, 0.05]))
-    exact = builder_module.signal_statistics({**example, "flow": example["gt_flow"]})
-    assert exact["sfm_flow_failed"] == 0.0
-    assert exact["sfm_flow_rotation_deg"] < 0.05
-    assert exact["sfm_flow_translation_deg"] < 0.5
-    assert exact["sfm_flow_abs_inv"] < 1e-3
-    # A flow that is off by a constant half pixel gives a worse pose and depth.
-    shifted = builder_module.signal_statistics(example)
-    assert shifted["sfm_flow_translation_deg"] > 10 * exact["sfm_flow_translation_deg"]
-    assert shifted["sfm_flow_abs_inv"] > 10 * exact["sfm_flow_abs_inv"]
-    # No motion: no pose, counted as a failure and not scored.
-    still = builder_module.signal_statistics({**example, "flow": np.zeros_like(example["gt_flow"])})
-    assert still["sfm_flow_failed"] == 1.0
-    assert np.isnan(still["sfm_flow_abs_inv"]) and np.isnan(still["sfm_flow_rotation_deg"])
-
-
-def test_flow_error_by_texture_sums_each_kind_over_valid_pixels():
-    gt_flow = np.zeros((2, 3, 2), np.float32)
-    flow = gt_flow.copy()
-    flow[..., 0] = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
-    valid = np.array([[True, True, True], [True, True, False]])
-    kinds = np.array([[0, 0, 1], [1, 4, 4]])  # plain, plain, checker / checker, noise, noise
-    errors = builder_module.flow_error_by_texture(
-        {"flow": flow, "gt_flow": gt_flow, "gt_flow_valid": valid, "texture_kind1": kinds}
-    )
-    assert errors["plain"] == (3.0, 2)
-    assert errors["checker"] == (7.0, 2)
-    assert errors["noise"] == (5.0, 1)  # the invalid pixel is left out
-    assert errors["stripes"] == (0.0, 0)
-    summary = builder_module.summarise_texture_errors([errors, errors])
-    assert summary["plain"] == {"epe_px": 1.5, "pixel_share": 0.4}
-    assert summary["noise"] == {"epe_px": 5.0, "pixel_share": 0.2}
-    assert summary["stripes"] == {"epe_px": None, "pixel_share": 0.0}
-
-
-def test_signal_summary_counts_pairs_and_skips_pairs_without_flow():
-    per_pair = [
-        {"gt_flow_px_mean": 2.0, "gt_flow_px_median": 1.0, "triangulation_abs_inv_gt_flow": 0.1},
-        {"gt_flow_px_mean": 4.0, "gt_flow_px_median": 3.0, "triangulation_abs_inv_gt_flow": 0.2},
-        {"gt_flow_px_mean": 9.0, "gt_flow_px_median": 8.0, "triangulation_abs_inv_gt_flow": 0.6},
-        {
-            "gt_flow_px_mean": float("nan"),
-            "gt_flow_px_median": float("nan"),
-            "triangulation_abs_inv_gt_flow": 0.3,
-        },
-    ]
-    summary = builder_module.summarise_signal(per_pair, split_pairs=10)
-    assert summary["pairs"] == 4 and summary["split_pairs"] == 10
-    assert "first 4 of 10 pairs" in summary["note"]
-    assert summary["gt_flow_px_mean"] == pytest.approx(5.0)
-    assert summary["gt_flow_px_median"] == pytest.approx(3.0)  # median of 1, 3, 8
-    assert summary["triangulation_abs_inv_gt_flow"] == pytest.approx(0.3)
-    errors = builder_module.summarise_signal(
-        [{"scale_log_error": value} for value in (0.1, 0.3, 0.5)], split_pairs=3
-    )
-    assert errors["scale_log_error"] == pytest.approx(0.3)
-    assert errors["scale_log_error_std"] == pytest.approx(np.std([0.1, 0.3, 0.5]))
 
 
 def _by_hand_flow_signal(example) -> tuple[float, float, float]:
@@ -338,11 +217,11 @@ def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
     # error over every valid pixel of the split.
     by_texture = metadata["flow_epe_by_texture_test"]
     assert by_texture["pairs"] == 16
-    shares = [by_texture[kind]["pixel_share"] for kind in raycast.TEXTURES]
+    shares = [by_texture[kind]["pixel_share"] for kind in textures.TEXTURES]
     assert sum(shares) == pytest.approx(1.0)
     weighted = sum(
         by_texture[kind]["epe_px"] * by_texture[kind]["pixel_share"]
-        for kind in raycast.TEXTURES
+        for kind in textures.TEXTURES
         if by_texture[kind]["epe_px"] is not None
     )
     valid_errors = np.concatenate(
@@ -355,7 +234,7 @@ def test_card_records_the_signal_of_each_split(tiny, tiny_test_split):
 
 
 def test_card_signal_uses_the_first_card_pairs_of_a_split(tmp_path, monkeypatch):
-    monkeypatch.setattr(builder_module, "CARD_PAIRS", 2)
+    monkeypatch.setattr(dataset_card, "CARD_PAIRS", 2)
     config = data.builder_class("gld_scenes").builder_configs["tiny"]
     builder = builder_module.Builder(config=config, data_dir=str(tmp_path))
     list(builder._generate_examples("test", 3))
@@ -363,7 +242,7 @@ def test_card_signal_uses_the_first_card_pairs_of_a_split(tmp_path, monkeypatch)
     assert signal["pairs"] == 2 and signal["split_pairs"] == 3
     assert "first 2 of 3 pairs" in signal["note"]
     first_two = [
-        builder_module.signal_statistics(builder_module.render_example(config, "test", i)[1])
+        dataset_card.signal_statistics(example_records.render_example(config, "test", i)[1])
         for i in range(2)
     ]
     assert signal["gt_flow_px_mean"] == pytest.approx(

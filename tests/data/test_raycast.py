@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scene_pairs import HEIGHT, WIDTH, rendered_pairs
 
-from data.gld_scenes import raycast, scenes
+from data.gld_scenes import raycast, scenes, shapes, textures
 from gld import geometry
 
 
-def _plain(color=(0.5, 0.5, 0.5)) -> raycast.Material:
-    return raycast.Material(
+def _plain(color=(0.5, 0.5, 0.5)) -> textures.Material:
+    return textures.Material(
         kind="plain",
         color_a=np.asarray(color, np.float32),
         color_b=np.asarray(color, np.float32),
@@ -39,7 +39,7 @@ def _forward_camera(center, intrinsics=scenes.NOMINAL_INTRINSICS) -> raycast.Cam
 
 
 def _shape(shape, center, size):
-    return raycast.SceneObject(
+    return shapes.SceneObject(
         shape=shape,
         center=np.asarray(center, np.float32),
         rotation=np.eye(3, dtype=np.float32),
@@ -83,34 +83,9 @@ def test_screen_culling_matches_brute_force():
         np.testing.assert_allclose(culled_depth, depth, rtol=1e-6)
 
 
-def _detailed(material: raycast.Material) -> raycast.Material:
+def _detailed(material: textures.Material) -> textures.Material:
     return dataclasses.replace(
         material, detail=scenes.surface_detail(material.color_a, np.array([1.0, 2.0, 3.0]))
-    )
-
-
-def test_detail_fades_out_below_two_pixels_and_is_full_above_four():
-    detail = scenes.surface_detail(np.array([0.2, 0.4, 0.6]), np.zeros(3))
-    points = np.random.default_rng(0).uniform(0.0, 3.0, (2000, 3)).astype(np.float32)
-    finest = min(raycast.DETAIL_SPACINGS)
-    coarsest = max(raycast.DETAIL_SPACINGS)
-    # Every octave under two pixels: no detail at all.
-    blurred = detail.factor(points, np.full(len(points), coarsest / 1.9, np.float32))
-    np.testing.assert_array_equal(blurred, 1.0)
-    # Every octave over four pixels: the full pattern, within [1 - contrast, 1 + contrast].
-    sharp = detail.factor(points, np.full(len(points), finest / 4.1, np.float32))
-    assert sharp.std() > 0.1 * detail.contrast
-    assert np.all(np.abs(sharp - 1.0) <= detail.contrast)
-    # In between, only the coarse octaves remain: the pattern is smoother.
-    coarse_only = detail.factor(points, np.full(len(points), coarsest / 8.0, np.float32))
-    nearby = points + np.float32(finest / 2.0)
-    assert (
-        np.abs(
-            detail.factor(nearby, np.full(len(points), coarsest / 8.0, np.float32)) - coarse_only
-        ).mean()
-        < np.abs(
-            detail.factor(nearby, np.full(len(points), finest / 4.1, np.float32)) - sharp
-        ).mean()
     )
 
 
@@ -170,4 +145,4 @@ def test_texture_kinds_name_each_pixels_material():
         np.testing.assert_array_equal(kinds, example["texture_kind1"])
         materials = scene.room_materials + tuple(obj.material for obj in scene.objects)
         row, col = np.unravel_index(np.argmax(surface), surface.shape)
-        assert raycast.TEXTURES[kinds[row, col]] == materials[surface[row, col]].kind
+        assert textures.TEXTURES[kinds[row, col]] == materials[surface[row, col]].kind

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import launch
 
-from gld.inference import export
+from gld.inference import workdir_export
 from gld.inference.deploy import DeployedModel
 from gld.runs import workdir as workdir_lib
 
@@ -44,14 +44,14 @@ def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_p
     assert completed.returncode != 0
     assert "unknown platform(s) ['gpu']" in completed.stderr
     with pytest.raises(ValueError, match=r"no checkpoint of step 5 .* available: \[2\]"):
-        export.export_workdir(trained_workdir, output, step=5)
+        workdir_export.export_workdir(trained_workdir, output, step=5)
     with pytest.raises(ValueError, match="'vmap' needs a fixed batch size"):
-        export.export_workdir(trained_workdir, output, formulation="vmap")
+        workdir_export.export_workdir(trained_workdir, output, formulation="vmap")
     with pytest.raises(FileNotFoundError, match="config.json"):
-        export.export_workdir(tmp_path / "nowhere", output)
+        workdir_export.export_workdir(tmp_path / "nowhere", output)
     assert not output.exists()
     # A fixed batch for the GPU formulation is accepted (lowered here for CPU).
-    metadata = export.export_workdir(
+    metadata = workdir_export.export_workdir(
         trained_workdir, output, formulation="vmap", batch_size=1, step=2
     )
     assert metadata["batch_size"] == 1 and metadata["formulation"] == "vmap"

@@ -7,7 +7,9 @@ from absl import flags
 from conftest import REPO_ROOT, run_python
 
 import data
-from gld.models import registry
+from gld import options
+from gld.models.global_local import GlobalLocal
+from gld.runs import recipe
 
 FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags").glob("*.flags"))
 
@@ -110,9 +112,9 @@ def test_flow_flagfiles_parse_with_the_flow_trainer_and_document_themselves(path
 
 
 def test_the_trainers_architecture_defaults_are_the_models_but_the_main_jobs(train_flags):
-    main_job = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
-    for name, (default, _, _) in registry.architecture_options().items():
-        expected = main_job.get(name, default)
+    for field in options.option_fields(GlobalLocal):
+        name = field.name
+        expected = recipe.ARCHITECTURE.get(name, field.default)
         expected = [str(item) for item in expected] if isinstance(expected, tuple) else expected
         assert train_flags[name].default == expected, name
 
@@ -131,63 +133,17 @@ def test_the_demo_flagfile_is_what_the_trainer_does_without_flags(train_flags):
         train_flags.unparse_flags()
 
 
-def test_a_relaunch_takes_the_workdirs_architecture_for_options_no_flag_gives(
-    train_flags, tmp_path
-):
-    import json
-
-    from experiments import common
+def test_the_trainer_knows_which_options_the_command_line_gives(train_flags, tmp_path):
+    """What `gld.runs.recipe`'s run policy keeps: the flags given, from the command line
+    or a flagfile, and none of the defaults."""
     from experiments import train as train_launcher
 
-    architecture = {"model": "global_local", "encoder_norm": "none", "use_image_pair": True}
-    (tmp_path / "config.json").write_text(json.dumps({"architecture": architecture}))
-    for given, encoder_norm in (([], "none"), (["--encoder_norm=instance"], "instance")):
-        try:
-            train_flags(["train", f"--workdir={tmp_path}", *given])
-            options = common.model_options("global_local")
-            options = train_launcher._with_stored_architecture(options)
-        finally:
-            train_flags.unparse_flags()
-        assert options["encoder_norm"] == encoder_norm  # a flag given wins
-        assert options["use_image_pair"] is True  # the trainer's default is False
-        # An option the stored config predates reads as its run was trained.
-        assert options["flow_scale"] == registry.FIELDS_ADDED_LATER["global_local"]["flow_scale"]
-    # A new workdir takes the trainer's defaults.
+    flagfile = tmp_path / "run.flags"
+    flagfile.write_text("--pose_refinement_steps=3\n")
     try:
-        train_flags(["train", f"--workdir={tmp_path / 'new'}"])
-        options = train_launcher._with_stored_architecture(common.model_options("global_local"))
+        train_flags(["train", "--nouse_flow", f"--flagfile={flagfile}"])
+        given = train_launcher._given()
     finally:
         train_flags.unparse_flags()
-    assert (options["encoder_norm"], options["use_image_pair"]) == ("instance", False)
-
-
-@pytest.mark.parametrize(
-    "given, teacher, epipolar, refinement",
-    [
-        ([], 1.0, 0.1, 10),  # the main job
-        (["--model=small_encdec"], 0.0, 0.0, None),  # no global parameters to teach
-        (["--global_source=pose"], 0.0, 0.0, 0),  # a given pose: no encoder's to refine
-        (["--nouse_global_module"], 0.0, 0.0, 0),
-        (["--nouse_flow"], 1.0, 0.1, 0),  # the encoder infers g; refinement reads the flow
-        (["--global_dim=4"], 0.0, 0.0, 0),  # g cannot stand for a pose
-        (["--nouse_flow", "--pose_refinement_steps=3"], 1.0, 0.1, 3),  # asked for: kept
-        (["--model=small_encdec", "--pose_teacher_weight=2"], 2.0, 0.0, None),
-    ],
-)
-def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
-    train_flags, given, teacher, epipolar, refinement
-):
-    """The trainer's defaults teach g the motion; a model without an encoder's pose (or
-    without the flow, for refinement) drops them unless the command line names them (and
-    then the config check says what is wrong)."""
-    from experiments import common
-    from experiments import train as train_launcher
-
-    try:
-        train_flags(["train", *given])
-        options = common.model_options(train_flags.model)
-        options, weights = train_launcher._motion_where_it_applies(options)
-    finally:
-        train_flags.unparse_flags()
-    assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
-    assert options.get("pose_refinement_steps") == refinement
+    assert {"use_flow", "pose_refinement_steps"} <= given
+    assert not given & {"encoder_norm", "epipolar_weight", "steps", "workdir"}

@@ -13,9 +13,10 @@ import pytest
 from conftest import REPO_ROOT
 
 from gld.paper import suite as paper_suite
+from gld.paper.scales import SUITES
 
 ENV = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-RUNS = len(paper_suite.suite_runs(paper_suite.SUITES["tiny"]))
+RUNS = len(paper_suite.suite_runs(SUITES["tiny"]))
 
 
 def _command(data_dir, workdir, report_dir, only):
@@ -66,9 +67,9 @@ def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_pat
 
     resumed = _run(tiny_scenes_dir, workdir, report_dir, only)
     assert "train/global_local_1px: done (reused" in resumed
-    assert "global_local_1px: 4 steps" not in resumed
+    assert "global_local_1px: training" not in resumed
     assert first_result.stat().st_mtime_ns == stamp
-    assert "global_local_no_epipolar: 4 steps of global_local" in resumed
+    assert "global_local_no_epipolar: training 4 steps in" in resumed
     assert "train/global_local_no_epipolar — suite ETA" in resumed
 
     trained = json.loads(first_result.read_text())

@@ -18,6 +18,7 @@ from gld.models.baselines import classical
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import state as state_lib
 from gld.runs import workdir as workdir_lib
+from gld.runs.optimizer import make_optimizer
 
 ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
 SFM_ROW = "| sfm_flow — classical pipeline on the same flow (no training) |"
@@ -107,7 +108,7 @@ def untrained_workdir(tiny_scenes, tmp_path):
     workdir_lib.write_run_config(workdir, config)
     model = registry.make_model(config.model, **config.model_config)
     state = state_lib.create_train_state(
-        model, state_lib.make_optimizer(config.learning_rate), config.height, config.width, 0
+        model, make_optimizer(config.learning_rate), config.height, config.width, 0
     )
     iterator = iter(
         input_pipeline.train_dataset(

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT, TINY_MODEL, random_variables
 
-from gld.inference import export
+from gld.inference import export, onnx_export
 from gld.inference.deploy import DeployedModel
 from gld.models import registry
 
@@ -268,7 +268,7 @@ def test_a_model_that_refines_its_pose_runs_given_the_cameras(tmp_path):
     # ONNX takes the images and flow only, and says so before writing anything.
     onnx_path = tmp_path / "refines.onnx"
     with pytest.raises(ValueError, match="only models of the images and flow convert to ONNX"):
-        export.export_onnx(model, variables, onnx_path, height=HEIGHT, width=WIDTH)
+        onnx_export.export_onnx(model, variables, onnx_path, height=HEIGHT, width=WIDTH)
     assert not onnx_path.exists()
 
 

@@ -1,8 +1,7 @@
-"""Exporting a model (gld/inference/export.py): the file's contents, formulations,
-platforms, refusals."""
+"""Exporting a model with jax.export (gld/inference/export.py): the file's contents,
+formulations, platforms, refusals."""
 
 import json
-import sys
 import zipfile
 
 import jax
@@ -108,19 +107,6 @@ def test_a_fixed_batch_and_several_platforms(tiny_model, tmp_path):
         exported.call(weights, *(array[:1] for array in (image1, image2, flow)))
 
 
-def test_the_formulation_follows_the_platform():
-    assert export.choose_formulation(None, ("cpu",), None) == "fused"
-    assert export.choose_formulation(None, ("cpu", "cuda"), None) == "fused"
-    # The GPU default (a grouped conv) needs a static batch; a symbolic one gets "shifted".
-    assert export.choose_formulation(None, ("cuda",), 4) == "vmap"
-    assert export.choose_formulation(None, ("cuda",), None) == "shifted"
-    assert export.choose_formulation("map_conv", ("cuda",), None) == "map_conv"
-    with pytest.raises(ValueError, match="'vmap' needs a fixed batch size"):
-        export.choose_formulation("vmap", ("cpu",), None)
-    with pytest.raises(ValueError, match="unknown formulation 'nope'"):
-        export.choose_formulation("nope", ("cpu",), None)
-
-
 def test_bad_arguments_are_refused_before_anything_is_written(tiny_model, tmp_path):
     model, variables = tiny_model
     path = tmp_path / "model.gldx"
@@ -141,40 +127,3 @@ def test_bad_arguments_are_refused_before_anything_is_written(tiny_model, tmp_pa
     with pytest.raises(ValueError, match="'small_encdec' has no per-example filters"):
         export.export_model(baseline, {}, path, formulation="fused", **arguments)
     assert list(tmp_path.iterdir()) == []
-
-
-def test_onnx_refuses_vmap_and_names_the_missing_converter(tiny_model, tmp_path, monkeypatch):
-    model, variables = tiny_model
-    path = tmp_path / "model.onnx"
-    with pytest.raises(ValueError, match="'vmap' cannot be exported to ONNX"):
-        export.export_onnx(
-            model, variables, path, height=HEIGHT, width=WIDTH, batch_size=1, formulation="vmap"
-        )
-    monkeypatch.setitem(sys.modules, "jax2onnx", None)  # as if it were not installed
-    with pytest.raises(ImportError, match="pip install jax2onnx onnxruntime"):
-        export.export_onnx(model, variables, path, height=HEIGHT, width=WIDTH)
-    assert not path.exists()
-
-
-def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
-    pytest.importorskip("jax2onnx")
-    onnx = pytest.importorskip("onnx")
-    onnxruntime = pytest.importorskip("onnxruntime")
-    model, variables = tiny_model
-    path = tmp_path / "model.onnx"
-    metadata = export.export_onnx(
-        model, variables, path, height=HEIGHT, width=WIDTH, formulation="shifted"
-    )
-    stored = onnx.load(str(path))
-    assert json.loads(stored.metadata_props[0].value) == metadata
-    assert metadata["formulation"] == "shifted" and metadata["inputs"][0]["shape"][0] == "batch"
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    assert [entry.name for entry in session.get_inputs()] == ["image1", "image2", "flow"]
-    names = [entry.name for entry in session.get_outputs()]
-    assert set(names) == {"inv_depth", "depth", "global_params"}
-    for batch_size in (1, 3):
-        image1, image2, flow = _inputs(batch_size, seed=batch_size)
-        got = session.run(names, {"image1": image1, "image2": image2, "flow": flow})
-        want = model.apply(variables, image1, image2, flow)
-        for key, value in zip(names, got, strict=True):
-            np.testing.assert_allclose(value, want[key], rtol=1e-5, atol=1e-5)

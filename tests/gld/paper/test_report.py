@@ -2,109 +2,33 @@
 the rows not run yet, and the figures."""
 
 import dataclasses
+import pkgutil
 import re
+from importlib import import_module
 
 import numpy as np
 import pytest
+from report_checks import (
+    ABLATIONS,
+    BASELINES_1PX,
+    DENSITY,
+    FINETUNING,
+    FLOW,
+    LOW_RATE,
+    MAIN,
+    POSE,
+    SCALE,
+    VARYING,
+    readme_section,
+    suite_results,
+    target_verdicts,
+    write_readme,
+)
 
+from gld.paper import discussion, report_cells, report_results, sections
 from gld.paper import report as paper_report
 from gld.paper import suite as paper_suite
-from gld.paper.suite import SUITES
-
-SCALE = SUITES["cpu_full"]
-
-
-def _metrics(abs_inv, abs_rel=0.4, s_rmse=0.35):
-    return {
-        "abs_inv": {"mean": abs_inv, "std": abs_inv / 3, "count": 200},
-        "abs_rel": {"mean": abs_rel, "std": 0.1, "count": 200},
-        "s_rmse": {"mean": s_rmse, "std": 0.1, "count": 200},
-    }
-
-
-def _results(
-    abs_inv: dict[str, float],
-    train_loss: dict[str, float] | None = None,
-    scale: paper_suite.Scale = SCALE,
-    **extra,
-) -> dict[str, dict]:
-    """Results of the runs named in `abs_inv` (and the classical references). A run's
-    training loss ends at `train_loss[name]` (0.04; 0.05 at the learning-rate check's
-    rate); a loss of 1 or more comes with a zero gradient (a collapsed run)."""
-    runs = {run.name: run for run in paper_suite.suite_runs(scale)}
-    results = {}
-    for name, value in abs_inv.items():
-        config = paper_suite.run_config(scale, runs[name], height=96, width=128)
-        loss = (train_loss or {}).get(name, 0.05 if name.endswith("_low_lr") else 0.04)
-        zero = 0.0 if loss >= 1 else 0.4
-        results[f"train/{name}"] = {
-            "metrics": _metrics(value),
-            "config": dataclasses.asdict(config),
-            "parameters": 1000,
-            "train_seconds": 60.0,
-            "curves": {
-                "train": [[50, 0.06], [100, 0.06], [150, loss], [200, loss]],
-                "grad_norm": [[50, 0.5], [100, 0.5], [150, zero], [200, zero]],
-                "test": [[100, value]],
-            },
-        }
-    for dataset, mean in (("small", 0.040), ("small_varying", 0.050)):
-        results[f"classical/{dataset}"] = {
-            "methods": {
-                "dataset_mean": {"metrics": _metrics(mean)},
-                "oracle_pair_median": {"metrics": _metrics(mean * 0.65)},
-                # the estimated flow is worse on the varying pairs
-                "triangulation_gt_pose": {"metrics": _metrics(3 * mean - 0.093)},
-                "sfm_flow": {"metrics": _metrics(0.046)},
-            }
-        }
-    results.update(extra)
-    return results
-
-
-def _verdicts(readme: str) -> dict[str, str]:
-    section = readme.split("## Targets")[1].split("## 1.")[0]
-    verdicts = {}
-    for line in section.splitlines()[3:]:
-        if line.startswith("|") and not line.startswith("|---"):
-            cells = [c.strip() for c in line.strip("|").split("|")]
-            verdicts[cells[0]] = cells[1]
-    return verdicts
-
-
-MAIN = (
-    "global-local at least 15% below every learned baseline with the same budget "
-    "(the paper's Scenes11: 18-33%)"
-)
-ABLATIONS = (
-    "each ablation worse than the full model (the rows without the epipolar term also worse "
-    "than the main model without it)"
-)
-# The density and varying targets' bounds are the paper's Scenes11 numbers: 0.031 at one
-# pixel against 0.023 dense (DispNet 0.038 against 0.023); 0.031 fixed, 0.034 varying.
-DENSITY = (
-    "global-local's one-pixel error at most +34.8% against its dense error, and less above "
-    "it than Small Enc-Dec's (the paper's Scenes11, `fig:gt_density`: global-local +34.8%, "
-    "DispNet +65.2%)"
-)
-VARYING = (
-    "varying intrinsics cost global-local at most +9.7%, the paper's Scenes11 (Abs-Inv as a "
-    "multiple of each split's dataset mean)"
-)
-POSE = (
-    "the pretrained encoder's probe beats the scratch one (MLP only, the encoder of the run "
-    "without the epipolar term; rotation and translation errors both lower)"
-)
-FLOW = "the learned flow network's end-point error below DIS's"
-FINETUNING = "the flow network fixed beats it fine-tuned by the sparse loss (the paper's ordering)"
-BASELINES_1PX = ("small_encdec_1px", "eigen_1px", "dispnet_1px", "fcrn_1px")
-# The learning-rate check's runs, at the CPU suite's second rate.
-LOW_RATE = {name: f"{name}_low_lr" for name in paper_suite.RATE_CHECKED}
-
-
-def _write(tmp_path, results):
-    path = paper_report.write_report(SCALE, results, tmp_path / "results", tmp_path / "report")
-    return path.read_text()
+from gld.paper.scales import SUITES
 
 
 @pytest.mark.parametrize(
@@ -116,14 +40,14 @@ def test_main_table_target_needs_every_baseline_15_percent_worse(
     values = {"global_local_1px": 0.030, **dict.fromkeys(BASELINES_1PX, 0.045)}
     values.update(dict.fromkeys(LOW_RATE.values(), 0.050))  # a higher training loss
     values["eigen_1px"] = closest_baseline  # 1 - 0.030 / 0.036 = 17%; / 0.034 = 12%
-    readme = _write(tmp_path, _results(values))
-    assert _verdicts(readme)[MAIN] == verdict
+    readme = write_readme(tmp_path, suite_results(values))
+    assert target_verdicts(readme)[MAIN] == verdict
     gap = 1 - 0.030 / closest_baseline
     assert f"Eigen {gap:.0%}" in readme
     # DispNet and FCRN, trained 150 of 2,000 steps on the CPU, are listed, not counted.
     values["dispnet_1px"] = 0.031
-    readme = _write(tmp_path, _results(values))
-    assert _verdicts(readme)[MAIN] == verdict
+    readme = write_readme(tmp_path, suite_results(values))
+    assert target_verdicts(readme)[MAIN] == verdict
     assert "at their shorter budget (not counted in the verdict): DispNet 3%, FCRN 33%" in readme
     # Our number beside the paper's, and the ratio to the dataset mean (0.040).
     assert "| global-local | 0.0300 ± 0.0100 | 0.400 | 0.350 | 0.75 | 0.031 / 0.43 / 0.61 |" in (
@@ -137,10 +61,10 @@ def test_a_suite_without_the_further_runs_reports_the_main_experiments(tmp_path)
     runs = [run.name for run in paper_suite.suite_runs(scale)]
     values = {n: 0.03 if n.startswith("global_local") else 0.04 for n in runs}
     values.update({n: 0.05 for n in runs if n.endswith("_low_lr")})
-    results = _results(values, scale=scale)
+    results = suite_results(values, scale=scale)
     path = paper_report.write_report(scale, results, tmp_path / "results", tmp_path / "report")
     readme = path.read_text()
-    verdicts = _verdicts(readme)
+    verdicts = target_verdicts(readme)
     # No row, section or target of the further runs; the header says where they are.
     assert set(verdicts) == {MAIN, ABLATIONS, DENSITY, VARYING, POSE}
     assert verdicts[MAIN] == "**holds**"  # 1 - 0.03 / 0.04 = 25% below each baseline
@@ -160,8 +84,8 @@ def test_a_suite_without_the_further_runs_reports_the_main_experiments(tmp_path)
 
 def test_targets_not_measured_until_their_runs_finish(tmp_path):
     values = {"global_local_1px": 0.030, "small_encdec_1px": 0.040, "eigen_1px": 0.045}
-    readme = _write(tmp_path, _results(values))
-    verdicts = _verdicts(readme)
+    readme = write_readme(tmp_path, suite_results(values))
+    verdicts = target_verdicts(readme)
     assert set(verdicts) == {MAIN, ABLATIONS, DENSITY, VARYING, POSE, FLOW, FINETUNING}
     assert set(verdicts.values()) == {"not measured yet"}
     assert "| Eigen | 0.0450 ± 0.0150 |" in readme
@@ -170,7 +94,9 @@ def test_targets_not_measured_until_their_runs_finish(tmp_path):
     # The main target waits for both rates of the learning-rate check.
     values.update(dict.fromkeys(BASELINES_1PX[2:], 0.045))
     values.update({LOW_RATE["global_local_1px"]: 0.03, LOW_RATE["small_encdec_1px"]: 0.04})
-    assert _verdicts(_write(tmp_path, _results(values)))[MAIN] == "not measured yet"
+    assert (
+        target_verdicts(write_readme(tmp_path, suite_results(values)))[MAIN] == "not measured yet"
+    )
 
 
 def test_the_learning_rate_check_compares_each_model_at_its_lower_training_loss(tmp_path):
@@ -183,13 +109,13 @@ def test_the_learning_rate_check_compares_each_model_at_its_lower_training_loss(
         LOW_RATE["eigen_1px"]: 0.034,
     }
     losses = {"eigen_1px": 2.0, LOW_RATE["small_encdec_1px"]: 0.045}
-    readme = _write(tmp_path, _results(values, losses))
+    readme = write_readme(tmp_path, suite_results(values, losses))
     check = readme.split("### Learning-rate check")[1].split("Target")[0]
     assert "| Eigen | 0.0600 / 2.0000 (collapsed) | 0.0340 / 0.0500 | 0.0003 |" in check
     assert "| Small Enc-Dec | 0.0400 / 0.0400 | 0.0330 / 0.0450 | 0.001 |" in check
     assert "| Eigen — collapsed: vanishing gradient from step 150 |" in readme
     # Eigen at its better rate: 1 - 0.030 / 0.034 = 12% (0.060 would have given 50%).
-    assert _verdicts(readme)[MAIN] == "**does not hold**"
+    assert target_verdicts(readme)[MAIN] == "**does not hold**"
     assert "Small Enc-Dec 25%, Eigen 12% (each at the rate" in readme
     assert "global-local 0.001, Small Enc-Dec 0.001, Eigen 0.0003" in readme
 
@@ -205,7 +131,7 @@ def test_the_large_baselines_are_shown_at_the_rate_they_are_compared_at(tmp_path
         "fcrn_1px": 0.040,
         LOW_RATE["fcrn_1px"]: 0.041,
     }
-    readme = _write(tmp_path, _results(values, {"dispnet_1px": 2.0}))
+    readme = write_readme(tmp_path, suite_results(values, {"dispnet_1px": 2.0}))
     check = readme.split("### Learning-rate check")[1].split("Target")[0]
     assert "| DispNet | 0.0730 / 2.0000 (collapsed) | 0.0360 / 0.0500 | 0.0003 |" in check
     assert "| FCRN | 0.0400 / 0.0400 | 0.0410 / 0.0500 | 0.001 |" in check
@@ -234,18 +160,18 @@ def test_ablation_density_and_varying_targets(tmp_path):
     }
     # Without a global module or flow the motion terms go too: those rows wait for the
     # main model without them.
-    readme = _write(tmp_path, _results(values))
-    assert _verdicts(readme)[ABLATIONS] == "not measured yet"
+    readme = write_readme(tmp_path, suite_results(values))
+    assert target_verdicts(readme)[ABLATIONS] == "not measured yet"
     values["global_local_no_epipolar"] = 0.0335
-    readme = _write(tmp_path, _results(values))
-    assert _verdicts(readme)[ABLATIONS] == "**does not hold**"  # static filters: 0.033
+    readme = write_readme(tmp_path, suite_results(values))
+    assert target_verdicts(readme)[ABLATIONS] == "**does not hold**"  # static filters: 0.033
     assert (
         'against "- epipolar term, teacher and refinement": - global module (static filters; '
         "no epipolar term, teacher or refinement) -1.5%" in readme
     )
     values["global_local_no_epipolar"] = 0.031
-    readme = _write(tmp_path, _results(values))
-    verdicts = _verdicts(readme)
+    readme = write_readme(tmp_path, suite_results(values))
+    verdicts = target_verdicts(readme)
     assert verdicts[ABLATIONS] == "**holds**"
     # The main run has no image pair: beside it the paper's "- Image Pair" row; the run
     # with the pair added back sits beside the paper's full model.
@@ -277,7 +203,7 @@ def test_ablation_density_and_varying_targets(tmp_path):
         global_local_dense=0.021,  # 1 px costs 43%, above the paper's 35%
         global_local_varying=0.042,  # as a multiple of the mean, 0.75 -> 0.84: +12%
     )
-    verdicts = _verdicts(_write(tmp_path, _results(values)))
+    verdicts = target_verdicts(write_readme(tmp_path, suite_results(values)))
     assert verdicts[ABLATIONS] == verdicts[DENSITY] == verdicts[VARYING] == "**does not hold**"
 
 
@@ -301,22 +227,22 @@ def test_pose_probe_table_and_target(tmp_path):
             },
         }
     }
-    readme = _write(tmp_path, _results({}, pose_probe=probe))
+    readme = write_readme(tmp_path, suite_results({}, pose_probe=probe))
     # The verdict reads the encoder trained by the depth loss alone (the second column).
-    assert _verdicts(readme)[POSE] == "**holds**"
+    assert target_verdicts(readme)[POSE] == "**holds**"
     assert "rotation 2.00 against 3.00 deg from scratch, translation 30.0 against 60.0" in readme
     label = "Pretrained-MLP (the trained model's encoder, MLP trained)"
     assert f"| {label} | 1.00 / 10.0 | 2.00 / 30.0 | 0.9 / 26.7 |" in readme
     label = "Scratch-MLP (random encoder, MLP trained)"
     assert f"| {label} | 3.00 / 60.0 | 3.00 / 60.0 | 1.3 / 74.4 |" in readme
     probe["errors"]["global_local_no_epipolar"]["pretrained_mlp"] = errors(2.0, 61.0)
-    readme = _write(tmp_path, _results({}, pose_probe=probe))
-    assert _verdicts(readme)[POSE] == "**does not hold**"
+    readme = write_readme(tmp_path, suite_results({}, pose_probe=probe))
+    assert target_verdicts(readme)[POSE] == "**does not hold**"
     assert "(mixed: rotation better, translation not better)" in readme
     # An analysis that read a run retrained without reproducing its result says so.
     assert "retrained here" not in readme
     probe["retrained_differently"] = ["global_local_1px retrained scores 0.031, its result 0.03"]
-    readme = _write(tmp_path, _results({}, pose_probe=probe))
+    readme = write_readme(tmp_path, suite_results({}, pose_probe=probe))
     assert "- `pose_probe`: global_local_1px retrained scores 0.031, its result 0.03\n" in readme
 
 
@@ -332,11 +258,11 @@ def test_flow_error_and_overfitting_figures(tmp_path):
         "std": np.full(count, 0.01),
         "count": np.full(count, 10),
     }
-    results = _results(
+    results = suite_results(
         {"global_local_1px": 0.03, "dispnet_1px": 0.04},
         flow_error={"curves": {"global_local": curve, "triangulation_gt_pose": curve}},
     )
-    readme = _write(tmp_path, results)
+    readme = write_readme(tmp_path, results)
     for figure in ("flow_error.png", "overfitting.png"):
         assert f"]({figure})" in readme
         assert (tmp_path / "report" / figure).stat().st_size > 5000
@@ -365,8 +291,10 @@ def test_the_learned_flow_and_the_fine_tuning_tables(tmp_path):
         "flow_net_head": 0.033,
     }
     finetuning = {"epe": {"flow_net_fixed": {"epe": 1.9}, "flow_net_finetuned": {"epe": 9.6}}}
-    readme = _write(tmp_path, _results(values, flow_net=flow_net, flow_finetuning=finetuning))
-    verdicts = _verdicts(readme)
+    readme = write_readme(
+        tmp_path, suite_results(values, flow_net=flow_net, flow_finetuning=finetuning)
+    )
+    verdicts = target_verdicts(readme)
     assert verdicts[FLOW] == "**holds**"
     assert "1.900 px against DIS's 2.100 px (0.90x)" in readme
     assert (
@@ -386,7 +314,7 @@ def test_the_learned_flow_and_the_fine_tuning_tables(tmp_path):
     )
     flow_net["methods"] = _flow_methods(2.2, 2.1)
     values["flow_net_finetuned"] = 0.035
-    verdicts = _verdicts(_write(tmp_path, _results(values, flow_net=flow_net)))
+    verdicts = target_verdicts(write_readme(tmp_path, suite_results(values, flow_net=flow_net)))
     assert verdicts[FLOW] == "**does not hold**" and verdicts[FINETUNING] == "**holds**"
 
 
@@ -394,8 +322,10 @@ def test_the_self_supervised_rows_are_listed_not_counted(tmp_path):
     values = {"global_local_1px": 0.030, **dict.fromkeys(BASELINES_1PX, 0.045)}
     values.update(dict.fromkeys(LOW_RATE.values(), 0.050))
     values.update(struct2depth=0.060, struct2depth_flow=0.025)  # better than ours
-    readme = _write(tmp_path, _results(values, {"struct2depth": 0.5, "struct2depth_flow": 0.5}))
-    assert _verdicts(readme)[MAIN] == "**holds**"
+    readme = write_readme(
+        tmp_path, suite_results(values, {"struct2depth": 0.5, "struct2depth_flow": 0.5})
+    )
+    assert target_verdicts(readme)[MAIN] == "**holds**"
     # Each at its rate of the check: the photometric loss of the runs picks 3e-4 here.
     assert "self-supervised baselines (no depth labels; not counted): " in readme
     assert "Struct2Depth (self-supervised) 40%, Struct2Depth + Flow (self-supervised) 40%" in (
@@ -409,46 +339,6 @@ def test_the_self_supervised_rows_are_listed_not_counted(tmp_path):
     assert "||t|| = 1" in readme.split("## Targets")[0]
 
 
-def test_the_hand_written_discussion_explains_each_ordering_that_does_not_hold(tmp_path):
-    values = {
-        "global_local_1px": 0.030,
-        "global_local_image_pair": 0.029,
-        "global_local_no_coordconv": 0.031,
-        "global_local_no_global_module": 0.033,
-        "global_local_no_flow": 0.040,
-        "global_local_no_epipolar": 0.031,
-        "global_local_dense": 0.020,  # 1 px costs 50%: the density target fails
-        "small_encdec_1px": 0.040,
-        "small_encdec_dense": 0.030,
-    }
-    (tmp_path / "report").mkdir()
-    discussion = tmp_path / "report" / paper_report.DISCUSSION
-    discussion.write_text(
-        "# Why\n\nAn introduction the report leaves out.\n\n"
-        "## ablations\nEvery ablation costs something.\n\n"
-        "## main\nThe scale of each pair is the hard part.\n"
-    )
-    readme = _write(tmp_path, _results(values))
-    verdicts = _verdicts(readme)
-    assert verdicts[ABLATIONS] == "**holds**" and verdicts[DENSITY] == "**does not hold**"
-    section = readme.split("### What we think explains")[1].split("## 1.")[0]
-    # Only the orderings that do not hold; one without its paragraph says so.
-    assert f"**{DENSITY}** (`density`). Not discussed yet." in section
-    assert "Every ablation costs" not in readme and "introduction" not in readme
-    assert "scale of each pair" not in readme  # the main target is not measured yet
-    values.update({"eigen_1px": 0.031, **{LOW_RATE[n]: 0.05 for n in LOW_RATE}})
-    readme = _write(tmp_path, _results(values))
-    assert f"**{MAIN}** (`main`). The scale of each pair is the hard part." in readme
-    # A heading that names no target is an error, before anything is written.
-    discussion.write_text("## mian\nA typo.\n")
-    for path in (tmp_path / "report").glob("*.*"):
-        if path != discussion:
-            path.unlink()
-    with pytest.raises(ValueError, match=r"discussion.md: headings \['mian'\] name no target"):
-        _write(tmp_path, _results(values))
-    assert [p.name for p in (tmp_path / "report").iterdir()] == [paper_report.DISCUSSION]
-
-
 def test_the_density_table_reads_each_model_at_its_compared_rate(tmp_path):
     values = {
         "dispnet_1px": 0.073,  # collapsed at the suite's rate
@@ -456,7 +346,9 @@ def test_the_density_table_reads_each_model_at_its_compared_rate(tmp_path):
         "dispnet_dense": 0.073,
     }
     losses = {"dispnet_1px": 2.0, "dispnet_dense": 2.0}
-    density = _write(tmp_path, _results(values, losses)).split("## 3.")[1].split("## 4.")[0]
+    density = (
+        write_readme(tmp_path, suite_results(values, losses)).split("## 3.")[1].split("## 4.")[0]
+    )
     row = "| DispNet (150 steps) | 0.0340 (0.0003) | not in this suite | not in this suite "
     assert row + "| not in this suite | 0.0730 (collapsed) |" in density
     assert "a collapsed run is not drawn" in density
@@ -470,16 +362,14 @@ def test_the_fixed_pixel_runs_are_read_against_the_pixel_drawn_each_epoch(tmp_pa
         LOW_RATE["small_encdec_1px"]: 0.0360,
     }
     losses = {"small_encdec_1px": 0.06, LOW_RATE["small_encdec_1px"]: 0.05}
-    density = _write(tmp_path, _results(values, losses)).split("## 3.")[1].split("## 4.")[0]
+    density = (
+        write_readme(tmp_path, suite_results(values, losses)).split("## 3.")[1].split("## 4.")[0]
+    )
     assert (
         "global-local 0.0330 (0.001), +10.0% against a pixel drawn again each epoch (0.0300)"
         in density
     )
     assert "Small Enc-Dec not run yet" in density
-
-
-def _section(readme: str, number: int) -> str:
-    return readme.split(f"## {number}.")[1].split("\n## ")[0]
 
 
 def test_the_paper_numbers_stand_beside_their_multiple_of_the_papers_dataset_mean(tmp_path):
@@ -489,8 +379,8 @@ def test_the_paper_numbers_stand_beside_their_multiple_of_the_papers_dataset_mea
         "global_local_dense": 0.027,
         "flow_net_fixed": 0.031,
     }
-    readme = _write(tmp_path, _results(values))
-    main = _section(readme, 1)
+    readme = write_readme(tmp_path, suite_results(values))
+    main = readme_section(readme, 1)
     # 0.031 / 0.069 = 0.45: the paper's model is 0.45x its dataset mean; ours 0.75x here.
     assert (
         "| global-local | 0.0300 ± 0.0100 | 0.400 | 0.350 | 0.75 | 0.031 / 0.43 / 0.61 | 0.45 |"
@@ -505,14 +395,14 @@ def test_the_paper_numbers_stand_beside_their_multiple_of_the_papers_dataset_mea
     assert "the paper's models trained with depth labels score 0.45-0.67x it" in main
     # Every table with the paper's numbers has their multiple of its mean.
     assert "| + image pair (the paper's global module input) | 0.0290 ± 0.0097 |" in readme
-    assert "| 0.72 | 0.033 / 0.43 / 0.61 | 0.48 |" in _section(readme, 2)
-    assert "| 0.031 / 0.028 / 0.027 / 0.027 / 0.023 | 0.45 → 0.33 |" in _section(readme, 3)
+    assert "| 0.72 | 0.033 / 0.43 / 0.61 | 0.48 |" in readme_section(readme, 2)
+    assert "| 0.031 / 0.028 / 0.027 / 0.027 / 0.023 | 0.45 → 0.33 |" in readme_section(readme, 3)
     assert (
         "| global-local | 0.0300 ± 0.0100 | 0.400 | 0.350 | 0.75 | 0.033 / 0.43 / 0.61 | 0.48 |"
-        in (_section(readme, 4))
+        in (readme_section(readme, 4))
     )
-    assert "| 0.034 | 0.49 |" in _section(readme, 5)
-    assert "| — | 0.033 / 0.43 / 0.61 | 0.48 |" in _section(readme, 11)
+    assert "| 0.034 | 0.49 |" in readme_section(readme, 5)
+    assert "| — | 0.033 / 0.43 / 0.61 | 0.48 |" in readme_section(readme, 11)
 
 
 def test_the_paper_numbers_sit_on_the_row_each_comparison_uses(tmp_path):
@@ -522,8 +412,8 @@ def test_the_paper_numbers_sit_on_the_row_each_comparison_uses(tmp_path):
         LOW_RATE["eigen_1px"]: 0.034,
         "small_encdec_1px": 0.040,
     }
-    readme = _write(tmp_path, _results(values, {"eigen_1px": 2.0}))
-    main = _section(readme, 1)
+    readme = write_readme(tmp_path, suite_results(values, {"eigen_1px": 2.0}))
+    main = readme_section(readme, 1)
     # Eigen is compared at the check's rate: the paper's numbers are on that row, not on
     # the collapsed one.
     collapsed = "| Eigen — collapsed: vanishing gradient from step 150 | 0.0600 ± 0.0200 | 0.400 "
@@ -541,9 +431,15 @@ def test_the_paper_numbers_sit_on_the_row_each_comparison_uses(tmp_path):
 def test_every_paper_number_comes_from_the_paper_numbers_and_names_its_table(tmp_path, monkeypatch):
     from gld.paper import numbers as paper_numbers
 
-    # The report holds no numbers of the paper of its own.
-    assert not [name for name in vars(paper_report) if name.startswith("PAPER")]
-    readme = _write(tmp_path, _results({"global_local_1px": 0.030}))
+    # The report holds no numbers of the paper of its own, in any of its modules.
+    modules = [paper_report, report_cells, report_results, discussion]
+    modules += [
+        import_module(f"{sections.__name__}.{module.name}")
+        for module in pkgutil.iter_modules(sections.__path__)
+    ]
+    assert len(modules) == 12
+    assert not [name for module in modules for name in vars(module) if name.startswith("PAPER")]
+    readme = write_readme(tmp_path, suite_results({"global_local_1px": 0.030}))
     # The paper's model is 0.031 in two of its tables and 0.033 in four: the header says
     # which, and each table's column names its table.
     assert (
@@ -559,8 +455,8 @@ def test_every_paper_number_comes_from_the_paper_numbers_and_names_its_table(tmp
         (6, "tab:pose_experiments"),
         (11, "tab:finetune_flow"),
     ):
-        assert f"paper (Scenes11, `{label}`)" in _section(readme, number) or (
-            f"paper, varying (Scenes11, `{label}`)" in _section(readme, number)
+        assert f"paper (Scenes11, `{label}`)" in readme_section(readme, number) or (
+            f"paper, varying (Scenes11, `{label}`)" in readme_section(readme, number)
         ), number
     # The varying section's paper numbers come from two tables, and it says so.
     assert "0.031 fixed (`tab:results_sparse`; `tab:results_change_intrs` has no fixed row)" in (
@@ -572,8 +468,8 @@ def test_every_paper_number_comes_from_the_paper_numbers_and_names_its_table(tmp
     monkeypatch.setitem(
         paper_numbers.TABLES, "ablation_studies", dataclasses.replace(ablations, rows=rows)
     )
-    readme = _write(tmp_path, _results({"global_local_1px": 0.030}))
-    assert "| 0.75 | 0.099 | 1.43 |" in _section(readme, 2)
+    readme = write_readme(tmp_path, suite_results({"global_local_1px": 0.030}))
+    assert "| 0.75 | 0.099 | 1.43 |" in readme_section(readme, 2)
 
 
 @pytest.mark.parametrize(
@@ -594,7 +490,7 @@ def test_the_density_target_is_the_papers_scenes11_column(
         "small_encdec_dense": baseline_dense,
     }
     # (The cross-dataset 5% of the paper's text would make the first case fail too.)
-    assert _verdicts(_write(tmp_path, _results(values)))[DENSITY] == verdict
+    assert target_verdicts(write_readme(tmp_path, suite_results(values)))[DENSITY] == verdict
 
 
 def test_the_density_target_follows_the_paper_numbers(tmp_path, monkeypatch):
@@ -612,7 +508,7 @@ def test_the_density_target_follows_the_paper_numbers(tmp_path, monkeypatch):
         "small_encdec_1px": 0.040,
         "small_encdec_dense": 0.026,
     }
-    verdicts = _verdicts(_write(tmp_path, _results(values)))
+    verdicts = target_verdicts(write_readme(tmp_path, suite_results(values)))
     name = next(name for name in verdicts if name.startswith("global-local's one-pixel"))
     assert name.startswith("global-local's one-pixel error at most +24.0% against its dense")
     assert verdicts[name] == "**does not hold**"
@@ -625,12 +521,12 @@ def test_results_made_by_uncommitted_code_are_listed_for_a_re_run_not_reported(t
         "small_encdec_1px": 0.040,
         "small_encdec_dense": 0.030,
     }
-    results = _results(values)
+    results = suite_results(values)
     for result in results.values():
         result["commit"] = "abc1234"
     results["train/global_local_dense"]["commit"] = "def5678+changes"
     results["pose_probe"] = {"errors": {}, "commit": "def5678+changes"}
-    readme = _write(tmp_path, results)
+    readme = write_readme(tmp_path, results)
     head = readme.split("## Targets")[0]
     total = len(paper_suite.suite_runs(SUITES["cpu_full"]))
     assert f"3 of {total} training runs finished (results made at commit abc1234)" in head
@@ -640,10 +536,10 @@ def test_results_made_by_uncommitted_code_are_listed_for_a_re_run_not_reported(t
     )
     assert "`pose_probe` (def5678+changes), `train/global_local_dense` (def5678+changes)." in head
     # Its cells say so; the target that reads it is not measured.
-    density = _section(readme, 3)
+    density = readme_section(readme, 3)
     assert "| 0.0300 (0.001) | not run yet | not run yet | not run yet | needs a re-run" in density
     assert "0.0270" not in density
-    assert _verdicts(readme)[DENSITY] == "not measured yet"
+    assert target_verdicts(readme)[DENSITY] == "not measured yet"
     assert "| global_local_dense | global_local |  | 2,000 |" in readme
     assert "| Pretrained-MLP (the trained model's encoder, MLP trained) | needs a re-run" in readme
     # A report made by uncommitted code too (while the code is being changed) reports it,
@@ -652,85 +548,15 @@ def test_results_made_by_uncommitted_code_are_listed_for_a_re_run_not_reported(t
         SCALE, results, tmp_path / "results", tmp_path / "report", commit="def5678+changes"
     )
     readme = path.read_text()
-    assert _verdicts(readme)[DENSITY] == "**holds**"
+    assert target_verdicts(readme)[DENSITY] == "**holds**"
     assert (
         "2 results were made by uncommitted code and are reported here only because this "
         "report is made by uncommitted code too; each needs a re-run at a clean commit" in readme
     )
     # The same result at a clean commit is reported.
     results["train/global_local_dense"]["commit"] = results["pose_probe"]["commit"] = "abc1234"
-    readme = _write(tmp_path, results)
-    assert _verdicts(readme)[DENSITY] == "**holds**" and "uncommitted" not in readme
-
-
-def _discussion_results():
-    values = {
-        "global_local_1px": 0.030,
-        "global_local_no_epipolar": 0.0294,
-        "global_local_dense": 0.020,  # 1 px costs 50%: the density target fails
-        "small_encdec_1px": 0.040,
-        "small_encdec_dense": 0.030,
-    }
-    results = _results(values)
-    per_pair = np.linspace(0.02, 0.04, 10)
-    results["train/global_local_1px"]["abs_inv_per_example"] = list(per_pair)
-    results["train/global_local_no_epipolar"]["abs_inv_per_example"] = list(
-        per_pair + np.where(np.arange(10) < 3, 0.002, -0.001)
-    )
-    return results
-
-
-def test_the_discussion_is_filled_in_from_the_results_and_the_paper_numbers(tmp_path):
-    (tmp_path / "report").mkdir()
-    (tmp_path / "report" / paper_report.DISCUSSION).write_text(
-        "# Why\n\n## density\n"
-        "Global-local {abs_inv:global_local_1px} ({x_mean:global_local_1px} the mean) against\n"
-        "{abs_inv:global_local_dense} dense: {change:global_local_1px:global_local_dense}; the\n"
-        "paper {paper:gt_density:global_local:1px} against {paper:gt_density:global_local:dense}\n"
-        "({paper_x_mean:gt_density:global_local}), {paper_below:results_sparse:global_local_1px:"
-        "small_encdec_1px} below Small Enc-Dec. Without the epipolar term\n"
-        "{change:global_local_no_epipolar:global_local_1px}, worse on\n"
-        "{worse_pairs:global_local_no_epipolar:global_local_1px} of the pairs, t =\n"
-        "{paired_t:global_local_no_epipolar:global_local_1px}; its training loss\n"
-        "{loss:global_local_1px}, its test error at step 100 {test_at:global_local_1px:100}; the\n"
-        "varying run {abs_inv:global_local_varying}; the seed spread {quote:2%} (WORKSPACE).\n"
-    )
-    readme = _write(tmp_path, _discussion_results())
-    assert _verdicts(readme)[DENSITY] == "**does not hold**"
-    paragraph = readme.split(f"**{DENSITY}** (`density`). ")[1].split("\n")[0]
-    assert paragraph == (
-        "Global-local 0.0300 (0.75x the mean) against 0.0200 dense: +50.0%; the paper 0.031 "
-        "against 0.023 (0.45x), 33% below Small Enc-Dec. Without the epipolar term -2.0%, "
-        "worse on 30% of the pairs, t = -0.2; its training loss 0.0400, its test error at "
-        "step 100 0.0300; the varying run (not run yet); the seed spread 2% (WORKSPACE)."
-    )
-
-
-@pytest.mark.parametrize(
-    "text, message",
-    [
-        ("Its error is 12.8% above.", r"'12.8%' written by hand \(## density\)"),
-        ("Its error is 0.0282 here.", r"'0.0282' written by hand"),
-        ("It is {change:global_local_1px} worse.", r"not \{change:<name>:<reference>\}"),
-        ("It is {abs_inv:global_locl_1px}.", r"'global_locl_1px' is no run or method"),
-        ("{paper:ablations:global_local_1px}", r"no such table or row of the paper"),
-        ("{changes:a:b}", r"unknown placeholder \{changes:a:b\}"),
-        (
-            "{worse_pairs:global_local_varying:global_local_1px}",
-            r"the pairs of two splits are not joined",
-        ),
-    ],
-)
-def test_a_discussion_number_that_would_not_follow_the_results_is_an_error(tmp_path, text, message):
-    (tmp_path / "report").mkdir()
-    discussion = tmp_path / "report" / paper_report.DISCUSSION
-    discussion.write_text(f"# Why: 1.5 lines here are not read\n\n## density\n{text}\n")
-    results = _discussion_results()
-    results.update(_results({"global_local_varying": 0.033}))
-    with pytest.raises(ValueError, match=message):
-        _write(tmp_path, results)
-    # Nothing is written.
-    assert [p.name for p in (tmp_path / "report").iterdir()] == [paper_report.DISCUSSION]
+    readme = write_readme(tmp_path, results)
+    assert target_verdicts(readme)[DENSITY] == "**holds**" and "uncommitted" not in readme
 
 
 @pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
@@ -740,30 +566,7 @@ def test_the_committed_reports_were_made_at_a_clean_commit(report_dir):
 
     readme = (Path(__file__).resolve().parents[3] / report_dir / "README.md").read_text()
     made = re.search(r"^Made by `[^`]*` at commit (\S+);", readme, flags=re.MULTILINE)
-    assert made and not made.group(1).endswith(paper_report.UNCOMMITTED), made
-
-
-@pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
-def test_the_committed_discussions_agree_with_their_results(report_dir):
-    """Each discussion of the repository's reports fills in from the results beside it,
-    and the README there carries it as the report writes it now."""
-    import json
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[3] / report_dir
-    results = {}
-    for path in (root / "results").glob("*.json"):
-        result = json.loads(path.read_text())
-        results[result["task"]] = result
-    scale = SUITES["cpu" if report_dir == "report" else "cpu_full"]
-    report = paper_report.Report(scale, results, root / "results")
-    discussion = paper_report.read_discussion(root / paper_report.DISCUSSION)
-    filled = report.fill_discussion(discussion, root / paper_report.DISCUSSION)
-    readme = (root / "README.md").read_text()
-    shown = re.findall(r"^\*\*.*\*\* \(`(\w+)`\)\. (.*)$", readme, flags=re.MULTILINE)
-    assert shown, "the README shows no discussion"
-    for key, paragraph in shown:
-        assert paragraph == filled[key].split("\n")[0], key
+    assert made and not made.group(1).endswith(report_results.UNCOMMITTED), made
 
 
 def test_the_flow_experiments_prose_comes_from_the_suite_and_its_runs(tmp_path):
@@ -777,16 +580,16 @@ def test_the_flow_experiments_prose_comes_from_the_suite_and_its_runs(tmp_path):
         "curve": [[1000, 2.5], [5000, 1.9]],
     }
     values = {"flow_net_fixed": 0.031, "flow_net_finetuned": 0.073}  # fine-tuning collapsed
-    results = _results(values, {"flow_net_finetuned": 2.0}, scale=scale, flow_net=flow_net)
+    results = suite_results(values, {"flow_net_finetuned": 2.0}, scale=scale, flow_net=flow_net)
     path = paper_report.write_report(scale, results, tmp_path / "results", tmp_path / "report")
     readme = path.read_text()
-    section = _section(readme, 11)
+    section = readme_section(readme, 11)
     # A collapse is read from the run's logged gradient norms, not written in the prose.
     label = "global-local, flow network fine-tuned — collapsed: vanishing gradient from step 150"
     assert f"| {label} | 0.0730 ± 0.0243 |" in section
     assert "3,000 steps, peak rate 0.0001, the lower rate of the learning-rate check" in section
     assert "2,000" not in section and "550" not in section
     # The flow network's recipe and the paper's timing, from where they are defined.
-    flow = _section(readme, 10)
+    flow = readme_section(readme, 10)
     assert "5,000 steps at batch 8 on the training pairs' exact flow (Adam 0.001, cosine;" in flow
     assert "(45 ms a pair on its GPU)" in flow

@@ -1,48 +1,21 @@
 """The suites' runs: one recipe and budget for every learned model, the ablations'
-switches, the densities, and configs that validate."""
+switches, the densities, and the rate each run trains at."""
 
 import dataclasses
 
 import pytest
 
 from gld.paper import suite as paper_suite
-from gld.paper.suite import SUITES
-
-
-@pytest.mark.parametrize("suite", sorted(SUITES))
-def test_every_run_validates_with_the_suites_budget_and_optimiser(suite):
-    scale = SUITES[suite]
-    runs = paper_suite.suite_runs(scale)
-    assert len({run.name for run in runs}) == len(runs)
-    for run in runs:
-        config = paper_suite.run_config(scale, run, height=48, width=64)
-        large = run.model in paper_suite.LARGE_MODELS
-        assert config.steps == (scale.large_steps if large else scale.steps), run.name
-        # The same optimiser, rate, schedule, batch and seed for every learned model (the
-        # learning-rate check's runs and the flow experiment at the check's rate).
-        checked = run.name.endswith("_low_lr") or run.name in paper_suite.FLOW_EXPERIMENT
-        rate = scale.check_learning_rate if checked else scale.learning_rate
-        assert (config.learning_rate, config.lr_schedule, config.batch_size, config.seed) == (
-            rate,
-            "cosine",
-            scale.batch_size,
-            0,
-        )
-        assert config.warmup_steps == max(1, round(config.steps * scale.warmup_fraction))
-        # Only the runs of the over-fitting figure are evaluated during training.
-        assert config.eval_examples == (scale.curve_examples if run.curve else 0)
-        assert bool(config.eval_every) == run.curve
-        assert config.dataset == (scale.varying_dataset if run.varying else scale.dataset)
-        if run.model != "global_local":
-            assert config.epipolar_weight == 0
-        if run.model not in ("global_local", *paper_suite.FLOW_NET_MODELS):
-            assert config.model_config == {}, run.name
+from gld.paper.rate_check import RATE_CHECKED, TRAINING_RECORDS, low_rate_name
+from gld.paper.run_configs import flow_net_config, run_config
+from gld.paper.scales import SUITES
+from gld.runs import recipe
 
 
 def test_the_ablations_change_one_switch_of_the_main_recipe():
     scale = SUITES["cpu"]
     configs = {
-        run.name: paper_suite.run_config(scale, run, height=96, width=128)
+        run.name: run_config(scale, run, height=96, width=128)
         for run in paper_suite.suite_runs(scale)
         if run.model == "global_local"
     }
@@ -115,7 +88,7 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     runs = {run.name: run for run in paper_suite.suite_runs(scale)}
 
     def config(name):
-        return paper_suite.run_config(scale, runs[name], height=96, width=128)
+        return run_config(scale, runs[name], height=96, width=128)
 
     assert config("struct2depth").model == "struct2depth"
     assert config("struct2depth_flow").model == "struct2depth_flow"
@@ -123,9 +96,7 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     # The flow experiment: the main recipe without the motion terms, on the stored DIS
     # flow or on the network's, fixed or fine-tuned; the head; one rate for all four.
     dis = config("flow_dis")
-    assert (
-        dis.model == "global_local" and dis.model_config == paper_suite.MAIN_RECIPE_WITHOUT_MOTION
-    )
+    assert dis.model == "global_local" and dis.model_config == recipe.ARCHITECTURE_WITHOUT_MOTION
     fixed, finetuned, head = (
         config(n) for n in ("flow_net_fixed", "flow_net_finetuned", "flow_net_head")
     )
@@ -133,7 +104,7 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
     assert (
         fixed.model_config["global_local"]
         == finetuned.model_config["global_local"]
-        == paper_suite.MAIN_RECIPE_WITHOUT_MOTION
+        == recipe.ARCHITECTURE_WITHOUT_MOTION
     )
     assert not fixed.model_config["flow_trainable"] and finetuned.model_config["flow_trainable"]
     assert head.model == "flow_net_head"
@@ -141,7 +112,7 @@ def test_the_remaining_comparisons_self_supervised_and_the_flow_experiment():
         assert run.epipolar_weight == 0 and run.learning_rate == scale.check_learning_rate
         assert run.pose_teacher_weight == 0
         assert (run.steps, run.gt_pixels, run.dataset) == (scale.steps, 1, scale.dataset)
-    flow = paper_suite.flow_net_config(scale, height=96, width=128)
+    flow = flow_net_config(scale, height=96, width=128)
     assert (flow.steps, flow.batch_size, flow.warmup_steps) == (5000, 8, 100)
 
 
@@ -166,9 +137,7 @@ def test_the_cpu_suite_is_the_full_ones_main_experiments_at_half_the_budget():
     assert [run.name for run in cpu_runs] == [n for n in full_runs if n not in further]
     for run in cpu_runs:
         assert run == full_runs[run.name]
-        short, long = (
-            paper_suite.run_config(scale, run, height=96, width=128) for scale in (cpu, full)
-        )
+        short, long = (run_config(scale, run, height=96, width=128) for scale in (cpu, full))
         differs = {k for k, v in dataclasses.asdict(short).items() if getattr(long, k) != v}
         budget = {"steps", "warmup_steps", "eval_every", "log_every", "checkpoint_every"}
         budget |= {"eval_examples"} if run.curve else set()  # its curve's test pairs
@@ -185,7 +154,7 @@ def test_learned_models_differ_only_where_the_suite_says():
     runs = {run.name: run for run in paper_suite.suite_runs(scale)}
 
     def config(name):
-        values = dataclasses.asdict(paper_suite.run_config(scale, runs[name], height=96, width=128))
+        values = dataclasses.asdict(run_config(scale, runs[name], height=96, width=128))
         return {k: v for k, v in values.items() if k not in ("eval_every", "eval_examples")}
 
     main = config("global_local_1px")
@@ -194,10 +163,10 @@ def test_learned_models_differ_only_where_the_suite_says():
         assert differing == {"model", "model_config", "epipolar_weight", "pose_teacher_weight"}
     # The learning-rate check: the main table's models again, at the second rate only.
     assert {n for n in runs if n.endswith("_low_lr")} == {
-        paper_suite.low_rate_name(n) for n in paper_suite.RATE_CHECKED if n in runs
+        low_rate_name(n) for n in RATE_CHECKED if n in runs
     }
-    for name in set(paper_suite.RATE_CHECKED) & set(runs):
-        low = config(paper_suite.low_rate_name(name))
+    for name in set(RATE_CHECKED) & set(runs):
+        low = config(low_rate_name(name))
         assert {k for k, v in low.items() if config(name)[k] != v} == {"learning_rate"}
         assert low["learning_rate"] == scale.check_learning_rate < scale.learning_rate
     # The large baselines also differ in their budget (and so warm-up, checkpoints, and
@@ -215,7 +184,7 @@ def test_learned_models_differ_only_where_the_suite_says():
     }
     for name in ("global_local_1px", "dispnet_1px"):
         records = config(name)["steps"] // config(name)["log_every"]
-        assert records >= paper_suite.TRAINING_RECORDS, name
+        assert records >= TRAINING_RECORDS, name
 
 
 def test_density_and_varying_runs_train_at_their_models_compared_rate():
@@ -254,8 +223,8 @@ def test_the_fixed_pixel_runs_keep_one_pixel_and_the_compared_rate(model):
     scale = SUITES["cpu_full"]
     runs = {run.name: run for run in paper_suite.suite_runs(scale)}
     fixed = runs[paper_suite.FIXED_PIXEL_RUNS[model]]
-    config = paper_suite.run_config(scale, fixed, height=96, width=128)
-    redrawn = paper_suite.run_config(scale, runs[f"{model}_1px"], height=96, width=128)
+    config = run_config(scale, fixed, height=96, width=128)
+    redrawn = run_config(scale, runs[f"{model}_1px"], height=96, width=128)
     assert (config.gt_pixels, config.fixed_sparse_pixels) == (1, True)
     assert not redrawn.fixed_sparse_pixels
     assert fixed.model == model and fixed.rate_of == f"{model}_1px"
@@ -265,56 +234,3 @@ def test_the_fixed_pixel_runs_keep_one_pixel_and_the_compared_rate(model):
         key for key, value in dataclasses.asdict(config).items() if getattr(redrawn, key) != value
     }
     assert differs - {"eval_every"} == {"fixed_sparse_pixels"}
-
-
-def _result(losses, grad_norms):
-    steps = range(50, 50 * (len(losses) + 1), 50)
-    return {
-        "curves": {
-            "train": [],
-            "loss": [[s, v] for s, v in zip(steps, losses, strict=True)],
-            "grad_norm": [[s, v] for s, v in zip(steps, grad_norms, strict=True)],
-        }
-    }
-
-
-def test_a_gradient_that_vanishes_against_its_own_scale_is_a_collapse():
-    # A small network's gradient: 1e-2 at first, then 1e-7 (never exactly zero).
-    vanished = _result([0.14] * 8, [7e-3, 6e-3, 2e-3, 1e-6, 5e-7, 4e-7, 6e-7, 3e-7])
-    assert paper_suite.collapse(vanished) == (200, 5, 8)
-    # Out of view with a rare batch back in view: the gradient flickers up, still collapsed.
-    flickering = _result([0.14] * 8, [1e-2, 2.6e-2, 4e-3, 1.5e-5, 1.5e-3, 2e-5, 1.3e-5, 1.2e-5])
-    assert paper_suite.collapse(flickering) == (200, 4, 8)
-    # A gradient that spikes, then vanishes: it collapsed after the spike, not at the
-    # first step, which is small against the spike but learning.
-    spiked = _result([0.14] * 8, [0.2, 0.3, 300.0, 5.0, 1e-4, 1e-4, 1e-4, 1e-4])
-    assert paper_suite.collapse(spiked) == (250, 6, 8)
-    # Vanished, then one batch spikes it: the collapse began before the spike.
-    relapsed = _result([0.14] * 8, [0.5, 0.4, 0.0, 0.0, 4.7, 0.0, 0.0, 0.0])
-    assert paper_suite.collapse(relapsed) == (150, 5, 8)
-    # 2e-3 of the largest norm at the end is not yet vanished.
-    slow = _result([0.14] * 8, [1.0, 0.5, 0.1, 0.05, 2e-3, 2e-3, 2e-3, 2e-3])
-    assert paper_suite.collapse(slow) is None
-    # Small but alive: 2% of the largest norm at the end.
-    alive = _result([0.14] * 8, [0.5, 0.3, 0.1, 0.05, 0.02, 0.01, 0.01, 0.01])
-    assert paper_suite.collapse(alive) is None
-    # One vanished record in eight is a blip, not a collapse.
-    blip = _result([0.14] * 8, [0.5, 0.3, 0.0, 0.05, 0.02, 0.01, 0.01, 0.01])
-    assert paper_suite.collapse(blip) is None
-
-
-def test_the_rate_check_never_prefers_a_collapsed_run():
-    scale = SUITES["cpu"]
-    # Self-supervised at the suite's rate: everything projects out of view, the
-    # photometric loss is low and the gradient has vanished.
-    collapsed = _result([0.14] * 8, [7e-3, 6e-3, 1e-6, 5e-7, 4e-7, 6e-7, 3e-7, 2e-7])
-    learning = _result([0.20] * 8, [0.5, 0.4, 0.3, 0.3, 0.2, 0.2, 0.2, 0.2])
-    results = {"struct2depth": collapsed, "struct2depth_low_lr": learning}
-    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth_low_lr"
-    # Neither collapsed: the lower training loss.
-    results["struct2depth"] = _result([0.14] * 8, [0.5] * 8)
-    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth"
-    # Both collapsed: the lower training loss too (the report marks both).
-    results = {"struct2depth": collapsed, "struct2depth_low_lr": collapsed}
-    assert paper_suite.compared_run(scale, "struct2depth", results.get) == "struct2depth"
-    assert paper_suite.compared_run(scale, "struct2depth", {}.get) is None

@@ -5,11 +5,12 @@ import dataclasses
 import pytest
 from absl import flags
 
-from gld.runs import config
+from gld import options
+from gld.runs import config, recipe
 
 
 def test_every_option_has_help_and_valid_choices():
-    fields = config.flag_fields()
+    fields = options.option_fields(config.TrainConfig)
     assert {field.name for field in fields} >= {"steps", "learning_rate", "flow_source", "seed"}
     for field in fields:
         assert field.metadata["help"].strip(), field.name
@@ -24,25 +25,17 @@ def test_launcher_flags_are_derived_from_the_config():
     import experiments.train  # noqa: F401  (defines the trainer's flags)
     from experiments import common
 
-    main_job = {
-        "steps": 2000,
-        "learning_rate": 1e-3,
-        "lr_schedule": "cosine",
-        "warmup_steps": 100,
-        "epipolar_weight": 0.1,
-        "pose_teacher_weight": 1.0,
-    }
-    for field in config.flag_fields():
+    for field in options.option_fields(config.TrainConfig):
         flag = flags.FLAGS[field.name]
         assert flag.help.endswith(field.metadata["help"])
-        assert flag.default == main_job.get(field.name, field.default), field.name
+        assert flag.default == recipe.TRAINING.get(field.name, field.default), field.name
     try:
         flags.FLAGS(["train", "--learning_rate=0.5", "--flow_source=gt", "--seed=3"])
-        options = common.training_options()
+        given = common.training_options()
     finally:
         flags.FLAGS.unparse_flags()
-    assert set(options) == {field.name for field in config.flag_fields()}
-    built = config.TrainConfig(**options)
+    assert set(given) == {field.name for field in options.option_fields(config.TrainConfig)}
+    built = config.TrainConfig(**given)
     assert (built.learning_rate, built.flow_source, built.seed) == (0.5, "gt", 3)
     assert built.checkpoint_every == config.TrainConfig().checkpoint_every  # one default
 
@@ -81,7 +74,7 @@ def test_a_stored_config_is_read_whatever_version_wrote_it():
         ({"lr_schedule": "cosine", "steps": 10, "warmup_steps": 10}, "warmup_steps"),
         ({"model_config": {"global_dim": 0}}, "global_dim must be at least 1"),
         ({"model_config": {"bank_channels": [20, 0, 20]}}, r"bank_channels must be .*every item"),
-        ({"model_config": {"flow_scale": 0.0}}, "flow_scale must be positive"),
+        ({"model_config": {"flow_scale": 0.0}}, "flow_scale must be above 0"),
         ({"model_config": {"encoder_strides": [2, 2]}}, "same length"),
         ({"model_config": {"global_norm": "layer"}}, "global_norm must be one of"),
         ({"model_config": {"globl_dim": 3}}, "no option"),
@@ -99,9 +92,7 @@ def test_validate_names_the_option_that_cannot_give_a_sound_run(values, named):
 
 def test_the_defaults_and_the_main_job_are_valid():
     assert config.TrainConfig().validate() == config.TrainConfig()
-    config.TrainConfig(
-        steps=2000, learning_rate=1e-3, lr_schedule="cosine", warmup_steps=100
-    ).validate()
+    config.TrainConfig(model_config=recipe.ARCHITECTURE, **recipe.TRAINING).validate()
     config.TrainConfig(eval_every=0, model="dispnet").validate()
 
 

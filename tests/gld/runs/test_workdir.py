@@ -18,7 +18,6 @@ from gld import files as files_lib
 from gld import input_pipeline
 from gld.models import registry
 from gld.runs import checkpoints as checkpoint_lib
-from gld.runs import config as config_lib
 from gld.runs import lock as lock_lib
 from gld.runs import metrics_log, workdir
 from gld.runs import state as state_lib
@@ -209,7 +208,7 @@ def two_checkpoints(tiny_scenes, tmp_path):
     workdir.write_run_config(run_dir, config)
     model = registry.make_model(config.model, **config.model_config)
     state = state_lib.create_train_state(
-        model, config_lib.config_optimizer(config), config.height, config.width, config.seed
+        model, config.optimizer(), config.height, config.width, config.seed
     )
     iterator = iter(
         input_pipeline.train_dataset(

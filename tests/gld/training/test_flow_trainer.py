@@ -12,7 +12,7 @@ from gld.evaluation import flow_network
 from gld.models import flow_net
 from gld.runs import flow_config
 from gld.runs import state as state_lib
-from gld.runs.state import make_optimizer
+from gld.runs.optimizer import make_optimizer
 from gld.training import flow_trainer as flow_training
 
 # A network small enough to train for a hundred steps in seconds at 64x48.

@@ -17,6 +17,8 @@ from gld.models import registry
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import state as state_lib
 from gld.runs import workdir as workdir_lib
+from gld.runs.optimizer import make_optimizer
+from gld.training import loop
 from gld.training import trainer as train
 
 
@@ -37,7 +39,7 @@ def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoi
     good = _params_of(tmp_path)
     stored = (tmp_path / "config.json").read_bytes()
     messages = []
-    with pytest.raises(train.NonFiniteLossError, match="at step 5"):
+    with pytest.raises(loop.NonFiniteLossError, match="at step 5"):
         train.train_and_evaluate(
             # Finite, but infinite in float32: the loss overflows on the first step.
             tiny_train_config(steps=8, depth_weight=1e39),
@@ -163,7 +165,7 @@ def test_the_model_overfits_eight_pairs_with_dense_supervision(tiny_scenes):
     batch = {key: batch[key] for key in ("image1", "image2", "flow", "depth")}
     batch["sparse_mask"] = batch["depth"] > 0  # dense supervision
     model = registry.make_model("global_local", **TINY_MODEL)
-    optimizer = state_lib.make_optimizer(3e-3)
+    optimizer = make_optimizer(3e-3)
     state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
     step = jax.jit(
         train.make_train_step(
@@ -184,13 +186,15 @@ SHARDED_SCRIPT = textwrap.dedent(
     import jax, numpy as np
     from gld import sharding
     from gld.losses import supervised as losses
+    from gld.training import loop
     from gld.training import trainer as train
     from gld.models import registry
     from gld.runs import state as state_lib
+    from gld.runs.optimizer import make_optimizer
 
     assert len(jax.devices()) == 4
     model = registry.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8])
-    optimizer = state_lib.make_optimizer(1e-3)
+    optimizer = make_optimizer(1e-3)
     rng = np.random.default_rng(0)
     batch = {
         "image1": rng.uniform(-0.5, 0.5, (8, 24, 32, 3)).astype(np.float32),
@@ -204,7 +208,7 @@ SHARDED_SCRIPT = textwrap.dedent(
         mesh = sharding.make_mesh(devices)
         state = state_lib.create_train_state(model, optimizer, 24, 32, seed=0)
         state = jax.device_put(state, sharding.replicated(mesh))
-        step = train.jit_train_step(
+        step = loop.jit_train_step(
             train.make_train_step(model=model, optimizer=optimizer,
                                   loss_weights=losses.LossWeights()), mesh)
         for _ in range(2):
@@ -318,7 +322,7 @@ def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(sixteen_p
 
     batch = sixteen_pairs_dense
     model = registry.make_model("global_local", **TINY_MODEL)
-    optimizer = state_lib.make_optimizer(1e-3)
+    optimizer = make_optimizer(1e-3)
     state = state_lib.create_train_state(model, optimizer, 48, 64, seed=0)
     step = jax.jit(
         train.make_train_step(model=model, optimizer=optimizer, loss_weights=losses.LossWeights())
@@ -425,7 +429,7 @@ def test_the_epipolar_term_teaches_the_global_parameters_the_motion(sixteen_pair
 
     batch = sixteen_pairs_dense
     model = registry.make_model("global_local", **TINY_MODEL)
-    optimizer = state_lib.make_optimizer(1e-3)
+    optimizer = make_optimizer(1e-3)
 
     def direction_error(epipolar):
         weights = losses.LossWeights(smoothness=0.0, epipolar=epipolar)

@@ -9,6 +9,7 @@ import numpy as np
 
 from gld.losses import supervised as gld_losses
 from gld.runs import state as state_lib
+from gld.runs.optimizer import make_optimizer
 from gld.training import trainer as train
 
 # The 'rbg' generator compiles several times faster than threefry on CPU; model
@@ -46,7 +47,7 @@ def train_tiny(model, *, height=32, width=32, steps=35, learning_rate=1e-3):
         "sparse_mask": mask,
     }
     variables = jax.jit(model.init)(jax.random.key(0, impl=INIT_KEY_IMPL), image1, image2, flow)
-    optimizer = state_lib.make_optimizer(learning_rate)
+    optimizer = make_optimizer(learning_rate)
     # As `state_lib.create_train_state`, but initialised with the faster key.
     state = state_lib.TrainState(
         step=jnp.zeros((), jnp.int32),

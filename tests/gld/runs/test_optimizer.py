@@ -1,28 +1,28 @@
-"""The training state's optimiser and its learning-rate schedules."""
+"""The optimiser and its learning-rate schedules."""
 
 import numpy as np
 import pytest
 
-from gld.runs import state
+from gld.runs import optimizer as optimizer_lib
 
 
 def test_learning_rate_schedules():
-    constant = state.learning_rate_schedule(1e-4, "constant")
+    constant = optimizer_lib.learning_rate_schedule(1e-4, "constant")
     assert float(constant(0)) == float(constant(10_000)) == pytest.approx(1e-4)
-    cosine = state.learning_rate_schedule(1e-3, "cosine", steps=1000, warmup_steps=100)
+    cosine = optimizer_lib.learning_rate_schedule(1e-3, "cosine", steps=1000, warmup_steps=100)
     assert float(cosine(0)) == 0.0
     assert float(cosine(50)) == pytest.approx(5e-4)
     assert float(cosine(100)) == pytest.approx(1e-3)
     assert float(cosine(550)) == pytest.approx(0.5 * (1e-3 + 1e-5), rel=1e-3)
     assert float(cosine(1000)) == pytest.approx(1e-5)
     with pytest.raises(ValueError, match="warmup_steps \\(100\\) must be in"):
-        state.learning_rate_schedule(1e-3, "cosine", steps=100, warmup_steps=100)
+        optimizer_lib.learning_rate_schedule(1e-3, "cosine", steps=100, warmup_steps=100)
     with pytest.raises(ValueError, match="lr_schedule"):
-        state.learning_rate_schedule(1e-3, "step")
+        optimizer_lib.learning_rate_schedule(1e-3, "step")
 
 
 def test_the_optimiser_follows_the_schedule_and_logs_it():
-    optimizer = state.make_optimizer(1e-3, "cosine", steps=10, warmup_steps=2)
+    optimizer = optimizer_lib.make_optimizer(1e-3, "cosine", steps=10, warmup_steps=2)
     params = {"w": np.ones(3, np.float32)}
     opt_state = optimizer.init(params)
     rates = []

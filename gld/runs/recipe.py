@@ -1,0 +1,97 @@
+"""The main job's recipe, and the run policy every launch of a depth run applies.
+
+    model_config, weights = recipe.motion_where_it_applies(model, model_config, weights, given)
+
+The recipe is the best measured within the main job's CPU budget (WORKSPACE.md): Adam
+1e-3 with 100 warm-up steps and cosine decay over 2,000 steps, and a global module that
+learns the camera motion with no label: an instance-normalised encoder that sees the
+flow alone, the epipolar term at 0.1, the classical pose teacher, and ten Gauss-Newton
+steps refining the encoder's pose on the flow. None of it is the paper's (its recipe:
+Adam 1e-4, constant, the image pair and the flow, no motion terms). The recipe is
+written here once: the train launcher's defaults, `experiments/flags/demo.flags`, the
+paper suite's main-job rows and the tests all read it.
+
+A launch applies two rules (`experiments.train`, the comparison and the paper runner):
+the motion terms and the refinement are dropped where the model has no encoder's pose
+to teach or refine (unless asked for), and a relaunch of a workdir keeps the
+architecture it was trained with for every option the command line does not give.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from pathlib import Path
+from typing import Any
+
+from gld.runs import config as config_lib
+from gld.runs import workdir as workdir_lib
+
+# The global-local model's architecture in the main job (its other options: the model's
+# defaults).
+ARCHITECTURE = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
+# The loss weights by which the main job's global module learns the motion.
+MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
+# The architecture for a model without an encoder's pose to refine, or without the flow.
+ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, "pose_refinement_steps": 0}
+# The main job's training options (its other options: `TrainConfig`'s defaults).
+TRAINING = {
+    "steps": 2000,
+    "eval_every": 1000,
+    "learning_rate": 1e-3,
+    "lr_schedule": "cosine",
+    "warmup_steps": 100,
+    **MOTION_WEIGHTS,
+}
+
+
+def motion_where_it_applies(
+    model: str,
+    model_config: dict[str, Any],
+    weights: dict[str, float],
+    given: Collection[str] = (),
+) -> tuple[dict[str, Any], dict[str, float]]:
+    """The recipe's ways of teaching g the motion, where they apply.
+
+    They are defaults of the global-local model whose encoder infers a pose: a model
+    without one (another model, a given pose, no global module) trains without the
+    epipolar term and the teacher, and one without it or without the flow without
+    refinement, unless the command line gives them (`given`: the option names given).
+
+    Args:
+      model, model_config: the run's model and its constructor arguments.
+      weights: the motion weights (`MOTION_WEIGHTS`' names) the launch would use.
+      given: the options the user gave explicitly.
+
+    Returns:
+      (model_config, weights) to train with.
+    """
+    infers = config_lib.infers_pose(model, model_config)
+    weights = {name: value if infers or name in given else 0.0 for name, value in weights.items()}
+    refines = config_lib.refines_pose(model, model_config)
+    if model == "global_local" and not refines and "pose_refinement_steps" not in given:
+        model_config = {**model_config, "pose_refinement_steps": 0}
+    return model_config, weights
+
+
+def with_stored_architecture(
+    workdir: str | Path,
+    model: str,
+    model_config: dict[str, Any],
+    given: Collection[str] = (),
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A relaunch of a workdir keeps its run's architecture: an option of the
+    global-local model that the command line does not give (`given`) takes the stored
+    value, not the launcher's default (which may have changed since the run began).
+
+    Returns:
+      (model_config to train with, the options kept from the workdir).
+    """
+    stored = workdir_lib.stored_architecture(workdir)
+    if model != "global_local" or not stored or stored.get("model") != model:
+        return model_config, {}
+    kept = {
+        name: stored[name]
+        for name in model_config
+        if name not in given and stored.get(name) is not None and stored[name] != model_config[name]
+    }
+    return {**model_config, **kept}, kept

@@ -1,0 +1,76 @@
+"""The main job's recipe and the run policy every launch applies."""
+
+import json
+
+import pytest
+
+from gld.models import registry
+from gld.runs import config, recipe
+
+
+def test_the_recipe_is_a_valid_run():
+    run = config.TrainConfig(model_config=recipe.ARCHITECTURE, **recipe.TRAINING).validate()
+    assert config.refines_pose(run.model, run.model_config)
+    assert run.epipolar_weight > 0 and run.pose_teacher_weight > 0
+
+
+def _main_job(model: str, given: dict) -> tuple[dict, dict]:
+    """A launch's model options and motion weights, as the train launcher makes them:
+    the recipe's, with what the command line gives over them."""
+    model_config = (
+        {**recipe.ARCHITECTURE, **{k: v for k, v in given.items() if k != "model"}}
+        if model == "global_local"
+        else {}
+    )
+    weights = {name: given.get(name, value) for name, value in recipe.MOTION_WEIGHTS.items()}
+    model_config = {k: v for k, v in model_config.items() if k not in recipe.MOTION_WEIGHTS}
+    return model_config, weights
+
+
+@pytest.mark.parametrize(
+    "given, teacher, epipolar, refinement",
+    [
+        ({}, 1.0, 0.1, 10),  # the main job
+        ({"model": "small_encdec"}, 0.0, 0.0, None),  # no global parameters to teach
+        ({"global_source": "pose"}, 0.0, 0.0, 0),  # a given pose: no encoder's to refine
+        ({"use_global_module": False}, 0.0, 0.0, 0),
+        ({"use_flow": False}, 1.0, 0.1, 0),  # the encoder infers g; refinement reads the flow
+        ({"global_dim": 4}, 0.0, 0.0, 0),  # g cannot stand for a pose
+        ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3),  # asked for: kept
+        ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None),
+    ],
+)
+def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
+    given, teacher, epipolar, refinement
+):
+    """The recipe teaches g the motion; a model without an encoder's pose (or without the
+    flow, for refinement) drops it unless the command line names it (and then the
+    config check says what is wrong)."""
+    model = given.get("model", "global_local")
+    model_config, weights = _main_job(model, given)
+    model_config, weights = recipe.motion_where_it_applies(model, model_config, weights, given)
+    assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
+    assert model_config.get("pose_refinement_steps") == refinement
+
+
+def test_a_relaunch_keeps_the_workdirs_architecture_for_options_not_given(tmp_path):
+    stored = {"model": "global_local", "encoder_norm": "none", "use_image_pair": True}
+    (tmp_path / "config.json").write_text(json.dumps({"architecture": stored}))
+    launched = registry.full_config("global_local", recipe.ARCHITECTURE)
+    for given, encoder_norm in (({}, "none"), ({"encoder_norm"}, "instance")):
+        kept_config, kept = recipe.with_stored_architecture(
+            tmp_path, "global_local", launched, given
+        )
+        assert kept_config["encoder_norm"] == encoder_norm  # an option given wins
+        assert kept_config["use_image_pair"] is True  # the recipe's is False
+        assert kept["use_image_pair"] is True
+        # An option the stored config predates reads as its run was trained.
+        assert (
+            kept_config["flow_scale"] == registry.FIELDS_ADDED_LATER["global_local"]["flow_scale"]
+        )
+    # A new workdir, or another model, takes the launch's options.
+    assert recipe.with_stored_architecture(tmp_path / "new", "global_local", launched) == (
+        launched,
+        {},
+    )
+    assert recipe.with_stored_architecture(tmp_path, "dispnet", {}) == ({}, {})
