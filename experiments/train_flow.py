@@ -57,7 +57,6 @@ def main(argv):
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
     from gld import options as options_lib
-    from gld.models import flow_net
     from gld.runs import flow_config
     from gld.training import flow_trainer as flow_training
 
@@ -85,19 +84,11 @@ def main(argv):
 
     import jax
 
-    model = config.make_model()
-    variables = jax.device_get(state.variables())
-    _, _, summary = flow_network.evaluate_flow(
-        model, variables, test_source, batch_size=config.eval_batch_size, progress=True
-    )
-    latency = flow_network.forward_latency(
-        model, variables, height, width, repeats=FLAGS.latency_repeats
-    )
-    table = flow_network.write_flow_report(
+    table = flow_network.report_trained_flow(
+        config.make_model(),
+        jax.device_get(state.variables()),
+        test_source,
         Path(FLAGS.workdir) / "eval",
-        summary,
-        parameters=flow_net.parameter_count(variables["params"]),
-        latency=latency,
         info={
             "dataset": builder.info.full_name,
             "split": "test",
@@ -105,6 +96,8 @@ def main(argv):
             "height": height,
             "width": width,
         },
+        batch_size=config.eval_batch_size,
+        latency_repeats=FLAGS.latency_repeats,
     )
     print(table)
 

@@ -5,7 +5,8 @@ estimated flow (OpenCV DIS for gld_scenes), on the same pairs and valid pixels.
 
 `evaluate_flow` runs `make_flow_eval_step` over a split (end-point error, outliers above
 `OUTLIER_PIXELS`); `write_flow_report` writes `flow.json` and `flow_table.md` with the
-parameters and the forward latency (`forward_latency`).
+parameters and the forward latency (`forward_latency`); `report_trained_flow` is the
+final evaluation of a trained network, all three in one.
 """
 
 from __future__ import annotations
@@ -25,9 +26,7 @@ from jax.sharding import Mesh
 from gld import files as files_lib
 from gld import sharding
 from gld.evaluation import evaluate as evaluation
-from gld.models.flow_net import (
-    FlowNet,
-)
+from gld.models.flow_net import FlowNet, parameter_count
 
 # Evaluation batches also carry the stored estimated flow ("flow") to score it alike.
 FLOW_EVAL_KEYS = ("image1", "image2", "flow", "gt_flow", "gt_flow_valid", "example_mask")
@@ -226,3 +225,37 @@ def write_flow_report(
         files_lib.write_atomically(out_dir / "flow.json", json.dumps(report, indent=2) + "\n")
         files_lib.write_atomically(out_dir / "flow_table.md", table)
     return table
+
+
+def report_trained_flow(
+    model: FlowNet,
+    variables: dict,
+    test_source,
+    out_dir: str | Path,
+    *,
+    info: dict[str, Any],
+    batch_size: int = 16,
+    latency_repeats: int = 30,
+    progress: bool = True,
+) -> str:
+    """The final evaluation of a trained flow network: its end-point error and the stored
+    flow's on the whole test split (`evaluate_flow`), its parameters and its batch-1
+    latency (`forward_latency`), written as `flow.json` and `flow_table.md`
+    (`write_flow_report`); returns the table.
+
+    Args:
+      info: what was evaluated: "dataset", "split", "step", "height", "width".
+    """
+    _, _, summary = evaluate_flow(
+        model, variables, test_source, batch_size=batch_size, progress=progress
+    )
+    latency = forward_latency(
+        model, variables, info["height"], info["width"], repeats=latency_repeats
+    )
+    return write_flow_report(
+        out_dir,
+        summary,
+        parameters=parameter_count(variables["params"]),
+        latency=latency,
+        info=info,
+    )

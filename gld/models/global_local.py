@@ -34,6 +34,14 @@ from gld.options import option
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
 GLOBAL_SOURCES = ("encoder", "pose", "flow_pose")
+# The paper's ablations (its Table): each one switch of the model, by the name its rows,
+# flagfiles (experiments/flags/scenes11_ablation_<name>.flags) and suite runs carry.
+ABLATIONS = {
+    "no_image_pair": {"use_image_pair": False},
+    "no_coordconv": {"use_coordinates": False},
+    "no_global_module": {"use_global_module": False},
+    "no_flow": {"use_flow": False},
+}
 # The example-contract keys a model reads for each given pose: the true relative pose
 # (a robot's odometry at deployment), or the essential matrix's from the input flow.
 POSE_INPUTS = ("rotation", "translation")

@@ -43,6 +43,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+from gld.models.global_local import ABLATIONS
 from gld.paper.rate_check import RATE_CHECKED, compared_run, low_rate_name
 from gld.paper.scales import DENSITIES, Scale
 from gld.runs import recipe
@@ -134,19 +135,19 @@ def suite_runs(scale: Scale) -> list[Run]:
             model_config={"use_image_pair": True},
         ),
         _global_local(
-            "global_local_no_coordconv", "- CoordConv", model_config={"use_coordinates": False}
+            "global_local_no_coordconv", "- CoordConv", model_config=ABLATIONS["no_coordconv"]
         ),
         _global_local(
             "global_local_no_global_module",
             "- global module (static filters; no epipolar term, teacher or refinement)",
             motion=False,
-            model_config={"use_global_module": False},
+            model_config=ABLATIONS["no_global_module"],
         ),
         _global_local(
             "global_local_no_flow",
             "- flow (the image pair instead; no epipolar term, teacher or refinement)",
             motion=False,
-            model_config={"use_flow": False},
+            model_config=ABLATIONS["no_flow"],
         ),
         _global_local(
             "global_local_no_epipolar",

@@ -8,7 +8,7 @@ from conftest import REPO_ROOT, run_python
 
 import data
 from gld import options
-from gld.models.global_local import GlobalLocal
+from gld.models.global_local import ABLATIONS, GlobalLocal
 from gld.runs import recipe
 
 FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags").glob("*.flags"))
@@ -89,6 +89,28 @@ def test_scenes11_flagfiles_share_the_base_and_change_one_setting(train_flags, p
     changed = {name for name in values if values[name] != base_values[name]}
     assert values["dataset"] == "demon/scenes11" and values["steps"] == 94_000
     assert changed - {"workdir", "flagfile"} == {line.split("=")[0][2:] for line in lines[2:]}
+
+
+@pytest.mark.parametrize("name", sorted(ABLATIONS))
+def test_each_ablation_flagfile_is_the_models_ablation_switch(train_flags, name):
+    """The paper's ablations are defined once (`gld.models.global_local.ABLATIONS`); each
+    flagfile sets that switch on the base and nothing else."""
+    path = REPO_ROOT / "experiments" / "flags" / f"scenes11_ablation_{name}.flags"
+    base = REPO_ROOT / "experiments" / "flags" / "base" / "scenes11.flags"
+    try:
+        train_flags(["train", f"--flagfile={base}"])
+        base_values = train_flags.flag_values_dict()
+        train_flags.unparse_flags()
+        train_flags(["train", f"--flagfile={path}"])
+        values = train_flags.flag_values_dict()
+    finally:
+        train_flags.unparse_flags()
+    changed = {
+        key: values[key]
+        for key in values
+        if values[key] != base_values[key] and key not in ("workdir", "flagfile")
+    }
+    assert changed == ABLATIONS[name]
 
 
 FLOW_FLAGFILES = sorted((REPO_ROOT / "experiments" / "flags" / "flow").glob("*.flags"))
