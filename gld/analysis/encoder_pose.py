@@ -164,7 +164,7 @@ def _pose_probe_fitter(
     keys = ("flow", "rotation", "translation") + (("image1", "image2") if use_image_pair else ())
 
     def inputs(batch):
-        flow = layers.normalise_flow(jnp.asarray(batch["flow"])) * flow_scale
+        flow = layers.scaled_flow(jnp.asarray(batch["flow"]), flow_scale)
         image1, image2 = batch.get("image1"), batch.get("image2")  # absent without the pair
         stacked = layers.global_module_inputs(image1, image2, flow, use_image_pair)
         return layers.with_coordinates(stacked) if encoder_coordinates else stacked

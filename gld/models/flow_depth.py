@@ -114,7 +114,7 @@ class FlowNetHead(_OnFlowNet):
                 f"head_channels must end with 1 (inverse depth), got {tuple(self.head_channels)}"
             )
         estimated = self.estimate_flow(image1, image2, flow)
-        features = layers.normalise_flow(estimated) * HEAD_FLOW_SCALE
+        features = layers.scaled_flow(estimated, HEAD_FLOW_SCALE)
         for index, channels in enumerate(self.head_channels):
             features = nn.Conv(channels, (3, 3), name=f"head{index}")(features)
             if index < len(self.head_channels) - 1:

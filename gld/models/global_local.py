@@ -260,7 +260,7 @@ class GlobalLocal(nn.Module):
         layers.check_inputs(image1, image2, flow)
         batch_size, height, width, _ = flow.shape
         image_pair = jnp.concatenate([image1, image2], axis=-1)
-        normalised_flow = layers.normalise_flow(flow) * self.flow_scale
+        normalised_flow = layers.scaled_flow(flow, self.flow_scale)
 
         if self.local_flow_units not in LOCAL_FLOW_UNITS:
             raise ValueError(

@@ -35,6 +35,11 @@ def normalise_flow(flow: jax.Array) -> jax.Array:
     return flow / jnp.asarray([width, height], flow.dtype)
 
 
+def scaled_flow(flow: jax.Array, scale: float = FLOW_SCALE) -> jax.Array:
+    """The flow a network reads: normalised (`normalise_flow`), times `scale`."""
+    return normalise_flow(flow) * scale
+
+
 # The inputs every depth model is called with, in order: model(image1, image2, flow).
 MODEL_INPUTS = ("image1", "image2", "flow")
 
