@@ -4,29 +4,20 @@ formulations, platforms, refusals."""
 import json
 import zipfile
 
+import export_checks
 import jax
 import numpy as np
 import pytest
-from conftest import TINY_MODEL, random_variables
+from conftest import TINY_MODEL
+from export_checks import HEIGHT, WIDTH
 
 from gld.inference import export
 from gld.models import registry
 
-HEIGHT, WIDTH = 24, 32
-
 
 @pytest.fixture(scope="module")
 def tiny_model():
-    model = registry.make_model("global_local", **TINY_MODEL)
-    return model, random_variables(model, HEIGHT, WIDTH, seed=0)
-
-
-def _inputs(batch_size: int, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    image1 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
-    image2 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
-    flow = rng.normal(0, 2, (batch_size, HEIGHT, WIDTH, 2)).astype(np.float32)
-    return image1, image2, flow
+    return export_checks.tiny_model()
 
 
 def _read(path):
@@ -70,7 +61,7 @@ def test_the_file_describes_the_model_and_runs_any_batch(tiny_model, tmp_path):
     # The batch axis is symbolic: two batch sizes through the same module.
     assert str(exported.in_avals[-1].shape[0]) == "batch"
     for batch_size in (1, 3):
-        image1, image2, flow = _inputs(batch_size)
+        image1, image2, flow = export_checks.model_inputs(batch_size)
         got = exported.call(weights, image1, image2, flow)
         want = model.apply(variables, image1, image2, flow)
         assert set(got) == set(outputs)
@@ -95,7 +86,7 @@ def test_a_fixed_batch_and_several_platforms(tiny_model, tmp_path):
     assert metadata["inputs"][0]["shape"] == [2, HEIGHT, WIDTH, 3]
     _, exported, weights = _read(path)
     assert exported.platforms == ("cpu", "cuda")
-    image1, image2, flow = _inputs(2, seed=1)
+    image1, image2, flow = export_checks.model_inputs(2, seed=1)
     # The CPU lowering of the two-platform module runs here and matches the live model.
     np.testing.assert_allclose(
         exported.call(weights, image1, image2, flow)["inv_depth"],

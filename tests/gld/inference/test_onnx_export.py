@@ -4,28 +4,17 @@ graph against the live model."""
 import json
 import sys
 
+import export_checks
 import numpy as np
 import pytest
-from conftest import TINY_MODEL, random_variables
+from export_checks import HEIGHT, WIDTH
 
 from gld.inference import onnx_export
-from gld.models import registry
-
-HEIGHT, WIDTH = 24, 32
 
 
 @pytest.fixture(scope="module")
 def tiny_model():
-    model = registry.make_model("global_local", **TINY_MODEL)
-    return model, random_variables(model, HEIGHT, WIDTH, seed=0)
-
-
-def _inputs(batch_size: int, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    image1 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
-    image2 = rng.uniform(-0.5, 0.5, (batch_size, HEIGHT, WIDTH, 3)).astype(np.float32)
-    flow = rng.normal(0, 2, (batch_size, HEIGHT, WIDTH, 2)).astype(np.float32)
-    return image1, image2, flow
+    return export_checks.tiny_model()
 
 
 def test_onnx_refuses_vmap_and_names_the_missing_converter(tiny_model, tmp_path, monkeypatch):
@@ -54,11 +43,15 @@ def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
     assert json.loads(stored.metadata_props[0].value) == metadata
     assert metadata["formulation"] == "shifted" and metadata["inputs"][0]["shape"][0] == "batch"
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    assert [entry.name for entry in session.get_inputs()] == ["image1", "image2", "flow"]
+    assert [entry.name for entry in session.getexport_checks.model_inputs()] == [
+        "image1",
+        "image2",
+        "flow",
+    ]
     names = [entry.name for entry in session.get_outputs()]
     assert set(names) == {"inv_depth", "depth", "global_params"}
     for batch_size in (1, 3):
-        image1, image2, flow = _inputs(batch_size, seed=batch_size)
+        image1, image2, flow = export_checks.model_inputs(batch_size, seed=batch_size)
         got = session.run(names, {"image1": image1, "image2": image2, "flow": flow})
         want = model.apply(variables, image1, image2, flow)
         for key, value in zip(names, got, strict=True):
