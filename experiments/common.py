@@ -1,15 +1,17 @@
 """Flags and set-up shared by the launchers (train, evaluate, inspect_filters, compare).
 
-The flags of a run's options are made by `gld.options.define_flags` from the options'
+The flags of a run's options are made by `define_option_flags` from the options'
 fields (`TrainConfig`, `GlobalLocal`, `FlowTrainConfig`, `FlowNet`); this module chooses
 which a launcher has.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
-from collections.abc import Sequence
+import sys
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,9 +41,92 @@ def define_flow_source_flag() -> None:
     )
 
 
+def define_option_flags(
+    fields: Iterable[dataclasses.Field],
+    defaults: Mapping[str, Any] | None = None,
+    flag_set: flags.FlagValues = FLAGS,
+) -> None:
+    """One absl flag per option field, typed by its choices or its default, with its help
+    and bounds (checked when the command line is parsed, so a bad value stops a launcher
+    before it does anything); `defaults` replaces some defaults for one launcher."""
+    fields = list(fields)
+    defaults = dict(defaults or {})
+    # The flags belong to the module that asks for them (a launcher, as `--help` and
+    # `--helpfull` list them), not to this one; absl names the main module by its file.
+    module_name = sys._getframe(1).f_globals["__name__"]
+    module_name = sys.argv[0] if module_name == "__main__" else module_name
+    unknown = sorted(set(defaults) - {field.name for field in fields})
+    if unknown:
+        raise ValueError(f"no option(s) {unknown} to give a default")
+    for field in fields:
+        name, metadata = field.name, field.metadata
+        default = defaults.get(name, field.default)
+        help_text = metadata["help"]
+        low, high = metadata["at_least"], metadata.get("at_most")
+        if metadata["choices"]:
+            flags.DEFINE_enum(
+                name, default, list(metadata["choices"]), help_text, flag_values=flag_set
+            )
+        elif isinstance(default, bool):
+            flags.DEFINE_bool(
+                name, default, help_text, flag_values=flag_set, module_name=module_name
+            )
+        elif isinstance(default, int):
+            flags.DEFINE_integer(
+                name, default, help_text, low, high, flag_values=flag_set, module_name=module_name
+            )
+        elif isinstance(default, float):
+            flags.DEFINE_float(
+                name, default, help_text, low, high, flag_values=flag_set, module_name=module_name
+            )
+        elif isinstance(default, list | tuple):
+            flags.DEFINE_list(
+                name, [str(value) for value in default], help_text, flag_values=flag_set
+            )
+        else:
+            flags.DEFINE_string(
+                name, default, help_text, flag_values=flag_set, module_name=module_name
+            )
+        if metadata["above"] is not None:
+            above = metadata["above"]
+            flags.register_validator(
+                name,
+                lambda value, above=above: value is None or value > above,
+                message=f"--{name} must be above {above}",
+                flag_values=flag_set,
+            )
+
+
+def option_flag_values(
+    fields: Iterable[dataclasses.Field], flag_set: flags.FlagValues = FLAGS
+) -> dict[str, Any]:
+    """The values of the option fields' flags (those defined), lists of numbers as
+    numbers; an option left at None (a speed-only choice) is omitted. Raises ValueError
+    naming a list flag whose items are not numbers."""
+    values = {}
+    for field in fields:
+        if field.name not in flag_set:
+            continue
+        value = flag_set[field.name].value
+        if isinstance(field.default, list | tuple) and isinstance(value, list):
+            value = _numbers(field, value)
+        if value is not None:
+            values[field.name] = value
+    return values
+
+
+def _numbers(field: dataclasses.Field, items: list[str]) -> list[int | float]:
+    kind = type(field.default[0]) if field.default else int
+    try:
+        return [kind(item) for item in items]
+    except ValueError:
+        noun = "integers" if kind is int else "numbers"
+        raise ValueError(f"{field.name} must be {noun}, got {items}") from None
+
+
 def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> None:
     """A flag for every option of `gld.runs.config.TrainConfig` but `exclude`
-    (`gld.options.define_flags`); `defaults` replaces some defaults for this launcher
+    (`define_option_flags`); `defaults` replaces some defaults for this launcher
     (the main job's recipe in `experiments.train`)."""
     from gld import options
     from gld.runs import config
@@ -49,7 +134,7 @@ def define_training_flags(*, exclude: Sequence[str] = (), **defaults: Any) -> No
     fields = [
         field for field in options.option_fields(config.TrainConfig) if field.name not in exclude
     ]
-    options.define_flags(fields, defaults)
+    define_option_flags(fields, defaults)
 
 
 def training_options() -> dict[str, Any]:
@@ -57,17 +142,17 @@ def training_options() -> dict[str, Any]:
     from gld import options
     from gld.runs import config
 
-    return options.flag_values(options.option_fields(config.TrainConfig))
+    return option_flag_values(options.option_fields(config.TrainConfig))
 
 
 def define_architecture_flags(**defaults: Any) -> None:
     """A flag for every architecture option of the global-local model
-    (`gld.options.define_flags`); `defaults` replace the model's defaults of some options
+    (`define_option_flags`); `defaults` replace the model's defaults of some options
     for this launcher (the main job's recipe)."""
     from gld import options
     from gld.models.global_local import GlobalLocal
 
-    options.define_flags(options.option_fields(GlobalLocal), defaults)
+    define_option_flags(options.option_fields(GlobalLocal), defaults)
 
 
 def architecture_options() -> dict[str, Any]:
@@ -79,7 +164,7 @@ def architecture_options() -> dict[str, Any]:
     from gld.models.global_local import GlobalLocal
 
     try:
-        return options.flag_values(options.option_fields(GlobalLocal))
+        return option_flag_values(options.option_fields(GlobalLocal))
     except ValueError as error:
         raise app.UsageError(f"--{error}") from None
 
@@ -154,7 +239,6 @@ def initialise() -> None:
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)
     if "num_processes" in FLAGS and FLAGS.num_processes > 1:
-        import sys
         import threading
 
         import jax
@@ -242,8 +326,6 @@ def flags_file_text() -> str:
     """This run's gld flags (the launcher's, the shared ones and the dataset builders'),
     one per line: a valid --flagfile for the same launcher. Flags that libraries define
     (absl logging, grain, jax) are left out; they are not options of the run."""
-    import sys
-
     own = ("experiments.", "data.", "gld.")
     lines = []
     for module, module_flags in FLAGS.flags_by_module_dict().items():

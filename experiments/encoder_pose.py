@@ -30,10 +30,10 @@ FLAGS = flags.FLAGS
 # the trainer's option (its help and bounds), with this check's defaults.
 ENCODER_OPTIONS = ("encoder_norm", "use_image_pair", "encoder_coordinates", "flow_scale")
 TRAINING_OPTIONS = ("steps", "batch_size", "learning_rate", "warmup_steps", "seed", "flow_source")
-options.define_flags(
+common.define_option_flags(
     [field for field in options.option_fields(GlobalLocal) if field.name in ENCODER_OPTIONS]
 )
-options.define_flags(
+common.define_option_flags(
     [field for field in options.option_fields(TrainConfig) if field.name in TRAINING_OPTIONS],
     {"steps": 600, "learning_rate": 1e-3, "warmup_steps": 50, "flow_source": "gt"},
 )

@@ -29,13 +29,13 @@ flags.DEFINE_integer(
 
 def _define_flags() -> None:
     """A flag for every option of FlowTrainConfig and every FlowNet argument
-    (`gld.options.define_flags`), each with its one default and help."""
+    (`common.define_option_flags`), each with its one default and help."""
     from gld import options
     from gld.models.flow_net import FlowNet
     from gld.runs.flow_config import FlowTrainConfig
 
-    options.define_flags(options.option_fields(FlowTrainConfig))
-    options.define_flags(options.option_fields(FlowNet))
+    common.define_option_flags(options.option_fields(FlowTrainConfig))
+    common.define_option_flags(options.option_fields(FlowNet))
 
 
 _define_flags()
@@ -47,7 +47,7 @@ def _architecture() -> dict:
     from gld.models.flow_net import FlowNet
 
     try:
-        return options.flag_values(options.option_fields(FlowNet))
+        return common.option_flag_values(options.option_fields(FlowNet))
     except ValueError as error:
         raise app.UsageError(f"--{error}") from None
 
@@ -61,7 +61,7 @@ def main(argv):
     from gld.training import flow_trainer as flow_training
 
     def make_config(**values):
-        options = options_lib.flag_values(options_lib.option_fields(flow_config.FlowTrainConfig))
+        options = common.option_flag_values(options_lib.option_fields(flow_config.FlowTrainConfig))
         try:
             return flow_config.FlowTrainConfig(
                 **options, model_config=_architecture(), dataset=FLAGS.dataset, **values

@@ -1,7 +1,7 @@
 """A training run's configuration: one definition of every option, with its help text.
 
 `TrainConfig` is the single source: the launchers derive their command-line flags from
-its fields (`gld.options.define_flags`), and a workdir's `config.json` stores it
+its fields (`experiments.common.define_option_flags`), and a workdir's `config.json` stores it
 (`gld.runs.workdir`). A field's metadata holds the flag's help, choices and bounds;
 fields without help (the model's constructor arguments, the dataset and its resolution)
 are set by the launcher, not by a flag. The loop's and the optimiser's options are

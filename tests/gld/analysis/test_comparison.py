@@ -71,28 +71,21 @@ def test_a_finished_run_is_reused_and_tabulated_with_the_references(
 
 
 def test_unknown_methods_are_refused_before_anything_runs(tmp_path):
+    def compare(models, classical_methods):
+        comparison.run_comparison(
+            workdir=tmp_path,
+            dataset="gld_scenes/tiny",
+            train_source=None,
+            eval_source=None,
+            height=48,
+            width=64,
+            models=models,
+            classical_methods=classical_methods,
+            train_config={},
+        )
+
     with pytest.raises(ValueError, match="unknown model 'resnet'"):
-        comparison.run_comparison(
-            workdir=tmp_path,
-            dataset="gld_scenes/tiny",
-            train_source=None,
-            eval_source=None,
-            height=48,
-            width=64,
-            models=["resnet"],
-            classical_methods=[],
-            train_config={},
-        )
+        compare(["resnet"], [])
     with pytest.raises(ValueError, match="unknown classical method 'stereo'"):
-        comparison.run_comparison(
-            workdir=tmp_path,
-            dataset="gld_scenes/tiny",
-            train_source=None,
-            eval_source=None,
-            height=48,
-            width=64,
-            models=[],
-            classical_methods=["stereo"],
-            train_config={},
-        )
+        compare([], ["stereo"])
     assert not any(tmp_path.iterdir())
