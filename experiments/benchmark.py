@@ -2,6 +2,7 @@
 
     python -m experiments.benchmark                                        # the model
     python -m experiments.benchmark --torch_python=.torchref/bin/python    # + PyTorch
+    python -m experiments.benchmark --torch_python=.torchref/bin/python --readme  # + README
     python -m experiments.benchmark --formulations=fused,vmap --repeats=3
     python -m experiments.benchmark --suite=pipeline                       # other suites
     python -m experiments.benchmark --suite=robot      # flow + depth + scale per pair
@@ -9,8 +10,10 @@
 The default suite (`experiments/benchmarks/model.py`) times the depth networks per
 `apply_filter_banks` formulation: compile time, forward latency at batch 1 (median,
 p90), forward throughput, the Adam train step, peak host memory and achieved
-GFLOP/s; with `--torch_python` the PyTorch reference runs in the same session and the
-goal ratios are printed. The other suites are modules `experiments/benchmarks/<suite>.py`
+GFLOP/s, and the machine's float32 GEMM rate; with `--torch_python` the PyTorch
+reference runs in the same session, alternating with the default formulation
+(`--pairs`), and each pair's ratios are printed. `--readme` rewrites the README's speed
+table from the result. The other suites are modules `experiments/benchmarks/<suite>.py`
 with a `run() -> dict`, called with their defaults (run them directly for their own
 flags). Every suite prints its result and writes it as JSON to `--output`.
 """
@@ -43,7 +46,15 @@ flags.DEFINE_string(
 flags.DEFINE_string(
     "torch_reference", None, "torch_reference.py (default: ../shared/bench/torch_reference.py)."
 )
-flags.DEFINE_integer("torch_rounds", 2, "Reference runs, before and after gld's rows.")
+flags.DEFINE_integer(
+    "pairs", 3, "Alternating (PyTorch reference, default formulation) measurements.", lower_bound=1
+)
+flags.DEFINE_integer(
+    "cpu_devices", 2, "CPU devices gld splits the host into, as the launchers do.", lower_bound=1
+)
+flags.DEFINE_bool(
+    "readme", False, "Rewrite the README's speed table (between its markers) from the result."
+)
 flags.DEFINE_bool("torch_compile", True, "Also measure torch.compile in the reference.")
 flags.DEFINE_bool(
     "quick", False, "Tiny shapes and one repeat: checks that everything runs, times nothing."
@@ -66,7 +77,8 @@ def run_model_suite() -> dict:
         repeats=FLAGS.repeats,
         max_seconds=FLAGS.max_seconds,
         torch_python=FLAGS.torch_python,
-        torch_rounds=FLAGS.torch_rounds,
+        pairs=FLAGS.pairs,
+        cpu_devices=FLAGS.cpu_devices,
         torch_compile=FLAGS.torch_compile,
     )
     if FLAGS.torch_reference:
@@ -82,6 +94,13 @@ def run_model_suite() -> dict:
         )
     result = model.run(**settings)
     print(model.format_table(result))
+    if FLAGS.readme:
+        from experiments import common
+
+        readme = Path(__file__).resolve().parents[1] / "README.md"
+        table = model.markdown_table(result, common.commit_stamp(readme) or "unknown")
+        readme.write_text(model.replace_readme_table(readme.read_text(), table))
+        print(f"rewrote the speed table of {readme}")
     return result
 
 

@@ -207,6 +207,14 @@ def model_options(model_name: str) -> dict[str, Any]:
 
 
 def define_distributed_flags() -> None:
+    flags.DEFINE_integer(
+        "cpu_devices",
+        2,
+        "On the CPU, JAX devices the host is split into: each batch is split over them "
+        "(data parallelism over the cores). Lowered to the largest count that divides "
+        "--batch_size; results differ across counts only by float rounding.",
+        lower_bound=1,
+    )
     flags.DEFINE_string("coordinator_address", None, "host:port of process 0 (multi-process).")
     flags.DEFINE_integer("num_processes", 1, "Number of JAX processes.", lower_bound=1)
     flags.DEFINE_integer("process_id", 0, "This process's index.", lower_bound=0)
@@ -228,8 +236,9 @@ def define_distributed_flags() -> None:
 
 
 def initialise() -> None:
-    """Quiet library logs (unless --verbosity is given) and start multi-process JAX when
-    --num_processes > 1 (before any device is touched).
+    """Quiet library logs (unless --verbosity is given), split the CPU into --cpu_devices
+    devices and start multi-process JAX when --num_processes > 1 (before any device is
+    touched).
 
     JAX aborts the process with a C++ stack trace when the others do not join in time;
     a watchdog stops it a moment earlier with a message saying what to check.
@@ -238,6 +247,13 @@ def initialise() -> None:
 
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)
+    if "cpu_devices" in FLAGS:
+        from gld import sharding
+
+        count = FLAGS.cpu_devices
+        if "batch_size" in FLAGS:
+            count = sharding.devices_for_batch(FLAGS.batch_size, count, FLAGS.num_processes)
+        sharding.split_cpu_devices(count)
     if "num_processes" in FLAGS and FLAGS.num_processes > 1:
         import threading
 

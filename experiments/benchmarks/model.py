@@ -1,26 +1,34 @@
 """Speed of the depth networks, per `apply_filter_banks` formulation, against PyTorch.
 
     python -m experiments.benchmark                                   # this suite
-    python -m experiments.benchmark --torch_python=.torchref/bin/python
+    python -m experiments.benchmark --torch_python=.torchref/bin/python --readme
 
 For every model of `gld.models.registry.MODELS` asked for (the global-local model once per
 formulation of `gld.models.filter_banks.FORMULATIONS`) it measures, each in a fresh process so
 that peak memory is the row's own: compile time of the train step, forward latency
 at batch 1 (median and p90), forward throughput at the forward batch sizes, the time
-of a whole Adam train step (the model's loss, `gld.training.trainer.make_train_step`), peak host
-memory, and the GFLOP/s achieved (the flops of the computation, from XLA's cost
-analysis of the "vmap" reference program, divided by the median time). With a
-PyTorch interpreter it also runs `../shared/bench/torch_reference.py` (the same
-network in PyTorch, eager and compiled) before and after, and reports ratios against
-the goals: train step at most 0.8x PyTorch eager, forward at batch 16 no slower than
-compiled PyTorch, forward at batch 1 no slower than PyTorch eager. Compare ratios
-measured in one run only; on a shared machine absolute times drift.
+of a whole Adam train step (the model's loss, `gld.training.trainer.make_train_step`,
+compiled as the trainer compiles it: over a mesh of `cpu_devices` CPU devices), peak
+host memory, and the GFLOP/s achieved (the flops of the computation, from XLA's cost
+analysis of the "vmap" reference program, divided by the median time). It also
+measures the machine's float32 GEMM rate (a 2048x2048 matmul through XLA, all cores),
+the peak the train step's GFLOP/s is compared with.
+
+With a PyTorch interpreter it runs `../shared/bench/torch_reference.py` (the same
+network in PyTorch, eager and compiled) alternating with the default formulation's
+row, `pairs` times: each pair's ratios are reported, with their median and spread, and
+the reference is called noisy when its own train step varies by more than 25% across
+pairs. Goals: train step at most 0.5x PyTorch eager and below compiled PyTorch; forward
+at batch 16 no slower than compiled PyTorch; forward at batch 1 no slower than eager.
+`markdown_table` writes the README's speed table from a result (`--readme`).
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
+import platform
 import resource
 import statistics
 import subprocess
@@ -78,8 +86,13 @@ def measure_one(
     latency_repeats: int,
     repeats: int,
     max_seconds: float,
+    cpu_devices: int = 1,
 ) -> dict[str, Any]:
-    """Measures one (model, formulation) in this process. Times are seconds."""
+    """Measures one (model, formulation) in this process, on `cpu_devices` CPU devices
+    (each batch split over as many as divide it, as the trainer does). Times are seconds."""
+    from gld import sharding
+
+    sharding.split_cpu_devices(cpu_devices)
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -88,7 +101,12 @@ def measure_one(
     from gld.models import registry
     from gld.runs import state as state_lib
     from gld.runs.optimizer import make_optimizer
+    from gld.training import loop
     from gld.training import trainer as train_lib
+
+    def mesh_for(batch_size: int):
+        count = sharding.devices_for_batch(batch_size, len(jax.devices()))
+        return sharding.make_mesh(jax.devices()[:count])
 
     config = {"filter_formulation": formulation} if formulation is not None else {}
     model = registry.make_model(model_name, **config)
@@ -129,23 +147,29 @@ def measure_one(
         "model": model_name,
         "formulation": formulation or "-",
         "backend": jax.default_backend(),
+        "devices": len(jax.devices()),
         "height": height,
         "width": width,
         "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
     }
-    forward_jit = jax.jit(make_forward(model))
     flops_forward_jit = jax.jit(make_forward(flops_model))
     for batch_size in sorted({1, *forward_batch_sizes}):
+        mesh = mesh_for(batch_size)
         batch = make_batch(batch_size)
         args = (params, batch["image1"], batch["image2"], batch["flow"])
+        flops = _flops(flops_forward_jit.lower(*args))
+        args = (
+            jax.device_put(params, sharding.replicated(mesh)),
+            *jax.device_put(args[1:], sharding.batch_sharded(mesh)),
+        )
         start = time.perf_counter()
-        compiled = forward_jit.lower(*args).compile()
+        with jax.set_mesh(mesh):  # traced over the mesh, as the evaluation does
+            compiled = jax.jit(make_forward(model)).lower(*args).compile()
         compile_s = time.perf_counter() - start
         run = lambda compiled=compiled, args=args: jax.block_until_ready(compiled(*args))
         count = latency_repeats if batch_size == 1 else repeats
         times = _timed(run, count, max_seconds)
         median = statistics.median(times)
-        flops = _flops(flops_forward_jit.lower(*args))
         result[f"forward_b{batch_size}"] = {
             "compile_s": compile_s,
             "median_s": median,
@@ -154,6 +178,7 @@ def measure_one(
             "gflop": flops / 1e9 if flops else None,
             "gflops_per_s": flops / median / 1e9 if flops else None,
             "repeats": len(times),
+            "devices": mesh.devices.size,
         }
         del batch, args, compiled
 
@@ -162,7 +187,6 @@ def measure_one(
             model=model, optimizer=optimizer, loss_weights=losses.LossWeights()
         )
 
-    step_jit = jax.jit(make_step(model), donate_argnums=0)
     batch = {
         key: value
         for key, value in make_batch(train_batch_size).items()
@@ -170,8 +194,14 @@ def measure_one(
     }
     step_rng = jax.random.key_data(jax.random.key(1))
     flops = _flops(jax.jit(make_step(flops_model)).lower(state, batch, step_rng))
+    mesh = mesh_for(train_batch_size)
+    # Compiled as the trainer compiles it (`loop.jit_train_step`).
+    step_jit = loop.jit_train_step(make_step(model), mesh).__wrapped__
+    state = jax.device_put(state, sharding.replicated(mesh))
+    batch = sharding.to_global_batch(batch, mesh, list(batch))
     start = time.perf_counter()
-    compiled_step = step_jit.lower(state, batch, step_rng).compile()
+    with jax.set_mesh(mesh):
+        compiled_step = step_jit.lower(state, batch, step_rng).compile()
     compile_s = time.perf_counter() - start
     holder = {"state": state}
 
@@ -188,25 +218,52 @@ def measure_one(
         "gflop": flops / 1e9 if flops else None,
         "gflops_per_s": flops / median / 1e9 if flops else None,
         "repeats": len(times),
+        "devices": mesh.devices.size,
     }
     # ru_maxrss is in KiB on Linux.
     result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return result
 
 
-def _measure_in_subprocess(arguments: dict[str, Any]) -> dict[str, Any]:
-    """Runs `measure_one` in a fresh interpreter (own compile cache, own peak memory)."""
-    command = [sys.executable, "-m", "experiments.benchmarks.model", json.dumps(arguments)]
+def measure_gemm(size: int = 2048, repeats: int = 10) -> dict[str, Any]:
+    """The machine's float32 GEMM rate through XLA (all cores, one device): a
+    `size` x `size` matmul, best and median GFLOP/s over `repeats` calls."""
+    import jax
+    import jax.numpy as jnp
+
+    matrix = jax.random.normal(jax.random.key(0), (size, size), jnp.float32)
+    matmul = jax.jit(lambda a: a @ a)
+    times = _timed(lambda: jax.block_until_ready(matmul(matrix)), repeats, 60.0)
+    flop = 2.0 * size**3
+    return {
+        "size": size,
+        "best_gflops_per_s": flop / min(times) / 1e9,
+        "median_gflops_per_s": flop / statistics.median(times) / 1e9,
+        "repeats": len(times),
+    }
+
+
+def _in_subprocess(kind: str, arguments: dict[str, Any]) -> dict[str, Any]:
+    """`measure_one` ("row") or `measure_gemm` ("gemm") in a fresh interpreter (own
+    compile cache, own peak memory, own CPU devices); {"error": ...} if it fails."""
+    command = [sys.executable, "-m", "experiments.benchmarks.model", kind, json.dumps(arguments)]
     completed = subprocess.run(
         command, cwd=REPO_ROOT, capture_output=True, text=True, env=dict(os.environ)
     )
     if completed.returncode != 0:
-        return {
+        return {"error": completed.stderr.strip().splitlines()[-1:] or ["exit status nonzero"]}
+    return json.loads(completed.stdout.strip().splitlines()[-1])
+
+
+def _measure_in_subprocess(arguments: dict[str, Any]) -> dict[str, Any]:
+    row = _in_subprocess("row", arguments)
+    if "error" in row:
+        row = {
             "model": arguments["model_name"],
             "formulation": arguments["formulation"] or "-",
-            "error": completed.stderr.strip().splitlines()[-1:] or ["exit status nonzero"],
+            **row,
         }
-    return json.loads(completed.stdout.strip().splitlines()[-1])
+    return row
 
 
 def run_torch_reference(
@@ -222,36 +279,74 @@ def run_torch_reference(
     return json.loads(completed.stdout.strip().splitlines()[-1])
 
 
+def _torch_seconds(figures: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """One reference run's figures in seconds: {mode: {"train_b16_s": ...}}."""
+    return {
+        mode: {key.replace("_ms", "_s"): value / 1000 for key, value in figures[mode].items()}
+        for mode in ("eager", "compiled")
+        if mode in figures
+    }
+
+
 def _torch_summary(rounds: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Median over rounds of each reference figure, in seconds: {mode: {key: s}}."""
     summary: dict[str, dict[str, float]] = {}
     for mode in ("eager", "compiled"):
-        figures = [r[mode] for r in rounds if mode in r]
+        figures = [_torch_seconds(r)[mode] for r in rounds if mode in r]
         if figures:
-            summary[mode] = {
-                key.replace("_ms", "_s"): statistics.median(f[key] for f in figures) / 1000
-                for key in figures[0]
-            }
+            summary[mode] = {key: statistics.median(f[key] for f in figures) for key in figures[0]}
     return summary
 
 
+# Goals of gld's time against PyTorch's: (name, gld figure, reference mode and figure, bound).
+GOALS = (
+    ("train_b16_vs_eager", "train_b16", "eager", "train_b16_s", 0.5),
+    ("train_b16_vs_compiled", "train_b16", "compiled", "train_b16_s", 1.0),
+    ("forward_b16_vs_compiled", "forward_b16", "compiled", "forward_b16_s", 1.0),
+    ("forward_b1_vs_eager", "forward_b1", "eager", "forward_b1_s", 1.0),
+)
+
+
 def goal_ratios(row: dict[str, Any], torch: dict[str, dict[str, float]]) -> dict[str, float]:
-    """Ratios of gld's time to PyTorch's for the three goals (goal: <= 0.8, 1, 1)."""
+    """Ratios of gld's median time to PyTorch's, for each goal of `GOALS` both have."""
     ratios = {}
-    eager, compiled = torch.get("eager", {}), torch.get("compiled", {})
-    if "train_b16" in row and "train_b16_s" in eager:
-        ratios["train_b16_vs_eager (goal <= 0.8)"] = (
-            row["train_b16"]["median_s"] / eager["train_b16_s"]
-        )
-    if "forward_b16" in row and "forward_b16_s" in compiled:
-        ratios["forward_b16_vs_compiled (goal <= 1)"] = (
-            row["forward_b16"]["median_s"] / compiled["forward_b16_s"]
-        )
-    if "forward_b1" in row and "forward_b1_s" in eager:
-        ratios["forward_b1_vs_eager (goal <= 1)"] = (
-            row["forward_b1"]["median_s"] / eager["forward_b1_s"]
-        )
+    for name, figure, mode, torch_figure, _ in GOALS:
+        if figure in row and torch_figure in torch.get(mode, {}):
+            ratios[name] = row[figure]["median_s"] / torch[mode][torch_figure]
     return ratios
+
+
+def _spread(values: Sequence[float]) -> dict[str, float]:
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def summarise_pairs(pairs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Each alternating (reference, gld) pair's ratios, their median and spread, and
+    whether the reference was noisy (its eager train step varies by more than 25%)."""
+    measured = [p for p in pairs if "error" not in p["gld"]]
+    summary: dict[str, Any] = {"pairs": len(pairs)}
+    if not measured:
+        return summary
+    for figure in ("train_b16", "forward_b16", "forward_b1"):
+        times = [p["gld"][figure]["median_s"] for p in measured if figure in p["gld"]]
+        if times:
+            summary[f"gld_{figure}_s"] = _spread(times)
+    compared = [p for p in measured if p.get("torch") and "error" not in p["torch"]]
+    per_pair = [goal_ratios(p["gld"], _torch_seconds(p["torch"])) for p in compared]
+    summary["ratios_per_pair"] = per_pair
+    for name, *_ in GOALS:
+        values = [ratios[name] for ratios in per_pair if name in ratios]
+        if values:
+            summary[name] = _spread(values)
+    for mode in ("eager", "compiled"):
+        times = [
+            _torch_seconds(p["torch"])[mode]["train_b16_s"] for p in compared if mode in p["torch"]
+        ]
+        if times:
+            summary[f"torch_{mode}_train_b16_s"] = _spread(times)
+    eager = summary.get("torch_eager_train_b16_s")
+    summary["torch_noisy"] = bool(eager and eager["max"] > 1.25 * eager["min"])
+    return summary
 
 
 def run(
@@ -267,11 +362,13 @@ def run(
     max_seconds: float = 60.0,
     torch_python: str | None = None,
     torch_reference: str | Path = DEFAULT_TORCH_REFERENCE,
-    torch_rounds: int = 2,
+    pairs: int = 3,
     torch_compile: bool = True,
+    cpu_devices: int = 2,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Measures every (model, formulation) and, optionally, the PyTorch reference.
+    """Measures the GEMM peak, the default formulation alternating with the PyTorch
+    reference `pairs` times, then every other (model, formulation) once.
 
     Args:
       models: names in `gld.models.registry.MODELS`; only "global_local" has formulations.
@@ -284,12 +381,15 @@ def run(
       max_seconds: a measurement stops after this many seconds of calls (slow rows).
       torch_python: a Python with torch to run the reference with (None = skip).
       torch_reference: path of torch_reference.py.
-      torch_rounds: reference runs, split before and after gld's rows (median taken).
+      pairs: alternating (reference, default formulation) measurements (>= 1).
       torch_compile: also measure torch.compile.
+      cpu_devices: CPU devices each gld measurement splits the host into, as the
+        launchers do (`--cpu_devices`).
       log: progress lines go here.
 
     Returns:
-      {"rows": [...], "torch": {...}, "default_formulation": ..., "settings": {...}}.
+      {"rows": [...], "pairs": [...], "summary": {...}, "gemm": {...}, "torch": {...},
+       "default_formulation": ..., "settings": {...}}.
     """
     from gld.models import filter_banks
 
@@ -299,51 +399,73 @@ def run(
         raise ValueError(
             f"unknown formulations {unknown}; valid: {sorted(filter_banks.FORMULATIONS)}"
         )
+    if pairs < 1:
+        raise ValueError(f"pairs must be >= 1, got {pairs}")
     if torch_python is not None and not Path(torch_reference).is_file():
         raise FileNotFoundError(f"PyTorch reference not found: {torch_reference}")
 
-    torch_rounds_results: list[dict[str, Any]] = []
-
-    def torch_round() -> None:
-        log(f"PyTorch reference ({torch_python}) ...")
-        torch_rounds_results.append(
-            run_torch_reference(torch_python, torch_reference, repeats, torch_compile)
+    def measure(model_name: str, formulation: str | None) -> dict[str, Any]:
+        log(f"{model_name} / {formulation or '-'} ...")
+        row = _measure_in_subprocess(
+            dict(
+                model_name=model_name,
+                formulation=formulation,
+                height=height,
+                width=width,
+                forward_batch_sizes=list(forward_batch_sizes),
+                train_batch_size=train_batch_size,
+                latency_repeats=latency_repeats,
+                repeats=repeats,
+                max_seconds=max_seconds,
+                cpu_devices=cpu_devices,
+            )
         )
-        log(f"  {json.dumps(torch_rounds_results[-1])}")
+        log(f"  {format_row(row, train_batch_size, forward_batch_sizes)}")
+        return row
 
-    if torch_python is not None and torch_rounds > 0:
-        torch_round()
-    rows = []
+    log("float32 GEMM ...")
+    gemm = _in_subprocess("gemm", {})
+    log(f"  {json.dumps(gemm)}")
+    default = filter_banks.default_formulation("cpu")
+    paired_name = default if default in names else names[0]
+    measured_pairs = []
+    for index in range(pairs):
+        reference = None
+        if torch_python is not None:
+            log(f"PyTorch reference ({torch_python}), pair {index + 1} of {pairs} ...")
+            reference = run_torch_reference(torch_python, torch_reference, repeats, torch_compile)
+            log(f"  {json.dumps(reference)}")
+        measured_pairs.append({"torch": reference, "gld": measure(models[0], paired_name)})
+    rows = [pair["gld"] for pair in measured_pairs]
     for model_name in models:
         for formulation in names if model_name == "global_local" else [None]:
-            log(f"{model_name} / {formulation or '-'} ...")
-            row = _measure_in_subprocess(
-                dict(
-                    model_name=model_name,
-                    formulation=formulation,
-                    height=height,
-                    width=width,
-                    forward_batch_sizes=list(forward_batch_sizes),
-                    train_batch_size=train_batch_size,
-                    latency_repeats=latency_repeats,
-                    repeats=repeats,
-                    max_seconds=max_seconds,
-                )
-            )
-            rows.append(row)
-            log(f"  {format_row(row, train_batch_size, forward_batch_sizes)}")
-    if torch_python is not None:
-        for _ in range(torch_rounds - 1):
-            torch_round()
+            if (model_name, formulation) != (models[0], paired_name):
+                rows.append(measure(model_name, formulation))
 
-    torch_summary = _torch_summary([r for r in torch_rounds_results if "error" not in r])
+    references = [p["torch"] for p in measured_pairs if p["torch"] and "error" not in p["torch"]]
+    torch_summary = _torch_summary(references)
     comparable = (height, width) == TORCH_SHAPE and train_batch_size == 16
     if torch_summary and comparable:
         for row in rows:
-            row["vs_torch"] = goal_ratios(row, torch_summary)
+            if "error" not in row:
+                row["vs_torch"] = goal_ratios(row, torch_summary)
+    summary = summarise_pairs(measured_pairs) if comparable else {}
+    train = measured_pairs[-1]["gld"].get(f"train_b{train_batch_size}", {})
+    if "error" not in gemm and train.get("gflops_per_s"):
+        summary["train_share_of_gemm_peak"] = [
+            p["gld"][f"train_b{train_batch_size}"]["gflops_per_s"] / gemm["best_gflops_per_s"]
+            for p in measured_pairs
+            if "error" not in p["gld"]
+        ]
     return {
         "rows": rows,
-        "torch": {"rounds": torch_rounds_results, "median_s": torch_summary},
+        "pairs": measured_pairs,
+        "summary": summary,
+        "gemm": gemm,
+        "torch": {
+            "rounds": [p["torch"] for p in measured_pairs if p["torch"]],
+            "median_s": torch_summary,
+        },
         "default_formulation": {
             backend: filter_banks.default_formulation(backend) for backend in ("cpu", "gpu")
         },
@@ -355,11 +477,28 @@ def run(
             latency_repeats=latency_repeats,
             repeats=repeats,
             max_seconds=max_seconds,
+            pairs=pairs,
+            cpu_devices=cpu_devices,
             torch_comparable=comparable,
             cpu_count=os.cpu_count(),
             load_average=os.getloadavg(),
         ),
+        "machine": machine(),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
+
+
+def machine() -> str:
+    """The CPU's model name and core count, as /proc/cpuinfo gives them."""
+    name = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{name}, {os.cpu_count()} cores"
 
 
 def format_row(
@@ -385,7 +524,7 @@ def format_row(
 
 
 def format_table(result: dict[str, Any]) -> str:
-    """The printed table: one line per row, then the reference and goal ratios."""
+    """The printed table: one line per row, then the reference, the pairs and the goals."""
     settings = result["settings"]
     sizes = settings["forward_batch_sizes"]
     train_batch = settings["train_batch_size"]
@@ -400,12 +539,18 @@ def format_table(result: dict[str, Any]) -> str:
     header += [f"{f'train{train_batch}':>8s}", f"{'peak MB':>8s}"]
     header += [f"{f'GF/s{biggest}':>7s}", f"{'GF/s tr':>7s}"]
     lines = [
-        f"{settings['height']}x{settings['width']}; compile = train step [s]; b1 = forward "
-        f"latency [ms]; pr/s = forward pairs/s; train = Adam step [s]; GF/s = cost-analysis "
-        "flops / median time",
+        f"{settings['height']}x{settings['width']}, {settings['cpu_devices']} CPU devices; "
+        "compile = train step [s]; b1 = forward latency [ms]; pr/s = forward pairs/s; "
+        "train = Adam step [s]; GF/s = cost-analysis flops / median time",
         " ".join(header),
     ]
     lines += [format_row(row, train_batch, sizes) for row in result["rows"]]
+    gemm = result.get("gemm", {})
+    if "best_gflops_per_s" in gemm:
+        lines.append(
+            f"float32 GEMM {gemm['size']}: {gemm['best_gflops_per_s']:.0f} GFLOP/s best, "
+            f"{gemm['median_gflops_per_s']:.0f} median"
+        )
     torch = result["torch"]["median_s"]
     for mode, figures in torch.items():
         lines.append(
@@ -413,14 +558,119 @@ def format_table(result: dict[str, Any]) -> str:
             f"b16 {16 / figures['forward_b16_s']:.1f} pairs/s, "
             f"train16 {figures['train_b16_s']:.3f} s"
         )
-    for row in result["rows"]:
-        if row.get("vs_torch"):
-            ratios = ", ".join(f"{k} {v:.2f}" for k, v in row["vs_torch"].items())
-            lines.append(f"{row['model']}/{row['formulation']}: {ratios}")
+    summary = result.get("summary", {})
+    for index, ratios in enumerate(summary.get("ratios_per_pair", [])):
+        cells = ", ".join(f"{k} {v:.2f}" for k, v in ratios.items())
+        lines.append(f"pair {index + 1}: {cells}")
+    for name, *_, bound in GOALS:
+        if name in summary:
+            spread = summary[name]
+            lines.append(
+                f"{name}: median {spread['median']:.2f} ({spread['min']:.2f}-{spread['max']:.2f}),"
+                f" goal <= {bound:g}"
+            )
+    if summary.get("torch_noisy"):
+        lines.append("the reference was noisy: its train step varied by more than 25% across pairs")
+    if "train_share_of_gemm_peak" in summary:
+        shares = ", ".join(f"{share:.0%}" for share in summary["train_share_of_gemm_peak"])
+        lines.append(f"train step's share of the GEMM peak: {shares} (goal >= 25%)")
     lines.append(f"default formulation: {result['default_formulation']}")
     return "\n".join(lines)
 
 
+def markdown_table(result: dict[str, Any], commit: str) -> str:
+    """The README's speed table (the default formulation's pairs against PyTorch)."""
+    summary, settings = result["summary"], result["settings"]
+    gemm = result.get("gemm", {})
+    torch_version = next(
+        (p["torch"].get("torch") for p in result["pairs"] if p["torch"] and "torch" in p["torch"]),
+        None,
+    )
+    lines = [
+        f"Measured {result['date']} at commit {commit} on {result['machine']} (load average "
+        f"{settings['load_average'][0]:.1f} at the end), {settings['height']}x"
+        f"{settings['width']}, the CPU default `{result['default_formulation']['cpu']}` on "
+        f"{settings['cpu_devices']} CPU devices, PyTorch {torch_version or '-'} "
+        f"({settings['pairs']} alternating pairs; medians over {settings['repeats']} calls, "
+        "spread = the pairs' min-max):",
+        "",
+        "| measure | gld | PyTorch eager | PyTorch compiled | gld / eager | gld / compiled |",
+        "|---|---|---|---|---|---|",
+    ]
+    for figure, label in (
+        ("train_b16", "Adam train step, batch 16 [s]"),
+        ("forward_b16", "forward, batch 16 [s]"),
+        ("forward_b1", "forward, batch 1 [ms]"),
+    ):
+        scale = 1000 if figure == "forward_b1" else 1
+        digits = 1 if figure == "forward_b1" else 3
+
+        def cell(values: list[float], scale: float = scale, digits: int = digits) -> str:
+            spread = _spread([v * scale for v in values])
+            return (
+                f"{spread['median']:.{digits}f} ({spread['min']:.{digits}f}-"
+                f"{spread['max']:.{digits}f})"
+            )
+
+        gld_times = [p["gld"][figure]["median_s"] for p in result["pairs"] if figure in p["gld"]]
+        torch_cells, ratio_cells = [], []
+        for mode in ("eager", "compiled"):
+            times = [
+                _torch_seconds(p["torch"])[mode][f"{figure}_s"]
+                for p in result["pairs"]
+                if p["torch"] and mode in p["torch"]
+            ]
+            torch_cells.append(cell(times) if times else "-")
+            ratios = [
+                p["gld"][figure]["median_s"] / _torch_seconds(p["torch"])[mode][f"{figure}_s"]
+                for p in result["pairs"]
+                if p["torch"] and mode in p["torch"] and figure in p["gld"]
+            ]
+            ratio_cells.append(" / ".join(f"{r:.2f}" for r in ratios) if ratios else "-")
+        lines.append(
+            f"| {label} | {cell(gld_times) if gld_times else '-'} | {torch_cells[0]} | "
+            f"{torch_cells[1]} | {ratio_cells[0]} | {ratio_cells[1]} |"
+        )
+    lines.append("")
+    notes = []
+    if "best_gflops_per_s" in gemm:
+        shares = summary.get("train_share_of_gemm_peak", [])
+        notes.append(
+            f"The machine's float32 GEMM ({gemm['size']}x{gemm['size']} matmul through XLA): "
+            f"{gemm['best_gflops_per_s']:.0f} GFLOP/s best, {gemm['median_gflops_per_s']:.0f} "
+            "median; the train step reaches "
+            + ", ".join(f"{share:.0%}" for share in shares)
+            + " of it."
+        )
+    if summary.get("torch_noisy"):
+        notes.append(
+            "The reference was noisy: its train step varied by more than 25% across pairs."
+        )
+    notes.append(
+        "Ratios are per pair (gld measured right after the reference). Every formulation's "
+        "row is in `benchmark.json`."
+    )
+    lines.append(" ".join(notes))
+    return "\n".join(lines)
+
+
+README_START = (
+    "<!-- speed table: python -m experiments.benchmark "
+    "--torch_python=.torchref/bin/python --readme -->"
+)
+README_END = "<!-- end of speed table -->"
+
+
+def replace_readme_table(readme: str, table: str) -> str:
+    """`readme` with the text between the speed table's markers replaced by `table`."""
+    if README_START not in readme or README_END not in readme:
+        raise ValueError(f"the README has no speed table markers ({README_START} ... {README_END})")
+    head, rest = readme.split(README_START, 1)
+    _, tail = rest.split(README_END, 1)
+    return f"{head}{README_START}\n{table}\n{README_END}{tail}"
+
+
 if __name__ == "__main__":
     # Worker mode: one measurement, its JSON on the last stdout line.
-    print(json.dumps(measure_one(**json.loads(sys.argv[1]))))
+    worker = {"row": measure_one, "gemm": measure_gemm}[sys.argv[1]]
+    print(json.dumps(worker(**json.loads(sys.argv[2]))))

@@ -162,6 +162,17 @@ def save_checkpoint(manager: ocp.CheckpointManager, state: TrainState, iterator)
         record_checksums(step_directory(manager, step))
 
 
+def _on_these_devices(leaf) -> jax.ShapeDtypeStruct:
+    """A restore target for `leaf`: its shape, dtype and sharding, or, where it has no
+    sharding (an abstract or host value), this process's first device. A checkpoint saved
+    over another number of devices (`--cpu_devices`) restores onto these."""
+    struct = ocp.utils.to_shape_dtype_struct(leaf)
+    if getattr(struct, "sharding", None) is None:
+        sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        struct = jax.ShapeDtypeStruct(struct.shape, struct.dtype, sharding=sharding)
+    return struct
+
+
 class Restored(NamedTuple):
     """What `restore_intact_checkpoint` found."""
 
@@ -201,7 +212,7 @@ def restore_intact_checkpoint(
     if not available:
         raise FileNotFoundError(f"no checkpoint in {directory}")
     candidates = [step] if step is not None else available
-    abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, state)
+    abstract = jax.tree_util.tree_map(_on_these_devices, state)
     skipped: dict[int, str] = {}
     for candidate in candidates:
         step_dir = step_directory(manager, candidate)

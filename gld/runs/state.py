@@ -59,10 +59,16 @@ def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarra
 
 
 def init_variables(model: nn.Module, height: int, width: int, seed: int) -> dict[str, Any]:
-    """Initial model variables for images of the given size."""
+    """Initial model variables for images of the given size.
+
+    Compiled: run op by op, the init's forward pass of the main job's model takes 24 s
+    on the 2-core CPU, compiled 8 s (the values agree to float rounding, not bit for
+    bit, with the op-by-op init).
+    """
     batch = dummy_batch(1, height, width)
     args, extra = layers.model_arguments(model, batch)
-    return model.init(jax.random.key(seed), *args, **extra, train=False)
+    init = jax.jit(lambda key, args, extra: model.init(key, *args, **extra, train=False))
+    return init(jax.random.key(seed), args, extra)
 
 
 def create_train_state(

@@ -140,6 +140,7 @@ def train(
     run.check_workdir(workdir)
     state = run.fresh_state(model, optimizer, workdir, print_fn)
     if jax.process_index() == 0:
+        print_fn(f"devices: {mesh.devices.size} {jax.default_backend()}, batch split over them")
         for name, count in run.parameter_counts(state).items():
             print_fn(f"parameters {name}: {count:,}")
     keys = run.batch_keys(model)

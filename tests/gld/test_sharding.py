@@ -1,8 +1,11 @@
 """Data parallelism: the mesh, per-process batches, global arrays and gathering."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
+from conftest import _interpreter, run_python
 from jax.sharding import PartitionSpec
 
 from gld import sharding
@@ -49,3 +52,38 @@ def test_an_evaluation_batch_is_rounded_up_to_the_devices():
         18,
         18,
     ]
+
+
+def test_the_devices_for_a_batch_divide_it():
+    assert sharding.devices_for_batch(16, 2) == 2
+    assert sharding.devices_for_batch(3, 2) == 1
+    assert sharding.devices_for_batch(12, 8) == 6
+    # Over processes: each process's share must split over its devices.
+    assert sharding.devices_for_batch(8, 4, processes=2) == 4
+    assert sharding.devices_for_batch(6, 4, processes=2) == 3
+    assert sharding.devices_for_batch(5, 4, processes=2) == 1
+
+
+SPLIT_SCRIPT = """
+import json, os, sys
+from gld import sharding
+applied = sharding.split_cpu_devices(int(sys.argv[1]))
+import jax
+count = len(jax.devices())
+late = sharding.split_cpu_devices(5)
+print(json.dumps({"applied": applied, "count": count, "late": late, "after": len(jax.devices())}))
+"""
+
+
+def test_the_cpu_is_split_before_jax_starts_and_never_over_xla_flags():
+    env = {"XLA_FLAGS": ""}
+    result = _interpreter(["-c", SPLIT_SCRIPT, "2"], timeout=120, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    split = json.loads(result.stdout.strip().splitlines()[-1])
+    # Once JAX has started, its devices stay as they are.
+    assert split == {"applied": True, "count": 2, "late": False, "after": 2}
+    # A device count in XLA_FLAGS wins.
+    forced = json.loads(run_python(SPLIT_SCRIPT, "2", device_count=3).stdout.splitlines()[-1])
+    assert forced == {"applied": False, "count": 3, "late": False, "after": 3}
+    with pytest.raises(ValueError, match="count must be >= 1"):
+        sharding.split_cpu_devices(0)
