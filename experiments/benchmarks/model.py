@@ -588,8 +588,8 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
     )
     lines = [
         f"Measured {result['date']} at commit {commit} on {result['machine']} (load average "
-        f"{settings['load_average'][0]:.1f} at the end), {settings['height']}x"
-        f"{settings['width']}, the CPU default `{result['default_formulation']['cpu']}` on "
+        f"{settings['load_average'][0]:.1f} at the end), {settings['width']}x"
+        f"{settings['height']}, the CPU default `{result['default_formulation']['cpu']}` on "
         f"{settings['cpu_devices']} CPU devices, PyTorch {torch_version or '-'} "
         f"({settings['pairs']} alternating pairs; medians over {settings['repeats']} calls, "
         "spread = the pairs' min-max):",
@@ -646,10 +646,20 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
         notes.append(
             "The reference was noisy: its train step varied by more than 25% across pairs."
         )
-    notes.append(
-        "Ratios are per pair (gld measured right after the reference). Every formulation's "
-        "row is in `benchmark.json`."
-    )
+    notes.append("Ratios are per pair (gld measured right after the reference).")
+    train_key = f"train_b{settings.get('train_batch_size', 16)}"
+    others = [
+        f"`{row['formulation']}` {row[train_key]['median_s']:.2f} s"
+        for row in result.get("rows", [])
+        if "error" not in row and row["formulation"] != result["default_formulation"]["cpu"]
+    ]
+    if others:
+        notes.append(
+            "The train step of the other formulations in the same run: "
+            + ", ".join(others)
+            + "; every row (compile time, p90, batch 64, peak memory, GFLOP/s) is in "
+            "`benchmark.json`."
+        )
     lines.append(" ".join(notes))
     return "\n".join(lines)
 

@@ -356,14 +356,14 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
 }
 
 # Default formulation per platform. CPU, measured: `python -m experiments.benchmark` on
-# the 2-core machine timed the batch-16 Adam step (256x192, final conv as the head) at
-# 0.73 s with "fused" against 0.91 "fused_taps", 1.10 "fused_im2col", 1.18
-# "fused_planar", 1.22 "map_im2col", 1.76 "shifted", 4.1 "map_conv" and 37 "vmap"
-# (PyTorch eager: 1.33 s), with the fastest forward passes too (batch 1: 12.3 ms;
-# batch 16: 77.5 pairs/s against 62.3 for compiled PyTorch). GPU: a choice, not a
-# measurement (no GPU timing exists yet): "vmap" lowers to one grouped convolution,
-# which cuDNN runs natively, while the lax.map formulations would serialise the batch
-# into small kernels.
+# the 2-core machine (2 CPU devices, 256x192, the final conv as the head) timed the
+# batch-16 Adam step at 1.21-1.30 s with "fused" against 1.29 "fused_taps", 1.82
+# "fused_im2col", 2.20 "fused_planar", 2.33 "map_im2col", 2.69 "shifted", 4.7
+# "map_conv" and 31 "vmap" (PyTorch eager 1.67-2.00 s, compiled 1.74-2.30 s in the same
+# run), with the fastest forward at batch 16 too (0.20-0.25 s against 0.32-0.44 s
+# compiled). GPU: a choice, not a measurement (no GPU timing exists yet): "vmap" lowers
+# to one grouped convolution, which cuDNN runs natively, while the lax.map formulations
+# would serialise the batch into small kernels.
 _DEFAULT_FORMULATIONS = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
 
 
