@@ -64,7 +64,7 @@ SUITES = ("model", "renderer", "pipeline", "demon", "robot")
 
 
 def run_model_suite() -> dict:
-    from experiments.benchmarks import model
+    from experiments.benchmarks import model, model_tables
 
     settings = dict(
         models=FLAGS.models,
@@ -93,13 +93,13 @@ def run_model_suite() -> dict:
             repeats=1,
         )
     result = model.run(**settings)
-    print(model.format_table(result))
+    print(model_tables.format_table(result))
     if FLAGS.readme:
         from experiments import common
 
         readme = Path(__file__).resolve().parents[1] / "README.md"
-        table = model.markdown_table(result, common.commit_stamp(readme) or "unknown")
-        readme.write_text(model.replace_readme_table(readme.read_text(), table))
+        table = model_tables.markdown_table(result, common.commit_stamp(readme) or "unknown")
+        readme.write_text(model_tables.replace_readme_table(readme.read_text(), table))
         print(f"rewrote the speed table of {readme}")
     return result
 

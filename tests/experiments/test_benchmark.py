@@ -10,6 +10,7 @@ import pytest
 from conftest import REPO_ROOT
 
 from experiments.benchmarks import model as model_benchmark
+from experiments.benchmarks import model_tables
 from gld.models import filter_banks
 
 FAKE_TORCH_FIGURES = {
@@ -147,19 +148,17 @@ def test_the_readme_table_is_rewritten_between_its_markers():
         "date": "2026-11-27 05:00 UTC",
         "default_formulation": {"cpu": "fused", "gpu": "vmap"},
     }
-    table = model_benchmark.markdown_table(result, "abc1234")
+    table = model_tables.markdown_table(result, "abc1234")
     assert "commit abc1234" in table and "PyTorch 9.9" in table
     # Each pair's ratio against its own reference, and the GEMM share of each pair.
     assert "| 0.50 / 0.55 |" in table and "30%, 25%" in table
-    readme = (
-        f"intro\n{model_benchmark.README_START}\nold table\n{model_benchmark.README_END}\nrest\n"
-    )
-    rewritten = model_benchmark.replace_readme_table(readme, table)
+    readme = f"intro\n{model_tables.README_START}\nold table\n{model_tables.README_END}\nrest\n"
+    rewritten = model_tables.replace_readme_table(readme, table)
     assert "old table" not in rewritten and table in rewritten
     assert rewritten.startswith("intro\n") and rewritten.endswith("rest\n")
-    assert model_benchmark.replace_readme_table(rewritten, table) == rewritten
+    assert model_tables.replace_readme_table(rewritten, table) == rewritten
     with pytest.raises(ValueError, match="no speed table markers"):
-        model_benchmark.replace_readme_table("no markers", table)
+        model_tables.replace_readme_table("no markers", table)
 
 
 def test_unknown_suite_and_formulation_are_refused(tmp_path):

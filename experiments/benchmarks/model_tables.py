@@ -1,0 +1,212 @@
+"""The model benchmark's tables: the printed one, and the README's speed table.
+
+`experiments.benchmarks.model` measures; this module formats what it measured.
+`markdown_table` writes the README's table (`python -m experiments.benchmark --readme`)
+and `replace_readme_table` puts it between the README's markers.
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Sequence
+from typing import Any
+
+# Goals of gld's time against PyTorch's: (name, gld figure, reference mode and figure, bound).
+GOALS = (
+    ("train_b16_vs_eager", "train_b16", "eager", "train_b16_s", 0.5),
+    ("train_b16_vs_compiled", "train_b16", "compiled", "train_b16_s", 1.0),
+    ("forward_b16_vs_compiled", "forward_b16", "compiled", "forward_b16_s", 1.0),
+    ("forward_b1_vs_eager", "forward_b1", "eager", "forward_b1_s", 1.0),
+)
+
+
+def torch_seconds(figures: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """One reference run's figures in seconds: {mode: {"train_b16_s": ...}}."""
+    return {
+        mode: {key.replace("_ms", "_s"): value / 1000 for key, value in figures[mode].items()}
+        for mode in ("eager", "compiled")
+        if mode in figures
+    }
+
+
+def spread(values: Sequence[float]) -> dict[str, float]:
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def format_row(
+    row: dict[str, Any], train_batch_size: int, forward_batch_sizes: Sequence[int]
+) -> str:
+    """One line of the table for a measured row."""
+    name = f"{row['model']}/{row['formulation']}"
+    if "error" in row:
+        return f"{name:28s} ERROR {row['error']}"
+    forward_one = row["forward_b1"]
+    train = row[f"train_b{train_batch_size}"]
+    cells = [
+        f"{name:28s}",
+        f"{train['compile_s']:8.1f}",
+        f"{forward_one['median_s'] * 1e3:8.1f}",
+        f"{forward_one['p90_s'] * 1e3:8.1f}",
+    ]
+    cells += [f"{row[f'forward_b{b}']['pairs_per_s']:9.1f}" for b in forward_batch_sizes]
+    cells += [f"{train['median_s']:8.3f}", f"{row['peak_rss_mb']:8.0f}"]
+    for figure in (row[f"forward_b{max(forward_batch_sizes, default=1)}"], train):
+        cells.append(f"{figure['gflops_per_s']:7.1f}" if figure["gflops_per_s"] else "      -")
+    return " ".join(cells)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """The printed table: one line per row, then the reference, the pairs and the goals."""
+    settings = result["settings"]
+    sizes = settings["forward_batch_sizes"]
+    train_batch = settings["train_batch_size"]
+    biggest = max(sizes, default=1)
+    header = [
+        f"{'model/formulation':28s}",
+        f"{'compile':>8s}",
+        f"{'b1 med':>8s}",
+        f"{'b1 p90':>8s}",
+    ]
+    header += [f"{f'b{b} pr/s':>9s}" for b in sizes]
+    header += [f"{f'train{train_batch}':>8s}", f"{'peak MB':>8s}"]
+    header += [f"{f'GF/s{biggest}':>7s}", f"{'GF/s tr':>7s}"]
+    lines = [
+        f"{settings['height']}x{settings['width']}, {settings['cpu_devices']} CPU devices; "
+        "compile = train step [s]; b1 = forward latency [ms]; pr/s = forward pairs/s; "
+        "train = Adam step [s]; GF/s = cost-analysis flops / median time",
+        " ".join(header),
+    ]
+    lines += [format_row(row, train_batch, sizes) for row in result["rows"]]
+    gemm = result.get("gemm", {})
+    if "best_gflops_per_s" in gemm:
+        lines.append(
+            f"float32 GEMM {gemm['size']}: {gemm['best_gflops_per_s']:.0f} GFLOP/s best, "
+            f"{gemm['median_gflops_per_s']:.0f} median"
+        )
+    torch = result["torch"]["median_s"]
+    for mode, figures in torch.items():
+        lines.append(
+            f"{'torch ' + mode:28s} b1 {figures['forward_b1_s'] * 1e3:.1f} ms, "
+            f"b16 {16 / figures['forward_b16_s']:.1f} pairs/s, "
+            f"train16 {figures['train_b16_s']:.3f} s"
+        )
+    summary = result.get("summary", {})
+    for index, ratios in enumerate(summary.get("ratios_per_pair", [])):
+        cells = ", ".join(f"{k} {v:.2f}" for k, v in ratios.items())
+        lines.append(f"pair {index + 1}: {cells}")
+    for name, *_, bound in GOALS:
+        if name in summary:
+            figures = summary[name]
+            lines.append(
+                f"{name}: median {figures['median']:.2f} "
+                f"({figures['min']:.2f}-{figures['max']:.2f}), goal <= {bound:g}"
+            )
+    if summary.get("torch_noisy"):
+        lines.append("the reference was noisy: its train step varied by more than 25% across pairs")
+    if "train_share_of_gemm_peak" in summary:
+        shares = ", ".join(f"{share:.0%}" for share in summary["train_share_of_gemm_peak"])
+        lines.append(f"train step's share of the GEMM peak: {shares} (goal >= 25%)")
+    lines.append(f"default formulation: {result['default_formulation']}")
+    return "\n".join(lines)
+
+
+def markdown_table(result: dict[str, Any], commit: str) -> str:
+    """The README's speed table (the default formulation's pairs against PyTorch)."""
+    summary, settings = result["summary"], result["settings"]
+    gemm = result.get("gemm", {})
+    torch_version = next(
+        (p["torch"].get("torch") for p in result["pairs"] if p["torch"] and "torch" in p["torch"]),
+        None,
+    )
+    lines = [
+        f"Measured {result['date']} at commit {commit} on {result['machine']} (load average "
+        f"{settings['load_average'][0]:.1f} at the end), {settings['width']}x"
+        f"{settings['height']}, the CPU default `{result['default_formulation']['cpu']}` on "
+        f"{settings['cpu_devices']} CPU devices, PyTorch {torch_version or '-'} "
+        f"({settings['pairs']} alternating pairs; medians over {settings['repeats']} calls, "
+        "spread = the pairs' min-max):",
+        "",
+        "| measure | gld | PyTorch eager | PyTorch compiled | gld / eager | gld / compiled |",
+        "|---|---|---|---|---|---|",
+    ]
+    for figure, label in (
+        ("train_b16", "Adam train step, batch 16 [s]"),
+        ("forward_b16", "forward, batch 16 [s]"),
+        ("forward_b1", "forward, batch 1 [ms]"),
+    ):
+        scale = 1000 if figure == "forward_b1" else 1
+        digits = 1 if figure == "forward_b1" else 3
+
+        def cell(values: list[float], scale: float = scale, digits: int = digits) -> str:
+            figures = spread([v * scale for v in values])
+            return (
+                f"{figures['median']:.{digits}f} ({figures['min']:.{digits}f}-"
+                f"{figures['max']:.{digits}f})"
+            )
+
+        gld_times = [p["gld"][figure]["median_s"] for p in result["pairs"] if figure in p["gld"]]
+        torch_cells, ratio_cells = [], []
+        for mode in ("eager", "compiled"):
+            times = [
+                torch_seconds(p["torch"])[mode][f"{figure}_s"]
+                for p in result["pairs"]
+                if p["torch"] and mode in p["torch"]
+            ]
+            torch_cells.append(cell(times) if times else "-")
+            ratios = [
+                p["gld"][figure]["median_s"] / torch_seconds(p["torch"])[mode][f"{figure}_s"]
+                for p in result["pairs"]
+                if p["torch"] and mode in p["torch"] and figure in p["gld"]
+            ]
+            ratio_cells.append(" / ".join(f"{r:.2f}" for r in ratios) if ratios else "-")
+        lines.append(
+            f"| {label} | {cell(gld_times) if gld_times else '-'} | {torch_cells[0]} | "
+            f"{torch_cells[1]} | {ratio_cells[0]} | {ratio_cells[1]} |"
+        )
+    lines.append("")
+    notes = []
+    if "best_gflops_per_s" in gemm:
+        shares = summary.get("train_share_of_gemm_peak", [])
+        notes.append(
+            f"The machine's float32 GEMM ({gemm['size']}x{gemm['size']} matmul through XLA): "
+            f"{gemm['best_gflops_per_s']:.0f} GFLOP/s best, {gemm['median_gflops_per_s']:.0f} "
+            "median; the train step reaches "
+            + ", ".join(f"{share:.0%}" for share in shares)
+            + " of it."
+        )
+    if summary.get("torch_noisy"):
+        notes.append(
+            "The reference was noisy: its train step varied by more than 25% across pairs."
+        )
+    notes.append("Ratios are per pair (gld measured right after the reference).")
+    train_key = f"train_b{settings.get('train_batch_size', 16)}"
+    others = [
+        f"`{row['formulation']}` {row[train_key]['median_s']:.2f} s"
+        for row in result.get("rows", [])
+        if "error" not in row and row["formulation"] != result["default_formulation"]["cpu"]
+    ]
+    if others:
+        notes.append(
+            "The train step of the other formulations in the same run: "
+            + ", ".join(others)
+            + "; every row (compile time, p90, batch 64, peak memory, GFLOP/s) is in "
+            "`benchmark.json`."
+        )
+    lines.append(" ".join(notes))
+    return "\n".join(lines)
+
+
+README_START = (
+    "<!-- speed table: python -m experiments.benchmark "
+    "--torch_python=.torchref/bin/python --readme -->"
+)
+README_END = "<!-- end of speed table -->"
+
+
+def replace_readme_table(readme: str, table: str) -> str:
+    """`readme` with the text between the speed table's markers replaced by `table`."""
+    if README_START not in readme or README_END not in readme:
+        raise ValueError(f"the README has no speed table markers ({README_START} ... {README_END})")
+    head, rest = readme.split(README_START, 1)
+    _, tail = rest.split(README_END, 1)
+    return f"{head}{README_START}\n{table}\n{README_END}{tail}"
