@@ -44,7 +44,10 @@ Images are WebP (lossless by default), depth float16 LZ4 blocks.
 All or nothing: the files are written under temporary names in `--output_dir` and
 renamed into place only when every split asked for has at least one pair; a run that
 fails or finds no pair writes nothing (and exits non-zero). An existing output file
-is replaced only with `--overwrite`. Every number read is checked (finite poses that
+is replaced only with `--overwrite`, and re-converting a recording replaces all of its
+files: the same recording's file of the split not written now (from an earlier run with
+`--test_fraction` or the other `--split`) is removed with `--overwrite` and refused
+without it, since its pairs would be in both splits. Every number read is checked (finite poses that
 are rotations, intrinsics with fx, fy > 0 and the principal point inside the image,
 range readings finite and > 0 inside the image, depth images without negative values;
 0, NaN and inf in a depth image mean "no reading"), and an error names the file and
@@ -118,6 +121,8 @@ def main(argv: Sequence[str]) -> None:
         print(f"{path}: {result['pairs'][split_name]} pairs ({split_name})")
     for reason, count in result["dropped"].items():
         print(f"pairs left out, {reason}: {count}")
+    for path in result["removed"]:
+        print(f"{path}: removed (the same recording's earlier split, whose pairs would overlap)")
 
 
 if __name__ == "__main__":

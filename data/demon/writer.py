@@ -71,6 +71,21 @@ def write_view(
 _RECORDING_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 
 
+def _source(image_paths: Sequence[Path]) -> str:
+    """The recording a file is written from: its frames' folder, resolved."""
+    return str(Path(image_paths[0]).parent.resolve())
+
+
+def _source_of(path: Path) -> str | None:
+    """The recording a written file came from (None when unreadable or not recorded)."""
+    try:
+        with h5py.File(path, "r") as h5_file:
+            source = h5_file[".config"].attrs["source"]
+    except (OSError, KeyError):
+        return None
+    return source.decode() if isinstance(source, bytes) else str(source)
+
+
 def output_path(output_dir: str | Path, split: str, recording: str | None = None) -> Path:
     """`custom_<split>.h5` or `custom_<split>_<recording>.h5`, the names `demon/custom` reads.
 
@@ -108,7 +123,7 @@ def _write_pairs(
     """
     written = 0
     with h5py.File(path, "w") as h5_file:
-        h5_file.create_group(".config").attrs["source"] = np.bytes_(str(image_paths[0].parent))
+        h5_file.create_group(".config").attrs["source"] = np.bytes_(_source(image_paths))
         for i, j in pair_list:
             depths = {index: frame_depth(index) for index in (i, j)}
             if not all(np.any(depth_map > 0) for depth_map in depths.values()):
@@ -166,12 +181,17 @@ def write_recording(
     temporary file in `output_dir` and moved into place only when every split asked
     for (train and test with `test_fraction` > 0, else `split`) has at least one pair.
 
+    Re-converting a recording replaces all of its files: with `overwrite`, the same
+    recording's file of the split not written now is removed (its pairs would overlap);
+    without, it is refused. A file of another recording under the other split's name stays.
+
     Returns:
-      {"files": {split: path}, "pairs": {split: count}, "dropped": {reason: count}}.
+      {"files": {split: path}, "pairs": {split: count}, "dropped": {reason: count},
+       "removed": [the same recording's earlier file of the other split]}.
 
     Raises:
-      FileExistsError: an output file exists and `overwrite` is False (before anything
-        is read).
+      FileExistsError: an output file, or the same recording's file of the other split,
+        exists and `overwrite` is False (before any frame is read).
       ValueError: an input is malformed (naming the file and line or the argument), or
         a split would get no pair; nothing is written then.
     """
@@ -202,6 +222,22 @@ def write_recording(
         )
 
     image_paths = recordings.list_images(images)
+    # The same recording's file of the split not written now (an earlier conversion with
+    # --test_fraction, or with the other --split) would put its frames in both splits.
+    same_recording = [
+        path
+        for name in ("train", "test")
+        if name not in outputs
+        and (path := output_path(output_dir, name, recording)).exists()
+        and _source_of(path) == _source(image_paths)
+    ]
+    if same_recording and not overwrite:
+        raise FileExistsError(
+            f"{', '.join(map(str, same_recording))} holds pairs of the same recording "
+            f"({_source(image_paths)}): writing its {split} split beside it would put the "
+            "same frames in both splits; pass --overwrite to replace it, or --test_fraction "
+            "to split the recording"
+        )
     if pose_format == "tum":
         timestamps, camera_to_world = recordings.read_tum_trajectory(poses)
         rotations, translations = recordings.world_to_camera(camera_to_world, "camera_to_world")
@@ -294,10 +330,18 @@ def write_recording(
             )
         for split_name, path in temporary.items():
             os.replace(path, outputs[split_name])
+        # With --overwrite the recording's earlier other split goes: it overlaps this one.
+        for path in same_recording:
+            path.unlink(missing_ok=True)
     except BaseException:
         for path in temporary.values():
             path.unlink(missing_ok=True)
         if created_output_dir and not any(output_dir.iterdir()):
             output_dir.rmdir()
         raise
-    return {"files": dict(outputs), "pairs": counts, "dropped": dict(dropped)}
+    return {
+        "files": dict(outputs),
+        "pairs": counts,
+        "dropped": dict(dropped),
+        "removed": [str(path) for path in same_recording],
+    }

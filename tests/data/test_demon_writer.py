@@ -190,3 +190,40 @@ def test_nan_in_a_pose_line_is_refused_naming_the_line(tmp_path):
     with pytest.raises(ValueError, match=r"trajectory.txt:3: NaN or infinite value"):
         _convert(tmp_path, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_reconverting_a_recording_replaces_all_of_its_files(tmp_path):
+    make_recording(tmp_path / "rec", 6, np.random.default_rng(8))
+    out = tmp_path / "out"
+    first = _convert(tmp_path, out, test_fraction=0.5)
+    assert sorted(first["files"]) == ["test", "train"] and first["removed"] == []
+    # Again without --test_fraction: the old test file holds pairs of the same frames.
+    again = _convert(tmp_path, out, overwrite=True)
+    assert again["removed"] == [str(out / "custom_test.h5")]
+    assert _files(out) == [Path("custom_train.h5")]
+
+    # The other split of the same recording, without --overwrite: refused, nothing written.
+    written = (out / "custom_train.h5").read_bytes()
+    with pytest.raises(FileExistsError, match=r"custom_train.h5 holds pairs of the same recording"):
+        _convert(tmp_path, out, split="test")
+    assert _files(out) == [Path("custom_train.h5")]
+    assert (out / "custom_train.h5").read_bytes() == written
+
+
+def test_another_recordings_test_file_stays(tmp_path):
+    make_recording(tmp_path / "rec", 4, np.random.default_rng(9))
+    make_recording(tmp_path / "other", 4, np.random.default_rng(10))
+    out = tmp_path / "out"
+    writer.write_recording(
+        tmp_path / "other" / "rgb",
+        tmp_path / "other" / "trajectory.txt",
+        f"{FX},{FY},{CX},{CY}",
+        out,
+        depth=tmp_path / "other" / "depth",
+        depth_scale=0.001,
+        split="test",
+    )
+    test_file = (out / "custom_test.h5").read_bytes()
+    result = _convert(tmp_path, out, overwrite=True)
+    assert result["removed"] == [] and result["pairs"] == {"train": 3}
+    assert (out / "custom_test.h5").read_bytes() == test_file
