@@ -111,14 +111,14 @@ def test_pose_count_mismatch_names_the_input(tmp_path):
         )
 
 
-def _convert(tmp_path, output_dir, **options):
-    """`write_recording` of the recording in tmp_path/rec (TUM poses, dense depth)."""
+def _convert(tmp_path, output_dir, source="rec", **options):
+    """`write_recording` of the recording in tmp_path/<source> (TUM poses, dense depth)."""
     return writer.write_recording(
-        tmp_path / "rec" / "rgb",
-        tmp_path / "rec" / "trajectory.txt",
+        tmp_path / source / "rgb",
+        tmp_path / source / "trajectory.txt",
         f"{FX},{FY},{CX},{CY}",
         output_dir,
-        depth=tmp_path / "rec" / "depth",
+        depth=tmp_path / source / "depth",
         depth_scale=0.001,
         **options,
     )
@@ -214,15 +214,7 @@ def test_another_recordings_test_file_stays(tmp_path):
     make_recording(tmp_path / "rec", 4, np.random.default_rng(9))
     make_recording(tmp_path / "other", 4, np.random.default_rng(10))
     out = tmp_path / "out"
-    writer.write_recording(
-        tmp_path / "other" / "rgb",
-        tmp_path / "other" / "trajectory.txt",
-        f"{FX},{FY},{CX},{CY}",
-        out,
-        depth=tmp_path / "other" / "depth",
-        depth_scale=0.001,
-        split="test",
-    )
+    _convert(tmp_path, out, source="other", split="test")
     test_file = (out / "custom_test.h5").read_bytes()
     result = _convert(tmp_path, out, overwrite=True)
     assert result["removed"] == [] and result["pairs"] == {"train": 3}
