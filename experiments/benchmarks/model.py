@@ -38,7 +38,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.benchmarks.model_tables import GOALS, format_row, spread, torch_seconds
+from experiments.benchmarks.model_tables import (
+    FIGURES,
+    GOALS,
+    MODES,
+    format_row,
+    spread,
+    torch_seconds,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_TORCH_REFERENCE = REPO_ROOT.parent / "shared" / "bench" / "torch_reference.py"
@@ -284,7 +291,7 @@ def run_torch_reference(
 def _torch_summary(rounds: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Median over rounds of each reference figure, in seconds: {mode: {key: s}}."""
     summary: dict[str, dict[str, float]] = {}
-    for mode in ("eager", "compiled"):
+    for mode in MODES:
         figures = [torch_seconds(r)[mode] for r in rounds if mode in r]
         if figures:
             summary[mode] = {key: statistics.median(f[key] for f in figures) for key in figures[0]}
@@ -301,31 +308,39 @@ def goal_ratios(row: dict[str, Any], torch: dict[str, dict[str, float]]) -> dict
 
 
 def summarise_pairs(pairs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Each alternating (reference, gld) pair's ratios, their median and spread, and
-    whether the reference was noisy (its eager train step varies by more than 25%)."""
+    """The alternating (reference, gld) pairs, compared once: for each figure of
+    `FIGURES`, gld's times, each mode's reference times and the pair-by-pair ratios
+    ("figures"); each pair's goal ratios; the goals' median and spread; and whether the
+    reference was noisy (its eager train step varies by more than 25%)."""
     measured = [p for p in pairs if "error" not in p["gld"]]
     summary: dict[str, Any] = {"pairs": len(pairs)}
     if not measured:
         return summary
-    for figure in ("train_b16", "forward_b16", "forward_b1"):
-        times = [p["gld"][figure]["median_s"] for p in measured if figure in p["gld"]]
-        if times:
-            summary[f"gld_{figure}_s"] = spread(times)
     compared = [p for p in measured if p.get("torch") and "error" not in p["torch"]]
-    per_pair = [goal_ratios(p["gld"], torch_seconds(p["torch"])) for p in compared]
-    summary["ratios_per_pair"] = per_pair
-    for name, *_ in GOALS:
-        values = [ratios[name] for ratios in per_pair if name in ratios]
-        if values:
-            summary[name] = spread(values)
-    for mode in ("eager", "compiled"):
-        times = [
-            torch_seconds(p["torch"])[mode]["train_b16_s"] for p in compared if mode in p["torch"]
-        ]
-        if times:
-            summary[f"torch_{mode}_train_b16_s"] = spread(times)
-    eager = summary.get("torch_eager_train_b16_s")
-    summary["torch_noisy"] = bool(eager and eager["max"] > 1.25 * eager["min"])
+    references = [torch_seconds(p["torch"]) for p in compared]
+    figures: dict[str, dict[str, list[float]]] = {}
+    for figure in FIGURES:
+        entry = {"gld": [p["gld"][figure]["median_s"] for p in measured if figure in p["gld"]]}
+        for mode in MODES:
+            paired = [
+                (p["gld"][figure]["median_s"], reference[mode][f"{figure}_s"])
+                for p, reference in zip(compared, references, strict=True)
+                if figure in p["gld"] and mode in reference
+            ]
+            entry[mode] = [torch_time for _, torch_time in paired]
+            entry[f"vs_{mode}"] = [gld_time / torch_time for gld_time, torch_time in paired]
+        figures[figure] = entry
+        if entry["gld"]:
+            summary[f"gld_{figure}_s"] = spread(entry["gld"])
+    summary["figures"] = figures
+    summary["ratios_per_pair"] = [
+        goal_ratios(p["gld"], reference) for p, reference in zip(compared, references, strict=True)
+    ]
+    for name, figure, mode, _, _ in GOALS:
+        if figures[figure][f"vs_{mode}"]:
+            summary[name] = spread(figures[figure][f"vs_{mode}"])
+    eager = figures["train_b16"]["eager"]
+    summary["torch_noisy"] = bool(eager and max(eager) > 1.25 * min(eager))
     return summary
 
 

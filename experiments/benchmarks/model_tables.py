@@ -11,6 +11,9 @@ import statistics
 from collections.abc import Sequence
 from typing import Any
 
+# The figures measured against the reference: gld's row key (+ "_s" in the reference's).
+FIGURES = ("train_b16", "forward_b16", "forward_b1")
+
 # Goals of gld's time against PyTorch's: (name, gld figure, reference mode and figure, bound).
 GOALS = (
     ("train_b16_vs_eager", "train_b16", "eager", "train_b16_s", 0.5),
@@ -20,11 +23,15 @@ GOALS = (
 )
 
 
+# The reference's modes.
+MODES = ("eager", "compiled")
+
+
 def torch_seconds(figures: dict[str, Any]) -> dict[str, dict[str, float]]:
     """One reference run's figures in seconds: {mode: {"train_b16_s": ...}}."""
     return {
         mode: {key.replace("_ms", "_s"): value / 1000 for key, value in figures[mode].items()}
-        for mode in ("eager", "compiled")
+        for mode in MODES
         if mode in figures
     }
 
@@ -129,39 +136,27 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
         "| measure | gld | PyTorch eager | PyTorch compiled | gld / eager | gld / compiled |",
         "|---|---|---|---|---|---|",
     ]
-    for figure, label in (
-        ("train_b16", "Adam train step, batch 16 [s]"),
-        ("forward_b16", "forward, batch 16 [s]"),
-        ("forward_b1", "forward, batch 1 [ms]"),
-    ):
-        scale = 1000 if figure == "forward_b1" else 1
-        digits = 1 if figure == "forward_b1" else 3
+    labels = {
+        "train_b16": "Adam train step, batch 16 [s]",
+        "forward_b16": "forward, batch 16 [s]",
+        "forward_b1": "forward, batch 1 [ms]",
+    }
+    for figure, entry in summary["figures"].items():
+        scale, digits = (1000, 1) if figure == "forward_b1" else (1, 3)
 
         def cell(values: list[float], scale: float = scale, digits: int = digits) -> str:
+            if not values:
+                return "-"
             figures = spread([v * scale for v in values])
             return (
                 f"{figures['median']:.{digits}f} ({figures['min']:.{digits}f}-"
                 f"{figures['max']:.{digits}f})"
             )
 
-        gld_times = [p["gld"][figure]["median_s"] for p in result["pairs"] if figure in p["gld"]]
-        torch_cells, ratio_cells = [], []
-        for mode in ("eager", "compiled"):
-            times = [
-                torch_seconds(p["torch"])[mode][f"{figure}_s"]
-                for p in result["pairs"]
-                if p["torch"] and mode in p["torch"]
-            ]
-            torch_cells.append(cell(times) if times else "-")
-            ratios = [
-                p["gld"][figure]["median_s"] / torch_seconds(p["torch"])[mode][f"{figure}_s"]
-                for p in result["pairs"]
-                if p["torch"] and mode in p["torch"] and figure in p["gld"]
-            ]
-            ratio_cells.append(" / ".join(f"{r:.2f}" for r in ratios) if ratios else "-")
+        ratios = [" / ".join(f"{r:.2f}" for r in entry[f"vs_{mode}"]) or "-" for mode in MODES]
         lines.append(
-            f"| {label} | {cell(gld_times) if gld_times else '-'} | {torch_cells[0]} | "
-            f"{torch_cells[1]} | {ratio_cells[0]} | {ratio_cells[1]} |"
+            f"| {labels[figure]} | {cell(entry['gld'])} | {cell(entry['eager'])} | "
+            f"{cell(entry['compiled'])} | {ratios[0]} | {ratios[1]} |"
         )
     lines.append("")
     notes = []
