@@ -4,8 +4,9 @@ Training (`train_dataset`): per-process shard (`process_index::process_count`) -
 seeded shuffle, reshuffled every epoch -> decode -> augmentation (rotate 180 degrees
 with p = 0.5, then mirror along x with p = 0.5) -> scale normalisation (||t|| = 1) ->
 sparse sampling of the supervised pixels -> batches of the per-process batch size,
-optionally produced by grain worker processes. The dataset is infinite and its
-iterator state is JSON-serialisable, so a trainer can checkpoint and resume it.
+the examples optionally prepared by grain worker processes. The dataset is infinite
+and its iterator state (the next batch's number) is JSON-serialisable, so a trainer can
+checkpoint it and resume with any worker count.
 
 Evaluation (`eval_batches`): one pass over the process's shard, no augmentation,
 dense supervision mask, the last batch padded with masked-out copies.
@@ -18,6 +19,10 @@ treatment whatever the shard, shuffle or worker count.
 from __future__ import annotations
 
 import math
+import os
+import threading
+import time
+import warnings
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -136,25 +141,32 @@ def _enable_grain_workers() -> None:
         flags.FLAGS.mark_as_parsed()
 
 
-def exit_with_parent(worker_index: int = 0, worker_count: int = 0, period: float = 1.0) -> None:
-    """Makes this (worker) process exit within `period` seconds of its parent's death.
+class ExitWithParent:
+    """A grain `worker_init_fn`: the worker exits within `period` seconds of its
+    parent's death.
 
     A training process killed with SIGKILL runs no clean-up, and grain's workers would
-    live on (~250 MB each); a daemon thread that sees the worker re-parented ends it.
+    live on (~250 MB each). The parent's pid is taken where the workers are started and
+    handed to them: a worker that reads its parent itself, after the parent already
+    died, would watch the process that adopted it and live on. A worker whose parent
+    is already gone when it starts exits at once.
     """
-    del worker_index, worker_count
-    import os
-    import threading
-    import time
 
-    parent = os.getppid()
+    def __init__(self, parent: int | None = None, period: float = 1.0):
+        self.parent = os.getpid() if parent is None else parent
+        self.period = period
 
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(period)
-        os._exit(1)
+    def __call__(self, worker_index: int = 0, worker_count: int = 0) -> None:
+        del worker_index, worker_count
+        if os.getppid() != self.parent:
+            os._exit(1)
 
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+        def watch() -> None:
+            while os.getppid() == self.parent:
+                time.sleep(self.period)
+            os._exit(1)
+
+        threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 class _PrepareTrainExample:
@@ -199,8 +211,8 @@ def train_dataset(
       flow_source: "estimated" or "gt" flow as the network's input.
       augment: rotate-180 / mirror-x augmentation.
       fixed_sparse_pixels: the same supervised pixels in every epoch.
-      worker_count: grain worker processes (0 = in the calling process). The batch
-        sequence is deterministic for a given worker count.
+      worker_count: grain worker processes (0 = in the calling process). The batches
+        are the same for every worker count.
       keys: the fields the consumer reads (e.g. `gld.training.trainer.TRAIN_KEYS`); the others are
         not augmented or batched. None keeps the whole contract.
       process_index, process_count: this process's shard is records
@@ -208,8 +220,9 @@ def train_dataset(
 
     Returns:
       a grain IterDataset of batches: the example dicts with a leading [batch_size] axis
-      (numpy arrays; "id" an array of str). `iter()` gives a grain DatasetIterator whose
-      `get_state()` is JSON-serialisable and whose `set_state()` resumes the same batches.
+      (numpy arrays; "id" an array of str). `iter()` gives a `TrainBatches` whose
+      `get_state()` is JSON-serialisable and whose `set_state()` resumes the same
+      batches, with any worker count.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -242,24 +255,110 @@ def train_dataset(
     # Shuffle then repeat: grain reshuffles with shuffle_seed + epoch in every epoch. The
     # seed is scrambled so that run seeds s and s + 1 do not share shifted permutations.
     shuffle_seed = int(np.random.SeedSequence(seed).generate_state(1)[0])
-    dataset = (
-        shard.shuffle(seed=shuffle_seed)
-        .repeat(None)
-        .map_with_index(prepare)
-        .to_iter_dataset(
-            grain.ReadOptions(
-                num_threads=_READ_THREADS, prefetch_buffer_size=_PREFETCH_BATCHES * batch_size
+    examples = shard.shuffle(seed=shuffle_seed).repeat(None).map_with_index(prepare)
+    return _TrainStream(examples, batch_size, worker_count)
+
+
+class _TrainStream(grain.IterDataset):
+    """The training batches: `iter()` gives a `TrainBatches` from the first batch."""
+
+    def __init__(self, examples: grain.MapDataset, batch_size: int, worker_count: int):
+        super().__init__()
+        self._examples, self._batch_size, self._worker_count = examples, batch_size, worker_count
+
+    def __iter__(self) -> TrainBatches:
+        return TrainBatches(self._examples, self._batch_size, self._worker_count)
+
+    def __str__(self) -> str:
+        return f"TrainStream(batch_size={self._batch_size}, worker_count={self._worker_count})"
+
+
+class TrainBatches(grain.DatasetIterator):
+    """Batch k holds examples k * batch_size ... (k + 1) * batch_size - 1 of the stream,
+    whichever process prepares them.
+
+    Its state is the next batch's number, `{"next_batch": k}`: a checkpoint made with
+    one worker count resumes with any other, on the same batches. The workers each
+    prepare every `worker_count`-th example and grain interleaves them back in order;
+    the batches are put together here.
+    """
+
+    def __init__(self, examples: grain.MapDataset, batch_size: int, worker_count: int):
+        super().__init__()
+        self._examples, self._batch_size, self._worker_count = examples, batch_size, worker_count
+        self._next_batch = 0
+        self._batches: Iterator[dict[str, Any]] | None = None
+
+    def _open(self) -> Iterator[dict[str, Any]]:
+        if self._batches is None:
+            start = self._next_batch * self._batch_size
+            dataset = self._examples[start:].to_iter_dataset(
+                grain.ReadOptions(
+                    num_threads=_READ_THREADS,
+                    prefetch_buffer_size=_PREFETCH_BATCHES * self._batch_size,
+                )
             )
+            if self._worker_count > 0:
+                _enable_grain_workers()
+                dataset = dataset.mp_prefetch(
+                    grain.MultiprocessingOptions(num_workers=self._worker_count),
+                    worker_init_fn=ExitWithParent(),
+                )
+            self._batches = iter(dataset.batch(self._batch_size, drop_remainder=True))
+        return self._batches
+
+    def __next__(self) -> dict[str, Any]:
+        batch = next(self._open())
+        self._next_batch += 1
+        return batch
+
+    def get_state(self) -> dict[str, Any]:
+        return {"next_batch": self._next_batch}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        next_batch = _next_batch(state, self._batch_size)
+        self.close()
+        self._next_batch = next_batch
+
+    def start_prefetch(self) -> None:
+        self._open()
+
+    def close(self) -> None:
+        if self._batches is not None:
+            close = getattr(self._batches, "close", None)
+            if close is not None:
+                close()
+            self._batches = None
+
+
+def _next_batch(state: dict[str, Any], batch_size: int) -> int:
+    """The next batch's number from a state of `TrainBatches` or of the grain iterators
+    that checkpoints of earlier versions hold."""
+    if "next_batch" in state:
+        next_batch = state["next_batch"]
+    elif "next_index" in state:  # one process's examples, batched in order
+        next_batch, rest = divmod(state["next_index"], batch_size)
+        if rest:
+            raise ValueError(
+                f"the data state {state} is not at a batch boundary of batch size {batch_size}"
+            )
+    elif "iterators_in_use_states" in state:
+        # Worker processes that each batched their own share: the batches read are
+        # counted, but the examples in them were not the consecutive ones read now.
+        examples = sum(part["next_index"] for part in state["iterators_in_use_states"])
+        next_batch = examples // batch_size
+        warnings.warn(
+            f"the data state was saved with {len(state['iterators_in_use_states'])} "
+            f"workers by an earlier version; training goes on from batch {next_batch} of "
+            "the stream every worker count now reads, so a few examples of the current "
+            "epoch are seen again or skipped",
+            stacklevel=3,
         )
-        .batch(batch_size, drop_remainder=True)
-    )
-    if worker_count > 0:
-        _enable_grain_workers()
-        dataset = dataset.mp_prefetch(
-            grain.MultiprocessingOptions(num_workers=worker_count),
-            worker_init_fn=exit_with_parent,
-        )
-    return dataset
+    else:
+        raise ValueError(f"not a training data state: {state}")
+    if not isinstance(next_batch, int) or next_batch < 0:
+        raise ValueError(f"not a training data state: {state}")
+    return next_batch
 
 
 # ------------------------------------------------------------------------- evaluation

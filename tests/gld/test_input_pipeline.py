@@ -374,28 +374,62 @@ def test_shuffle_depends_on_seed_and_epoch(source):
     assert any(order(seed, len(source)) != list(epochs[0]) for seed in (1, 2))
 
 
-@pytest.mark.parametrize("worker_count", [0, 1])
-def test_iterator_state_restores_the_same_batches(source, worker_count):
-    def make_iterator():
-        return iter(
-            input_pipeline.train_dataset(
-                source, batch_size=2, seed=7, gt_pixels=4, worker_count=worker_count
-            )
+def _train_iterator(source, worker_count: int):
+    return iter(
+        input_pipeline.train_dataset(
+            source, batch_size=2, seed=7, gt_pixels=4, worker_count=worker_count
         )
+    )
 
-    iterator = make_iterator()
+
+@pytest.mark.parametrize(("saved_with", "resumed_with"), [(0, 0), (1, 1), (0, 2), (2, 0)])
+def test_iterator_state_restores_the_same_batches(source, saved_with, resumed_with):
+    iterator = _train_iterator(source, saved_with)
     _take(iterator, 3)  # into the second epoch of 7 records
     state = json.loads(json.dumps(iterator.get_state()))
     expected = _take(iterator, 5)
-    restored = make_iterator()
+    restored = _train_iterator(source, resumed_with)
     restored.set_state(state)
     actual = _take(restored, 5)
     _assert_same_batches(expected, actual)
-    if worker_count == 0:  # the restore matters: a fresh iterator starts elsewhere
-        fresh_ids = [list(batch["id"]) for batch in _take(make_iterator(), 5)]
-        assert fresh_ids != [list(batch["id"]) for batch in expected]
+    # The restore matters: a fresh iterator starts elsewhere.
+    fresh = _train_iterator(source, 0)
+    fresh_ids = [list(batch["id"]) for batch in _take(fresh, 5)]
+    assert fresh_ids != [list(batch["id"]) for batch in expected]
+    for each in (iterator, restored, fresh):
+        each.close()
+
+
+def test_every_worker_count_reads_the_same_batches(source):
+    """Batch k is examples 2k and 2k + 1 of the one stream, whoever prepares them."""
+    stream = _train_iterator(source, 0)
+    expected = _take(stream, 6)
+    stream.close()
+    for worker_count in (1, 3):
+        workers = _train_iterator(source, worker_count)
+        _assert_same_batches(expected, _take(workers, 6))
+        workers.close()
+
+
+def test_states_of_earlier_checkpoints_are_read(source):
+    # One process batching in order: its examples read are a multiple of the batch.
+    iterator = _train_iterator(source, 0)
+    iterator.set_state({"next_index": 6})
+    _assert_same_batches(_take(_train_iterator(source, 0), 5)[3:], _take(iterator, 2))
     iterator.close()
-    restored.close()
+    # Workers that batched their own shares: the batches read, with a warning.
+    saved_by_workers = {
+        "next_index_in_cycle": 1,
+        "iterators_in_use_states": [{"next_index": 4}, {"next_index": 2}],
+        "exhausted": [0, 0],
+    }
+    iterator = _train_iterator(source, 0)
+    with pytest.warns(UserWarning, match="saved with 2 workers"):
+        iterator.set_state(saved_by_workers)
+    assert iterator.get_state() == {"next_batch": 3}
+    for bad in ({"next_index": 5}, {"next_batch": -1}, {"something": 1}):
+        with pytest.raises(ValueError, match="state"):
+            iterator.set_state(bad)
 
 
 @pytest.mark.parametrize("process_count", [1, 2, 3])
@@ -604,15 +638,16 @@ def test_gld_scenes_corrupt_record_names_file_and_index(tiny_builder):
 _ORPHAN_SCRIPT = """
 import multiprocessing, sys, time
 
-def child():
-    from gld import input_pipeline
-    from gld import contract
-    input_pipeline.exit_with_parent(period=0.1)
+def child(worker_init):
+    worker_init(0, 1)
     print("watching", flush=True)
     time.sleep(120)
 
 if __name__ == "__main__":
-    process = multiprocessing.get_context("spawn").Process(target=child)
+    from gld import input_pipeline
+    # Made in the parent, as the training stream makes it for grain's workers.
+    worker_init = input_pipeline.ExitWithParent(period=0.1)
+    process = multiprocessing.get_context("spawn").Process(target=child, args=(worker_init,))
     process.start()
     print(process.pid, flush=True)
     time.sleep(120)
@@ -644,6 +679,29 @@ def test_a_worker_ends_when_its_parent_is_killed(tmp_path):
     while _alive(child_pid) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _alive(child_pid)
+
+
+def test_a_worker_started_after_its_parent_died_exits():
+    """The parent's pid is handed to the worker: one read in the worker after the parent
+    died would be the pid of the process that adopted it."""
+    code = (
+        "import os, sys, time\n"
+        "from gld import input_pipeline\n"
+        "input_pipeline.ExitWithParent(parent=int(sys.argv[1]), period=0.1)(0, 1)\n"
+        "time.sleep(60)\n"
+    )
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    dead_parent = int(gone.stdout)
+    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), JAX_PLATFORMS="cpu")
+    worker = subprocess.run(
+        [sys.executable, "-c", code, str(dead_parent)], env=env, cwd=REPO_ROOT, timeout=50
+    )
+    assert worker.returncode == 1
 
 
 def test_the_pose_from_the_flow_is_estimated_once_and_flipped_with_the_example(source):
