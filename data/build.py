@@ -4,8 +4,8 @@ r"""Builds a gld dataset without TensorFlow (`tfds build` imports TensorFlow at 
     python -m data.build --dataset=demon/sun3d --manual_dir=~/demon --max_bad_fraction=0.01
     python -m data.build --dataset=demon/sun3d --manual_dir=~/demon \
         --depth_resampling=centred --data_dir=datasets_gld_convention
-    python -m data.build --dataset=demon/sun3d --manual_dir=~/demon --image_decoder=demon \
-        --data_dir=datasets_demon_cpp_reader   # WebP as DeMoN's C++ reader (needs `webp`)
+    python -m data.build --dataset=demon/sun3d --manual_dir=~/demon --image_decoder=opencv \
+        --data_dir=datasets_opencv_webp   # OpenCV's WebP decoding, not DeMoN's (no `webp`)
 
 Launchers build on first use too; this command exposes the builders' options. A
 built dataset is reused only for the files and options it was built from: given
@@ -55,15 +55,17 @@ flags.DEFINE_enum(
     "depth_resampling",
     None,
     sorted(pairs.DEPTH_RESAMPLING),
-    "demon: depth resampling, 'demon' (DeMoN's INTER_NEAREST) or 'centred' (centre-aligned, "
-    "holes filled) (default: the config's; 'centred' for custom).",
+    "demon: depth resampling, 'demon' (the default: DeMoN's INTER_NEAREST) or 'centred' "
+    "(centre-aligned, holes filled: keeps sparse range readings of recordings not at "
+    "256x192).",
 )
 flags.DEFINE_enum(
     "image_decoder",
     None,
     list(reader.IMAGE_DECODERS),
-    "demon: WebP decoding, 'demon' (libwebp as DeMoN's C++ reader; needs the webp package) "
-    "or 'opencv' (default: 'demon' if webp is installed).",
+    "demon: WebP decoding, 'demon' (the default: libwebp as DeMoN's C++ reader; lossy "
+    "images need the webp package, without which the build is refused) or 'opencv' "
+    "(OpenCV's decoding, which approximates DeMoN's images).",
 )
 
 
@@ -72,9 +74,12 @@ def main(argv):
     names = ("workers", "strict", "max_bad_fraction", "verify_checksums", "flow_estimator")
     names += ("min_relative_baseline", "depth_resampling", "image_decoder")
     options = {name: FLAGS[name].value for name in names if FLAGS[name].value is not None}
-    builder = data.prepare(
-        FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, rebuild=FLAGS.rebuild, **options
-    )
+    try:
+        builder = data.prepare(
+            FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, rebuild=FLAGS.rebuild, **options
+        )
+    except reader.MissingDecoderError as error:
+        raise SystemExit(str(error)) from None  # one line, no traceback: what to install
     for split, info in builder.info.splits.items():
         print(f"{FLAGS.dataset} {split}: {info.num_examples} pairs")
     print(f"built in {builder.data_dir}")

@@ -6,19 +6,25 @@ on a whole split.
         --workdir=runs/triangulation [--flow_source=gt]
     python -m experiments.evaluate --predictions=out/other_system --dataset=demon/sun3d \
         --manual_dir=~/demon --workdir=runs/other_system [--predictions_scale=raw]
-    python -m experiments.evaluate --workdir=runs/sun3d --manual_dir=~/demon \
-        --truth_resolution=file
+    python -m experiments.evaluate --workdir=runs/sun3d --manual_dir=~/demon
+    python -m experiments.evaluate --workdir=runs/sun3d --truth_resolution=record
 
 --predictions reads one file per example id, the id's "/" replaced by "__": a 2-D float
 `.npy` of depth or a 16-bit PNG (value x --png_depth_scale = depth); a map at another
 resolution is resized by nearest neighbour (details: `gld.evaluation.stored_predictions`). A missing
 or bad file stops the run, naming it, before anything is written.
 
---truth_resolution=file scores every method against the ground truth at the resolution
-of DeMoN's files (640x480 for SUN3D and RGB-D), read from the --manual_dir files by
-example id, each prediction resized to it by nearest neighbour, as DeMoN's evaluation
-does (`data.demon.file_truth`); the default, record, scores at the records' resolution.
-It needs a demon/* dataset and the files it was built from.
+A demon/* dataset is scored by DeMoN's protocol by default (--truth_resolution=file):
+every method against the ground truth at the resolution of DeMoN's files (640x480 for
+SUN3D and RGB-D), read by example id from the files the split was built from (in
+--manual_dir, else where the build found them, if they are still there and unchanged),
+each prediction resized to it by nearest neighbour, as DeMoN's evaluation does
+(`data.demon.file_truth`), in DeMoN's order (the records' order; --max_examples takes
+DeMoN's first pairs). Without those files the run is refused: give --manual_dir, or
+--truth_resolution=record to score at the records' resolution, which is not DeMoN's
+protocol. Other datasets are scored at the records' resolution (record). The table's
+stamp names the resolution and the records' protocol (WebP decoder, depth resampling,
+order).
 
 Writes <workdir>/eval/ for the workdir's own evaluation (latest checkpoint, whole test
 split, its flow and dataset), else <workdir>/eval_<what differs>/ (e.g. eval_train_first2,
@@ -73,11 +79,13 @@ flags.DEFINE_float(
 )
 flags.DEFINE_enum(
     "truth_resolution",
-    "record",
+    None,
     list(metrics.TRUTH_RESOLUTIONS),
-    "Where the ground truth is scored: record (the records' resolution) or file (the "
-    "resolution of DeMoN's files in --manual_dir, read by example id, each prediction "
-    "upsampled by nearest neighbour, as DeMoN evaluates; demon/* datasets only).",
+    "Where the ground truth is scored: file (the resolution of the DeMoN files the split "
+    "was built from, in --manual_dir or where the build found them, read by example id, "
+    "each prediction resized by nearest neighbour, as DeMoN evaluates; demon/* datasets "
+    "only) or record (the records' resolution). Default: file for demon/* datasets, "
+    "record for the others.",
 )
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_integer("batch_size", 16, "Evaluation batch size (last batch padded).")
@@ -119,7 +127,7 @@ def main(argv):
         evaluation_run.evaluate_split(
             FLAGS.workdir,
             prepare_dataset=common.prepare_dataset,
-            open_file_truth=file_truth.FileTruth,
+            open_file_truth=file_truth.for_split,
             dataset=FLAGS.dataset,
             method=FLAGS.method,
             predictions=predictions,

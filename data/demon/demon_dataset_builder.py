@@ -3,13 +3,17 @@
 Every pair becomes a `gld.records` record at 256x192 (images INTER_AREA, depth
 resampled by nearest neighbour, normalised intrinsics, raw metric depth and the
 unnormalised relative pose, DIS flow and ground-truth flow), read as DeMoN's own
-reader reads it (data/demon/README.md lists what matches and what is optional).
-Damaged pairs are skipped and counted by reason; the report is printed and stored
-in the dataset's metadata (`builder.info.metadata["build_report"]`), next to the
-options the records were built with (`["build_options"]`) and the fingerprints of the
-files they were built from (`["sources"]`, see `data.sources`; `data.prepare` refuses
-to reuse the dataset for other files or options). Every input file is checked
-(`reader.check_files`) before any split is built.
+reader op reads it by default: its WebP decoding, its depth resampling, its pairs and
+its order (records stored in the order DeMoN's reader gives them, not TFDS's key
+hash; data/demon/README.md lists each option that departs from it). Damaged pairs are
+skipped and counted by reason, pairs without a baseline apart from damage; the report
+is printed and stored in the dataset's metadata (`builder.info.metadata
+["build_report"]`), next to the options the records were built with
+(`["build_options"]`: the protocol stamp) and the fingerprints of the files they were
+built from (`["sources"]`, see `data.sources`; `data.prepare` refuses to reuse the
+dataset for other files or options). Every input file is checked
+(`reader.check_files`, and whether its images can be decoded as asked,
+`reader.check_image_decoder`) before any split is built.
 
     data.prepare("demon/sun3d", data_dir, manual_dir="~/demon", strict=True)
 
@@ -19,11 +23,11 @@ Builder keyword arguments: `strict` (fail at the first damaged pair),
 `flow_estimator` (a `gld.flow.ESTIMATORS` name, or "flow_net:<workdir>" for a trained
 flow network), `min_relative_baseline` (skip pairs whose baseline is at most this x
 the median depth; default 1e-4 for train and 0 for test, so the test split keeps every
-pair DeMoN evaluates), `depth_resampling`
-(`demon`: DeMoN's INTER_NEAREST, the default of scenes11 / sun3d / rgbd; `centred`:
-centre-aligned with hole filling, the default of custom) and `image_decoder`
-(`opencv`, the default: libwebp's defaults, as DeMoN's Python reader; `demon`: libwebp
-as DeMoN's C++ reader, with the optional `webp` package).
+pair DeMoN evaluates), `depth_resampling` (`demon`, the default of every config:
+DeMoN's INTER_NEAREST; `centred`: centre-aligned with hole filling, which keeps sparse
+range readings) and `image_decoder` (`demon`, the default: libwebp as DeMoN's C++
+reader, through the `webp` package, without which a build of lossy images is refused;
+`opencv`: libwebp's defaults, as DeMoN's Python reader, an approximation).
 """
 
 from __future__ import annotations
@@ -76,6 +80,11 @@ Config `custom` reads a robot's own recordings written by `python -m data.demon.
 """
 
 
+# How the records of a split are ordered (`build_options`): as DeMoN's reader op gives
+# them in its test phase (`pairs.generate`).
+ORDER = "demon"
+
+
 @dataclasses.dataclass(kw_only=True)
 class DemonConfig(tfds.core.BuilderConfig):
     """Which files of the manual directory make each split (glob patterns when `custom`),
@@ -104,12 +113,18 @@ _RGBD_TRAIN = (
 class Builder(tfds.core.GeneratorBasedBuilder):
     """DeMoN's Scenes11, SUN3D and RGB-D SLAM benchmarks, and converted recordings."""
 
-    VERSION = tfds.core.Version("1.1.0")
+    VERSION = tfds.core.Version("2.0.0")
     RELEASE_NOTES = {
         "1.0.0": "Records at 256x192 with DIS flow and ground-truth flow.",
         "1.1.0": "DeMoN's protocol: the test split keeps small-baseline pairs (only "
         "||t|| < 1e-6 is skipped), depth resampled with OpenCV INTER_NEAREST; WebP decoded "
         "as DeMoN's C++ reader on request (image_decoder=demon).",
+        "2.0.0": "DeMoN's protocol by default everywhere: WebP decoded as DeMoN's C++ reader "
+        "(image_decoder=demon; other images than 1.1.0's), DeMoN's depth resampling for "
+        "custom too (other depth than 1.1.0's where a recording is not 256x192), records "
+        "stored in DeMoN's order (files as listed, scene groups reverse-sorted) instead of "
+        "TFDS's key hash; pairs with ||t|| < 1e-6 counted apart from damage; the order "
+        "stamped in build_options.",
     }
     MANUAL_DOWNLOAD_INSTRUCTIONS = MANUAL_DOWNLOAD_INSTRUCTIONS
     BUILDER_CONFIGS = [
@@ -137,8 +152,6 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             train_files=("custom_train.h5", "custom_train_*.h5"),
             test_files=("custom_test.h5", "custom_test_*.h5"),
             globs=True,
-            # Sparse range readings must survive downsampling (see pairs.resize_depth_centred).
-            depth_resampling="centred",
         ),
     ]
 
@@ -157,7 +170,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
     ):
         """Args: see the module docstring; `min_relative_baseline` None: per split
         (`pairs.MIN_RELATIVE_BASELINE`); `depth_resampling` None: the config's;
-        `image_decoder` None: see `reader.resolve_image_decoder`; `file_format` None:
+        `image_decoder` None: DeMoN's (`reader.resolve_image_decoder`); `file_format` None:
         `data.FILE_FORMAT`. Other arguments go to TFDS."""
         if not 0.0 <= max_bad_fraction <= 1.0:
             raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
@@ -179,7 +192,8 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         super().__init__(file_format=file_format or data.FILE_FORMAT, **kwargs)
 
     def build_options(self, split: str) -> dict[str, Any]:
-        """The options that shape the records of `split` (stored in the metadata)."""
+        """The options that shape the records of `split`, their order included (stored
+        in the metadata: the protocol the records were built with)."""
         min_relative_baseline = self._min_relative_baseline
         if min_relative_baseline is None:
             min_relative_baseline = pairs.MIN_RELATIVE_BASELINE[split]
@@ -189,6 +203,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             "depth_resampling": self._depth_resampling or self.builder_config.depth_resampling,
             "image_decoder": self._image_decoder,
             "flow_estimator": self._flow_estimator,
+            "order": ORDER,
         }
 
     def _info(self) -> tfds.core.DatasetInfo:
@@ -198,6 +213,9 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             features=records.features(pairs.HEIGHT, pairs.WIDTH),
             homepage="https://github.com/lmb-freiburg/demon",
             metadata=tfds.core.MetadataDict(),
+            # Records stay in the order `pairs.generate` yields them (DeMoN's), keyed by
+            # their position; the id is a feature.
+            disable_shuffling=True,
         )
 
     def source_files(self, manual_dir: Path) -> dict[str, list[Path]]:
@@ -261,6 +279,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         # not surface only after hours spent on the train split. Structure only (cheap);
         # the MD5 sums, which read every byte, come after.
         reader.check_files(paths)
+        reader.check_image_decoder(self._image_decoder, paths)
         if self._verify_checksums:
             for path in paths:
                 checksums.verify(path)
@@ -273,7 +292,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
     def _generate_examples(self, paths: list[Path], split: str):
         report = pairs.BuildReport(split)
         options = self.build_options(split)
-        for example_id, example in pairs.generate(
+        generated = pairs.generate(
             paths,
             split,
             strict=self._strict,
@@ -283,8 +302,9 @@ class Builder(tfds.core.GeneratorBasedBuilder):
             depth_resampling=options["depth_resampling"],
             image_decoder=options["image_decoder"],
             report=report,
-        ):
-            yield example_id, records.encode(example)
+        )
+        for position, (_, example) in enumerate(generated):
+            yield position, records.encode(example)
         print(report.format(), flush=True)
         self.info.metadata.setdefault("build_report", {})[split] = report.as_dict()
         self.info.metadata.setdefault("build_options", {})[split] = options

@@ -15,6 +15,11 @@ finite and positive), and divides it by the record's ||t||, as
 `check` reads both views of every example and compares the pair's ||t|| in the file
 with the record's, so a manual directory that holds other files than the records were
 built from is refused, naming the examples, before anything is scored.
+
+`for_split(builder, split, manual_dir)` opens the truth of a built split: in
+`manual_dir` if given, else where the build recorded its files (`data.sources`), once
+the files found there are those the split was built from (size and SHA-256 of their
+ends, as `data.prepare` compares them).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from data import sources
 from data.demon import reader
 from gld import geometry
 
@@ -79,7 +85,8 @@ class FileTruth:
 
     def _file(self, name: str) -> reader.DemonFile:
         if name not in self._files:
-            self._files[name] = reader.DemonFile(self.manual_dir / name)
+            # Only depth and cameras are read; the images' decoding is irrelevant here.
+            self._files[name] = reader.DemonFile(self.manual_dir / name, image_decoder="opencv")
         return self._files[name]
 
     def _view(self, example_id: str, which: int) -> reader.View:
@@ -152,3 +159,38 @@ class FileTruth:
     def summary(self) -> dict[str, Any]:
         """Where the truth came from, for metrics.json."""
         return {"truth_files": str(self.manual_dir)}
+
+
+def for_split(builder: Any, split: str, manual_dir: str | Path | None = None) -> FileTruth:
+    """The file truth of `split` of a built `demon/*` dataset: the files in `manual_dir`,
+    or, without it, in the folder the build recorded them in (`metadata["sources"]`).
+
+    Raises:
+      FileNotFoundError: no folder given and none recorded, or the folder or one of
+        the split's files is not there.
+      ValueError: a file there is not the one the split was built from (content).
+    """
+    recorded = (builder.info.metadata or {}).get("sources", {}).get(split)
+    if manual_dir is not None:
+        folder = Path(manual_dir).expanduser()
+    elif recorded:
+        folder = Path(next(iter(recorded.values()))["path"]).parent
+    else:
+        raise FileNotFoundError(
+            f"{builder.info.full_name} records no source files for its {split} split "
+            "(built by an earlier gld)"
+        )
+    if not folder.is_dir():
+        raise FileNotFoundError(f"DeMoN files folder {folder} does not exist")
+    if recorded:
+        missing = sorted(name for name in recorded if not (folder / name).is_file())
+        if missing:
+            raise FileNotFoundError(f"{', '.join(missing)} not in {folder}")
+        current = sources.fingerprints({split: [folder / name for name in recorded]})
+        changes = sources.changes({split: recorded}, current)
+        if changes:
+            raise ValueError(
+                f"the files in {folder} are not those the {split} split was built from: "
+                + "; ".join(changes)
+            )
+    return FileTruth(folder)

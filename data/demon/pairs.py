@@ -6,17 +6,21 @@ them by reason in a `BuildReport`. It fails only when the bad share exceeds
 `max_bad_fraction` (or at the first bad pair with `strict=True`), so a
 multi-hour build never dies on one bad group.
 
-Which pairs are kept follows DeMoN: a pair is skipped for its baseline only when
-||t|| < 1e-6 (`MIN_BASELINE`). gld's relative threshold (baseline <= 1e-4 x median
-depth, no usable parallax) is a build option applied by default to the training
-split only (`MIN_RELATIVE_BASELINE`), so the test split holds every pair DeMoN
-evaluates; the report counts the small-baseline pairs it keeps.
+Which pairs are kept, and in which order, follows DeMoN's reader op: a pair is
+skipped for its baseline only when ||t|| < 1e-6 (`MIN_BASELINE`), counted apart from
+damage (`reader.FILTER_REASONS`); files come in the order given, each file's scene
+groups reverse-sorted (`reader.demon_order`), a group's pairs as listed. gld's
+relative threshold (baseline <= 1e-4 x median depth, no usable parallax) is a build
+option applied by default to the training split only (`MIN_RELATIVE_BASELINE`), so the
+test split holds every pair DeMoN evaluates; the report counts the small-baseline
+pairs it keeps.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -208,14 +212,19 @@ def make_example(
 class BuildReport:
     """Pairs written and skipped (by reason) per file of one split.
 
+    Skipped pairs are damage, or filtered (`reader.FILTER_REASONS`: no baseline, as
+    DeMoN skips them, or below `min_relative_baseline`), which are counted apart.
     `small_baseline` counts, per file, the written pairs whose baseline is at most
-    SMALL_RELATIVE_BASELINE x view 1's median depth (kept, as DeMoN keeps them).
+    SMALL_RELATIVE_BASELINE x view 1's median depth (kept, as DeMoN keeps them);
+    `no_valid_depth` the written pairs whose view 1 has no valid depth left at the
+    output resolution (sparse readings that DeMoN's resampling does not sample).
     """
 
     split: str
     written: collections.Counter = dataclasses.field(default_factory=collections.Counter)
     skipped: dict[str, collections.Counter] = dataclasses.field(default_factory=dict)
     small_baseline: collections.Counter = dataclasses.field(default_factory=collections.Counter)
+    no_valid_depth: collections.Counter = dataclasses.field(default_factory=collections.Counter)
     planned: int = 0
     first_errors: list[str] = dataclasses.field(default_factory=list)
 
@@ -229,13 +238,16 @@ class BuildReport:
 
     @property
     def num_damaged(self) -> int:
-        """Skipped pairs other than those filtered by a build option (`FILTER_REASONS`)."""
-        return sum(
-            count
-            for counts in self.skipped.values()
-            for reason, count in counts.items()
-            if reason not in reader.FILTER_REASONS
-        )
+        """Skipped pairs other than the filtered ones (`reader.FILTER_REASONS`)."""
+        return self.num_skipped - sum(self.filtered().values())
+
+    def filtered(self) -> dict[str, int]:
+        """Reason -> pairs skipped for it over all files, for each of
+        `reader.FILTER_REASONS` (0 included)."""
+        return {
+            reason: sum(counts.get(reason, 0) for counts in self.skipped.values())
+            for reason in reader.FILTER_REASONS
+        }
 
     def skip(self, file_name: str, error: reader.DamagedDataError) -> None:
         self.skipped.setdefault(file_name, collections.Counter())[error.reason] += 1
@@ -251,13 +263,16 @@ class BuildReport:
             "pairs_written": self.num_written,
             "pairs_skipped": self.num_skipped,
             "pairs_damaged": self.num_damaged,
+            "pairs_filtered": self.filtered(),
             "small_baseline_written": sum(self.small_baseline.values()),
             "small_relative_baseline": SMALL_RELATIVE_BASELINE,
+            "no_valid_depth_written": sum(self.no_valid_depth.values()),
             "files": {
                 name: {
                     "written": self.written.get(name, 0),
                     "skipped": dict(sorted(self.skipped.get(name, {}).items())),
                     "small_baseline_written": self.small_baseline.get(name, 0),
+                    "no_valid_depth_written": self.no_valid_depth.get(name, 0),
                 }
                 for name in files
             },
@@ -274,20 +289,31 @@ class BuildReport:
                 f"({counts['small_baseline_written']} with a small baseline), "
                 f"{sum(counts['skipped'].values())} skipped" + (f" ({skipped})" if skipped else "")
             )
+        filtered = self.filtered()
         lines.append(
             f"  total: {self.num_written} written, {self.num_skipped} skipped "
-            f"({self.num_damaged} damaged) of {self.planned} planned; "
-            f"{sum(self.small_baseline.values())} written pairs have a small baseline "
-            f"(<= {SMALL_RELATIVE_BASELINE:g} x median depth)"
+            f"({self.num_damaged} damaged; not damage: {filtered['zero_translation']} without "
+            f"a baseline, ||t|| < {MIN_BASELINE:g}, skipped as DeMoN skips them, "
+            f"{filtered['small_baseline']} below min_relative_baseline) of {self.planned} "
+            f"planned; {sum(self.small_baseline.values())} written pairs have a small "
+            f"baseline (<= {SMALL_RELATIVE_BASELINE:g} x median depth)"
         )
+        no_valid_depth = sum(self.no_valid_depth.values())
+        if no_valid_depth:
+            lines.append(
+                f"  {no_valid_depth} written pairs have no valid depth in view 1 after "
+                f"resampling (sparse readings off DeMoN's sampled pixels; "
+                f"depth_resampling=centred keeps them)"
+            )
         lines.extend(f"  e.g. {error}" for error in self.first_errors[:5])
         return "\n".join(lines)
 
 
 def _planned_pairs(demon_file: reader.DemonFile, split: str) -> list[tuple[str, Any]]:
-    """(group, pair) for every pair to build; (group, error) for a group without usable pairs."""
+    """(group, pair) for every pair to build, in DeMoN's order (`reader.demon_order`);
+    (group, error) for a group without usable pairs."""
     planned = []
-    for group in demon_file.groups():
+    for group in reader.demon_order(demon_file.groups()):
         try:
             planned.extend((group, pair) for pair in demon_file.pairs(group, split))
         except reader.DamagedDataError as error:
@@ -309,24 +335,27 @@ def generate(
     height: int = HEIGHT,
     width: int = WIDTH,
 ) -> Iterator[tuple[str, dict[str, Any]]]:
-    """Yields (id, raw example) for every usable pair of the files, in file and group order.
+    """Yields (id, raw example) for every usable pair of the files, in DeMoN's order: the
+    files as given, each file's groups reverse-sorted, each group's pairs as listed.
 
     Args:
       paths: DeMoN HDF5 files of one split.
       split: "train" (all listed pairs per group) or "test" (the first pair per group).
       strict: raise at the first damaged pair instead of skipping it.
       max_bad_fraction: raise once more than this share of the planned pairs is damaged
-        (pairs filtered by `min_relative_baseline` are not damaged).
+        (filtered pairs, `reader.FILTER_REASONS`, are not damaged).
       flow_estimator: see `make_example`.
       min_relative_baseline: skip a pair (`small_baseline`) whose baseline is at most
         this x view 1's median depth; None: the split's `MIN_RELATIVE_BASELINE`.
       depth_resampling: a `DEPTH_RESAMPLING` name (see `resize_view`).
-      image_decoder: see `reader.DemonFile`.
+      image_decoder: a `reader.IMAGE_DECODERS` name, None for DeMoN's
+        (`reader.resolve_image_decoder`).
       report: filled with written / skipped counts (a new one if None).
       height, width: output resolution.
 
     Raises:
       reader.DamagedDataError: in strict mode, the first damaged pair.
+      reader.MissingDecoderError: DeMoN's decoding of a lossy image without `webp`.
       ValueError: when the bad share exceeds `max_bad_fraction`.
     """
     if not 0.0 <= max_bad_fraction <= 1.0:
@@ -337,6 +366,7 @@ def generate(
     report = report if report is not None else BuildReport(split)
     files = [reader.DemonFile(path, image_decoder) for path in paths]
     try:
+        reader.check_image_decoder(image_decoder, paths)
         plans = [(demon_file, _planned_pairs(demon_file, split)) for demon_file in files]
         report.planned = sum(len(plan) for _, plan in plans)
 
@@ -387,6 +417,7 @@ def generate(
                     continue
                 report.written[demon_file.name] += 1
                 report.small_baseline[demon_file.name] += relative <= SMALL_RELATIVE_BASELINE
+                report.no_valid_depth[demon_file.name] += math.isnan(relative)
                 yield example_id, example
     finally:
         for demon_file in files:

@@ -15,11 +15,14 @@ Conventions of the stored camera, as DeMoN's own reader interprets it:
   Skew is dropped (gld's cameras have none; DeMoN's files store 0).
 * `ray_length` depth is converted to camera z: `z = r / ||K^-1 [x + 0.5, y + 0.5, 1]||`.
 
-Images are decoded by one of `IMAGE_DECODERS`: `opencv` (libwebp's default
-decoding, as DeMoN's Python `view_io` reader) or `demon` (libwebp with
+Images are decoded by one of `IMAGE_DECODERS`: `demon` (the default: libwebp with
 `bypass_filtering` and `no_fancy_upsampling`, as DeMoN's C++ reader op that its
-networks were trained and evaluated with; needs the optional `webp` package). The
-two differ on lossy WebP only, by about one grey level on average.
+networks were trained and evaluated with; the `webp` package) or `opencv` (libwebp's
+default decoding, as DeMoN's Python `view_io` reader; an approximation of DeMoN's
+images, asked for by name). The two differ on lossy WebP only (DeMoN's files: by a
+few grey levels on most pixels); lossless WebP decodes to the same pixels either way,
+so `demon` reads lossless images without the `webp` package and refuses a lossy one
+(`MissingDecoderError`) rather than approximate it.
 
 Damage in a view raises `DamagedDataError` carrying a `reason` from `REASONS`, so a
 builder can skip the affected pair, count it and go on.
@@ -47,21 +50,28 @@ REASONS = (
     "invalid_depth",  # a depth map without a single finite, positive value
     "missing_camera",  # no camera dataset
     "bad_camera",  # camera values not finite, not 17, no proper rotation, focal <= 0
-    "zero_translation",  # ||t|| < 1e-6: skipped by DeMoN; scale normalisation would divide by 0
+    "zero_translation",  # ||t|| < 1e-6: skipped as DeMoN skips it (no scale to normalise by)
     "small_baseline",  # baseline <= min_relative_baseline x median depth (a build option)
     "too_few_views",  # a scene group with fewer than two viewpoints
     "bad_viewpoint_pairs",  # viewpoint_pairs malformed or naming a missing view
     "unreadable_group",  # HDF5 error while reading the group
 )
 
-# Reasons that filter usable pairs by a build option rather than report damage: they
-# neither count towards `max_bad_fraction` nor stop a strict build.
-FILTER_REASONS = ("small_baseline",)
+# Reasons that skip a pair by the protocol (DeMoN's ||t|| floor) or a build option
+# (`min_relative_baseline`) rather than report damage: they are counted apart, neither
+# count towards `max_bad_fraction` nor stop a strict build.
+FILTER_REASONS = ("zero_translation", "small_baseline")
 
 SPLITS = ("train", "test")
 
-# "opencv": libwebp's default decoding; "demon": as DeMoN's C++ reader op (module docstring).
-IMAGE_DECODERS = ("opencv", "demon")
+# "demon": as DeMoN's C++ reader op; "opencv": libwebp's default decoding (module docstring).
+IMAGE_DECODERS = ("demon", "opencv")
+DEFAULT_IMAGE_DECODER = "demon"
+
+
+class MissingDecoderError(ImportError):
+    """DeMoN's WebP decoding is asked for (the default) and a lossy image needs the
+    `webp` package, which is not installed."""
 
 
 class DamagedDataError(ValueError):
@@ -107,8 +117,8 @@ def _text(value: Any) -> str:
 
 
 def webp_decoder_available() -> bool:
-    """Whether the optional `webp` package (libwebp bindings) needed by the `demon`
-    image decoder is installed and has the decoder-options layout it relies on."""
+    """Whether the `webp` package (libwebp bindings), which the `demon` image decoder
+    needs for lossy images, is installed and has the decoder-options layout it relies on."""
     try:
         import webp
     except ImportError:
@@ -120,19 +130,74 @@ def webp_decoder_available() -> bool:
 
 
 def resolve_image_decoder(decoder: str | None) -> str:
-    """An `IMAGE_DECODERS` name; None is `opencv`. The default does not depend on what
-    is installed, so the same build options give the same records everywhere; `demon`
-    is asked for explicitly."""
+    """An `IMAGE_DECODERS` name; None is `DEFAULT_IMAGE_DECODER` ("demon"). The default
+    does not depend on what is installed, so the same build options give the same
+    records everywhere: without the `webp` package a lossy image is refused, not decoded
+    otherwise (`check_image_decoder`)."""
     if decoder is None:
-        return "opencv"
+        return DEFAULT_IMAGE_DECODER
     if decoder not in IMAGE_DECODERS:
         raise ValueError(f"unknown image decoder {decoder!r}; valid: {IMAGE_DECODERS}")
-    if decoder == "demon" and not webp_decoder_available():
-        raise ImportError(
-            "image_decoder='demon' needs the `webp` package (pip install webp, or "
-            "pip install -e .[demon]); image_decoder='opencv' decodes without it"
-        )
     return decoder
+
+
+def missing_decoder_message(where: str) -> str:
+    """The one line that refuses to approximate DeMoN's decoding of `where`'s images."""
+    return (
+        f"DeMoN's WebP decoding (image_decoder=demon, the default) needs the `webp` package "
+        f"for the lossy images of {where}: pip install webp (or pip install -e '.[demon]'), "
+        f"or build with --image_decoder=opencv (python -m data.build; image_decoder='opencv' "
+        f"in data.prepare) to accept OpenCV's decoding, a few grey levels off DeMoN's"
+    )
+
+
+def webp_compression(data: bytes) -> str | None:
+    """How WebP bytes are compressed: "lossless" (VP8L only), "lossy" (a VP8 bitstream) or
+    None (no WebP container), from the RIFF chunk names alone: nothing is decoded."""
+    if len(data) < 16 or data[:4] != b"RIFF" or data[8:12] != b"WEBP":
+        return None
+    chunks, offset = set(), 12
+    while offset + 8 <= len(data):
+        chunks.add(bytes(data[offset : offset + 4]))
+        size = int.from_bytes(data[offset + 4 : offset + 8], "little")
+        offset += 8 + size + (size & 1)  # chunks are padded to an even size
+    if b"VP8 " in chunks:
+        return "lossy"
+    return "lossless" if b"VP8L" in chunks else None
+
+
+def lossy_image_files(paths: Sequence[str | Path]) -> list[Path]:
+    """The files among `paths` whose first scene group's view 0 holds a lossy WebP image
+    (DeMoN's files do; the converter writes lossless ones by default). One image per
+    file is read, nothing decoded."""
+    lossy = []
+    for path in paths:
+        with h5py.File(path, "r") as h5_file:
+            for group in scene_groups(h5_file):
+                try:
+                    image = h5_file.get(f"{group}/frames/t0/v0/image")
+                    data = image[()].tobytes() if isinstance(image, h5py.Dataset) else None
+                except (OSError, KeyError, RuntimeError):
+                    continue  # a damaged group; the build skips and counts it
+                if data is not None:
+                    if webp_compression(data) == "lossy":
+                        lossy.append(Path(path))
+                    break
+    return lossy
+
+
+def check_image_decoder(decoder: str, paths: Sequence[str | Path]) -> None:
+    """Refuses, before anything is built, to read lossy images of `paths` with the
+    `demon` decoder when the `webp` package is missing.
+
+    Raises:
+      MissingDecoderError: one line naming the package and `--image_decoder=opencv`.
+    """
+    if decoder != "demon" or webp_decoder_available():
+        return
+    lossy = lossy_image_files(paths)
+    if lossy:
+        raise MissingDecoderError(missing_decoder_message(", ".join(p.name for p in lossy)))
 
 
 def decode_webp_libwebp(
@@ -166,19 +231,36 @@ def decode_webp_libwebp(
     return image if status == 0 else None
 
 
-def decode_image(data: bytes, where: str = "image", decoder: str = "opencv") -> np.ndarray:
-    """WebP (or, with `opencv`, any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB.
+def _decode_opencv(data: bytes) -> np.ndarray | None:
+    """Bytes -> [H, W, 3] uint8 RGB by OpenCV (libwebp's defaults); None if undecodable."""
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def decode_image(
+    data: bytes, where: str = "image", decoder: str = DEFAULT_IMAGE_DECODER
+) -> np.ndarray:
+    """WebP (or any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB.
 
     Args:
       data: the encoded bytes.
       where: names the dataset in errors.
       decoder: one of `IMAGE_DECODERS` (see the module docstring).
+
+    Raises:
+      DamagedDataError (`corrupt_image`): undecodable bytes.
+      MissingDecoderError: a decodable lossy image, `demon` asked for, no `webp` package.
     """
-    if decoder == "demon":
-        image = decode_webp_libwebp(data)
+    # Lossless WebP decodes to the same pixels whichever libwebp options are set.
+    if decoder == "demon" and webp_compression(data) != "lossless":
+        if webp_decoder_available():
+            image = decode_webp_libwebp(data)
+        elif _decode_opencv(data) is not None:
+            raise MissingDecoderError(missing_decoder_message(where))
+        else:
+            image = None  # damaged, whichever the decoder
     else:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-        image = None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        image = _decode_opencv(data)
     if image is None:
         raise DamagedDataError("corrupt_image", where, f"undecodable image ({len(data)} bytes)")
     return image
@@ -280,7 +362,9 @@ def _dataset(group: h5py.Group, name: str, reason: str, where: str) -> h5py.Data
     return item
 
 
-def read_view(view_group: h5py.Group, where: str, image_decoder: str = "opencv") -> View:
+def read_view(
+    view_group: h5py.Group, where: str, image_decoder: str = DEFAULT_IMAGE_DECODER
+) -> View:
     """Reads and validates `/<scene>/frames/t0/v<k>` -> View (depth converted to camera z).
 
     `image_decoder` is one of `IMAGE_DECODERS`.
@@ -326,6 +410,12 @@ def read_view(view_group: h5py.Group, where: str, image_decoder: str = "opencv")
 def scene_groups(h5_file: h5py.File) -> list[str]:
     """Names of the scene groups, sorted; reserved `.`-groups are not scenes."""
     return sorted(name for name in h5_file.keys() if not name.startswith("."))
+
+
+def demon_order(groups: Sequence[str]) -> list[str]:
+    """Scene groups in the order DeMoN's reader op visits them in its test phase: it
+    sorts a file's groups by name and takes them from the back, so reverse-sorted."""
+    return sorted(groups, reverse=True)
 
 
 def view_count(t0_group: h5py.Group) -> int:
@@ -416,7 +506,7 @@ class DemonFile:
 
     Use as a context manager. Views are decoded on demand and cached per scene,
     so a training group with many pairs decodes each view once. `image_decoder` is
-    one of `IMAGE_DECODERS`, or None (see `resolve_image_decoder`).
+    one of `IMAGE_DECODERS`, or None for `DEFAULT_IMAGE_DECODER`.
     """
 
     def __init__(self, path: str | Path, image_decoder: str | None = None):

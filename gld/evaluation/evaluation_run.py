@@ -3,21 +3,66 @@ classical method or stored depth maps on a dataset's split, scored against the r
 ground truth or DeMoN's files, with the references the dataset allows (the dataset mean
 only with a training split), then `trained_run.evaluate_workdir`.
 
+A DeMoN dataset (`demon/*`) is scored by DeMoN's protocol unless told otherwise: against
+its files' depth (`truth_resolution="file"`, the default there), in the records' order,
+which its builder made DeMoN's; the report names the records' protocol (their build
+options: WebP decoder, depth resampling, order). Without the files the evaluation is
+refused, naming both ways on (`--manual_dir`, or `--truth_resolution=record`): a
+number at the records' resolution is not DeMoN's (on 640x480 files, Abs-Inv can differ
+by most of its value) and must be asked for. Other datasets are scored at the records'
+resolution.
+
 The dataset and DeMoN's files are opened by the caller's `prepare_dataset` and
 `open_file_truth` (the data layer, which the library does not import).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import json
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 from gld import input_pipeline
 from gld.arguments import ArgumentError
-from gld.evaluation import stored_predictions, trained_run
+from gld.evaluation import metrics, reports, stored_predictions, trained_run
 from gld.evaluation.evaluate import Truth
 from gld.runs import workdir as workdir_lib
+
+# The build options that make a DeMoN dataset's records protocol, named in the report.
+RECORDS_PROTOCOL = ("image_decoder", "depth_resampling", "order")
+
+
+def default_truth_resolution(dataset: str) -> str:
+    """Where a dataset's ground truth is scored by default: DeMoN's files for `demon/*`
+    (DeMoN's protocol), the records for the others."""
+    return "file" if dataset.startswith("demon/") else "record"
+
+
+def records_protocol(builder: Any, split: str) -> dict[str, Any]:
+    """The `RECORDS_PROTOCOL` options `split` was built with, from the builder's
+    `metadata["build_options"]` (empty for a dataset that records none of them)."""
+    metadata = getattr(builder.info, "metadata", None) or {}
+    options = metadata.get("build_options", {}).get(split, {})
+    return {key: options[key] for key in RECORDS_PROTOCOL if key in options}
+
+
+def _stamp_records_protocol(
+    workdir: str | Path, report: Mapping[str, Any], protocol: Mapping[str, Any]
+) -> dict[str, Any]:
+    """Names `protocol` in the evaluation folder holding `report`, the one just written
+    (found by its metrics.json, byte for byte; `reports.stamp_records_protocol`), and
+    returns the amended report."""
+    written = json.dumps(report, indent=2) + "\n"
+    folders = [
+        path.parent
+        for path in sorted(Path(workdir).glob("eval*/metrics.json"))
+        if path.read_text() == written
+    ]
+    if not folders:
+        raise RuntimeError(f"no evaluation folder in {workdir} holds the report just written")
+    amended = [reports.stamp_records_protocol(folder, protocol) for folder in folders]
+    return amended[0]
 
 
 def evaluate_split(
@@ -28,7 +73,7 @@ def evaluate_split(
     dataset: str | None = None,
     method: str | None = None,
     predictions: stored_predictions.StoredPredictions | None = None,
-    truth_resolution: str = "record",
+    truth_resolution: str | None = None,
     manual_dir: str | None = None,
     split: str = "test",
     batch_size: int = 16,
@@ -47,57 +92,67 @@ def evaluate_split(
     Args:
       prepare_dataset: dataset name ('name/config') -> its TFDS builder, built on first
         use.
-      open_file_truth: a folder of DeMoN's files -> the ground truth they hold, by
-        example id (`data.demon.file_truth.FileTruth`), for `truth_resolution="file"`.
-      truth_resolution: "record" (the records' resolution) or "file" (DeMoN's files in
-        `manual_dir`; demon/* datasets only).
+      open_file_truth: (builder, split, manual_dir or None) -> the ground truth of the
+        split's DeMoN files, by example id (`data.demon.file_truth.for_split`: in
+        `manual_dir`, else where the build recorded them), for
+        `truth_resolution="file"`; raises FileNotFoundError or ValueError when the
+        files are not those the split was built from.
+      truth_resolution: "record" (the records' resolution), "file" (DeMoN's files;
+        demon/* datasets only) or None: `default_truth_resolution`.
       The others: `trained_run.evaluate_workdir`'s; `print_fn` also says which
         references a dataset without a training split goes without.
 
     Returns:
-      `trained_run.evaluate_workdir`'s report (what metrics.json holds).
+      `trained_run.evaluate_workdir`'s report (what metrics.json holds), with the
+      records' protocol (`records_protocol`) where the dataset records one.
 
     Raises:
       ArgumentError: no dataset for a method or predictions; the file resolution for
-        another dataset than demon/*, or without DeMoN's files; a split the dataset
-        lacks; the dataset mean without a training split.
+        another dataset than demon/*, or without the files the split was built from
+        (by default: naming --manual_dir and --truth_resolution=record); a split the
+        dataset lacks; the dataset mean without a training split.
     """
     if method or predictions:
         if not dataset:
             raise ArgumentError("--dataset is needed with --method or --predictions")
     else:
         dataset = dataset or workdir_lib.load_run_config(workdir).dataset
-    truth = None
-    if truth_resolution == "file":
-        if not dataset.startswith("demon/"):
-            raise ArgumentError(
-                f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
-                f"by example id; {dataset} is not a demon/* dataset, its records are its "
-                f"only ground truth (use --truth_resolution=record)"
-            )
-        if not manual_dir:
-            raise ArgumentError(
-                "--truth_resolution=file needs --manual_dir: the folder of the DeMoN "
-                "files the dataset was built from"
-            )
-        try:
-            truth = open_file_truth(manual_dir)
-        except FileNotFoundError as error:
-            raise ArgumentError(f"--manual_dir: {error}") from None
+    chosen = truth_resolution
+    truth_resolution = truth_resolution or default_truth_resolution(dataset)
+    if truth_resolution == "file" and not dataset.startswith("demon/"):
+        raise ArgumentError(
+            f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
+            f"by example id; {dataset} is not a demon/* dataset, its records are its "
+            f"only ground truth (use --truth_resolution=record)"
+        )
     builder = prepare_dataset(dataset)
     height, width = (int(size) for size in builder.info.features["depth1"].shape)
     splits = builder.info.splits
     if split not in splits:
         raise ArgumentError(f"--split={split}: {builder.info.full_name} has only {sorted(splits)}")
-    decoders = input_pipeline.source_decoders()
-    train_source = None
-    if "train" in splits:
-        train_source = builder.as_data_source("train", decoders=decoders)
-    elif method == "dataset_mean":
+    if method == "dataset_mean" and "train" not in splits:
         raise ArgumentError(
             f"--method=dataset_mean is fitted on the train split, which "
             f"{builder.info.full_name} lacks"
         )
+    truth = None
+    if truth_resolution == "file":
+        try:
+            truth = open_file_truth(builder, split, manual_dir)
+        except (FileNotFoundError, ValueError) as error:
+            if chosen:
+                raise ArgumentError(f"--truth_resolution=file: {error}") from None
+            raise ArgumentError(
+                f"{builder.info.full_name} is scored as DeMoN scores it, against the depth "
+                f"of the files its {split} split was built from (--truth_resolution=file, "
+                f"the default for demon/* datasets), and they are not at hand: {error}. "
+                f"Give --manual_dir=<the folder of those files>, or --truth_resolution="
+                f"record to score at the records' {width}x{height} (not DeMoN's protocol)"
+            ) from None
+    decoders = input_pipeline.source_decoders()
+    train_source = None
+    if "train" in splits:
+        train_source = builder.as_data_source("train", decoders=decoders)
     else:
         if with_dataset_mean:
             print_fn(f"{builder.info.full_name} has no training split: no dataset-mean row")
@@ -106,27 +161,33 @@ def evaluate_split(
                 f"{builder.info.full_name} has no training split: sfm_flow's failed pairs "
                 f"are predicted as a fixed inverse depth, not the training mean"
             )
-    report = trained_run.evaluate_workdir(
-        workdir,
-        builder.as_data_source(split, decoders=decoders),
-        train_source=train_source,
-        dataset=builder.info.full_name,
-        height=height,
-        width=width,
-        split=split,
-        print_fn=print_fn,
-        num_figures=num_figures,
-        with_dataset_mean=with_dataset_mean,
-        with_oracle=with_oracle,
-        with_sfm_flow=with_sfm_flow,
-        batch_size=batch_size,
-        max_examples=max_examples,
-        step=step,
-        classical_method=method,
-        predictions=predictions,
-        flow_source=flow_source,
-        truth=truth,
-    )
-    if truth is not None:
-        truth.close()
+    try:
+        report = trained_run.evaluate_workdir(
+            workdir,
+            builder.as_data_source(split, decoders=decoders),
+            train_source=train_source,
+            dataset=builder.info.full_name,
+            height=height,
+            width=width,
+            split=split,
+            print_fn=print_fn,
+            num_figures=num_figures,
+            with_dataset_mean=with_dataset_mean,
+            with_oracle=with_oracle,
+            with_sfm_flow=with_sfm_flow,
+            batch_size=batch_size,
+            max_examples=max_examples,
+            step=step,
+            classical_method=method,
+            predictions=predictions,
+            flow_source=flow_source,
+            truth=truth,
+        )
+    finally:
+        if truth is not None:
+            truth.close()
+    protocol = records_protocol(builder, split)
+    if report and protocol:  # process 0, a dataset that records its protocol
+        report = _stamp_records_protocol(workdir, report, protocol)
+        print_fn(metrics.records_protocol_note(protocol))
     return report

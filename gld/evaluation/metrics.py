@@ -191,6 +191,29 @@ def protocol_stamp(
     return f"{stamp}; {extra}" if extra else stamp
 
 
+# What a records' `order` stamp means (`records_protocol_note`).
+RECORD_ORDERS = {
+    "demon": "DeMoN's reader's: files as listed, each file's scene groups reverse-sorted",
+}
+
+
+def records_protocol_note(protocol: Mapping[str, Any]) -> str:
+    """One clause naming the protocol a split's records were built with, for the stamp.
+
+    Args:
+      protocol: build options of the split, e.g. {"image_decoder": "demon",
+        "depth_resampling": "demon", "order": "demon"} (a DeMoN dataset's).
+    """
+    built = ", ".join(f"{key}={value}" for key, value in protocol.items() if key != "order")
+    order = protocol.get("order")
+    evaluated = "evaluated in the records' stored order"
+    if order is not None:
+        evaluated += f", order={order}" + (
+            f" ({RECORD_ORDERS[order]})" if order in RECORD_ORDERS else ""
+        )
+    return f"records built with {built}; {evaluated}" if built else evaluated
+
+
 def excluded_pixels(summary: Mapping[str, dict]) -> dict[str, Any] | None:
     """What a method's predictions left unscored, from its `summarise` summary.
 

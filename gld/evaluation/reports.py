@@ -4,8 +4,9 @@
 (`gld.evaluation.evaluate`), with the references' labels (the oracle sees the truth; the
 classical pipeline runs on the same flow, with no training), each method's Abs-Inv as a
 multiple of the dataset mean's, the pixels its predictions had excluded and the pairs a
-method failed on; `render_examples` draws image, truth, prediction and error with one
-colour scale for all.
+method failed on; `stamp_records_protocol` adds the protocol the evaluated records were
+built with (a DeMoN dataset's WebP decoder, depth resampling and order);
+`render_examples` draws image, truth, prediction and error with one colour scale for all.
 """
 
 from __future__ import annotations
@@ -125,6 +126,24 @@ def write_report(
     if failures:
         table += f"\n{failures}\n"
     (out_dir / "table.md").write_text(table)
+    return report
+
+
+def stamp_records_protocol(out_dir: str | Path, protocol: dict[str, Any]) -> dict[str, Any]:
+    """Adds the protocol the evaluated records were built with to an evaluation folder
+    written by `write_report`: "records_protocol" in metrics.json, and its clause
+    (`metrics.records_protocol_note`) at the end of the protocol stamp of metrics.json
+    and table.md. Returns the new metrics.json content."""
+    out_dir = Path(out_dir)
+    report = json.loads((out_dir / "metrics.json").read_text())
+    stamp = report["protocol"]
+    report["protocol"] = f"{stamp}; {metrics.records_protocol_note(protocol)}"
+    report["records_protocol"] = dict(protocol)
+    table = (out_dir / "table.md").read_text()
+    if f"\n{stamp}\n" not in table:
+        raise ValueError(f"{out_dir / 'table.md'} does not hold the stamp of its metrics.json")
+    (out_dir / "table.md").write_text(table.replace(f"\n{stamp}\n", f"\n{report['protocol']}\n"))
+    (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
 
 

@@ -117,14 +117,82 @@ def test_image_decoder_choice(monkeypatch):
     with pytest.raises(ValueError, match="unknown image decoder"):
         reader.resolve_image_decoder("pillow")
     assert reader.resolve_image_decoder("opencv") == "opencv"
+    # DeMoN's decoding is the default, whatever is installed: the same options, the
+    # same records (without `webp`, lossy images are refused, not approximated).
+    for available in (False, True):
+        monkeypatch.setattr(reader, "webp_decoder_available", lambda available=available: available)
+        assert reader.resolve_image_decoder(None) == "demon"
+        assert reader.resolve_image_decoder("demon") == "demon"
+
+
+def test_demon_decoding_of_lossless_images_needs_no_webp_package(rng, monkeypatch):
+    image = demon_files.texture(rng, 24, 32)
+    lossless, lossy = demon_files.webp_bytes(image), demon_files.webp_bytes(image, quality=80)
+    assert reader.webp_compression(lossless) == "lossless"
+    assert reader.webp_compression(lossy) == "lossy"
+    assert reader.webp_compression(b"RIFF\x04\x00\x00\x00WEBP") is None
     monkeypatch.setattr(reader, "webp_decoder_available", lambda: False)
-    assert reader.resolve_image_decoder(None) == "opencv"
-    with pytest.raises(ImportError, match="pip install webp"):
-        reader.resolve_image_decoder("demon")
-    # The default does not follow what is installed: the same options, the same records.
-    monkeypatch.setattr(reader, "webp_decoder_available", lambda: True)
-    assert reader.resolve_image_decoder(None) == "opencv"
-    assert reader.resolve_image_decoder("demon") == "demon"
+    # Lossless WebP has the same pixels whatever libwebp's options: DeMoN's, exactly.
+    np.testing.assert_array_equal(reader.decode_image(lossless, decoder="demon"), image)
+    with pytest.raises(reader.MissingDecoderError, match="pip install webp") as error:
+        reader.decode_image(lossy, "a.h5/s/frames/t0/v0/image", decoder="demon")
+    assert "a.h5/s/frames/t0/v0/image" in str(error.value)
+    assert "--image_decoder=opencv" in str(error.value)
+    assert reader.decode_image(lossy, decoder="opencv").shape == (24, 32, 3)
+    # Damaged bytes stay damage, whatever is installed.
+    for damaged in (b"not a webp", lossy[:60]):
+        with pytest.raises(reader.DamagedDataError, match="corrupt_image"):
+            reader.decode_image(damaged, decoder="demon")
+
+
+def _lossy_scene(rng, name="s", quality=50):
+    """(name, views, pairs, options) of a two-view scene whose images are lossy WebP."""
+    views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
+    options = {
+        index: {"image_data": demon_files.webp_bytes(view["image"], quality=quality)}
+        for index, view in enumerate(views)
+    }
+    return (name, views, (0, 1), options)
+
+
+def test_a_default_build_of_lossy_images_without_webp_is_refused_in_one_line(
+    tmp_path, rng, monkeypatch
+):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    write_file(manual_dir / "scenes11_test.h5", [_lossy_scene(rng)])
+    monkeypatch.setattr(reader, "webp_decoder_available", lambda: False)
+    datasets = tmp_path / "datasets"
+    with pytest.raises(ImportError) as error:
+        data.prepare("demon/scenes11", datasets, manual_dir, verify_checksums=False)
+    assert isinstance(error.value, reader.MissingDecoderError)
+    message = str(error.value)
+    assert "\n" not in message
+    assert "needs the `webp` package for the lossy images of scenes11_test.h5" in message
+    assert "pip install webp" in message and "--image_decoder=opencv" in message
+    assert not data.get_builder("demon/scenes11", datasets).is_prepared()
+    # The approximation, asked for by name, builds.
+    builder = data.prepare(
+        "demon/scenes11", datasets, manual_dir, verify_checksums=False, image_decoder="opencv"
+    )
+    assert builder.info.metadata["build_options"]["test"]["image_decoder"] == "opencv"
+
+
+@needs_webp
+def test_a_default_build_decodes_webp_as_demons_reader(tmp_path, rng):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    scene = _lossy_scene(rng)
+    write_file(manual_dir / "scenes11_test.h5", [scene])
+    builder = data.prepare(
+        "demon/scenes11", tmp_path / "datasets", manual_dir, verify_checksums=False
+    )
+    (record,) = [records.decode(r) for r in builder.as_data_source(split="test")]
+    lossy = scene[3][0]["image_data"]
+    np.testing.assert_array_equal(record["image1"], reader.decode_webp_libwebp(lossy))
+    opencv = reader.decode_image(lossy, decoder="opencv")
+    assert np.abs(record["image1"].astype(int) - opencv).mean() > 1.0
+    assert builder.info.metadata["build_options"]["test"]["image_decoder"] == "demon"
 
 
 def test_viewpoint_pairs_train_all_test_first(tmp_path, rng):
@@ -334,16 +402,25 @@ def test_relative_baseline_threshold_is_a_filter_not_damage(tmp_path, rng):
     test_ids = [i for i, _ in pairs.generate([path], "test", min_relative_baseline=1e-4)]
     assert test_ids == ["train.h5/a/0-1"]
     train_ids = [i for i, _ in pairs.generate([path], "train", min_relative_baseline=0.0)]
-    assert train_ids == ["train.h5/a/0-1", "train.h5/b_tiny/0-1"]
+    assert train_ids == ["train.h5/b_tiny/0-1", "train.h5/a/0-1"]  # DeMoN's order
 
 
-def test_baseline_below_demon_floor_is_skipped(tmp_path, rng):
+def test_pairs_without_a_baseline_are_skipped_as_demon_does_and_are_not_damage(tmp_path, rng):
     views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
-    path = write_file(tmp_path / "t.h5", [("a", views), ("b", _tiny_baseline_views(rng, 5e-7))])
+    still = _damage("zero_translation", demon_files.moving_views(rng, 2, HEIGHT, WIDTH), rng)
+    scenes = [("a", views), ("b", _tiny_baseline_views(rng, 5e-7)), ("c", views), ("d", *still)]
+    path = write_file(tmp_path / "t.h5", scenes)
     report = pairs.BuildReport("test")
-    ids = [i for i, _ in pairs.generate([path], "test", max_bad_fraction=0.5, report=report)]
-    assert ids == ["t.h5/a/0-1"]
-    assert report.skipped == {"t.h5": {"zero_translation": 1}}
+    # Half the pairs have no baseline: neither max_bad_fraction (0.05) nor strict stops.
+    ids = [i for i, _ in pairs.generate([path], "test", strict=True, report=report)]
+    assert ids == ["t.h5/c/0-1", "t.h5/a/0-1"]
+    assert report.skipped == {"t.h5": {"zero_translation": 2}}
+    summary = report.as_dict()
+    assert summary["pairs_damaged"] == 0
+    assert summary["pairs_filtered"] == {"zero_translation": 2, "small_baseline": 0}
+    assert "2 skipped (0 damaged; not damage: 2 without a baseline, ||t|| < 1e-06" in (
+        report.format()
+    )
 
 
 # --- damage ---------------------------------------------------------------------------------
@@ -386,7 +463,6 @@ DAMAGE_REASONS = {
     "negative_depth": "invalid_depth",
     "missing_camera": "missing_camera",
     "bad_camera": "bad_camera",
-    "zero_translation": "zero_translation",
     "one_view": "too_few_views",
     "bad_pairs": "bad_viewpoint_pairs",
 }
@@ -407,7 +483,9 @@ def test_damaged_pair_skipped_and_counted(tmp_path, rng, kind):
         "written": 1,
         "skipped": {DAMAGE_REASONS[kind]: 1},
         "small_baseline_written": 0,
+        "no_valid_depth_written": 0,
     }
+    assert report.num_damaged == 1
     assert "b_bad" in report.first_errors[0]
 
 
@@ -417,10 +495,11 @@ def test_strict_fails_at_first_damaged_pair(tmp_path, rng):
     scenes.append(("c", *_damage("truncated_lz4", views, rng)))
     path = write_file(tmp_path / "strict.h5", scenes)
     written = []
-    with pytest.raises(reader.DamagedDataError, match="strict.h5/a/0-1") as error:
+    # DeMoN's order: c, b, a.
+    with pytest.raises(reader.DamagedDataError, match="strict.h5/c/0-1") as error:
         for example_id, _ in pairs.generate([path], "test", strict=True):
             written.append(example_id)
-    assert error.value.reason == "corrupt_image"
+    assert error.value.reason == "corrupt_depth"
     assert written == []
 
 
@@ -570,6 +649,7 @@ def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
         "written": 3,
         "skipped": {"corrupt_depth": 1},
         "small_baseline_written": 1,
+        "no_valid_depth_written": 0,
     }
     assert (
         "scenes11_test.h5: 3 pairs written (1 with a small baseline), 1 skipped (corrupt_depth: 1)"
@@ -577,7 +657,7 @@ def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
     )
     options = builder.info.metadata["build_options"]["test"]
     assert options["min_relative_baseline"] == 0.0 and options["depth_resampling"] == "demon"
-    assert options["image_decoder"] == reader.resolve_image_decoder(None)
+    assert options["image_decoder"] == "demon" and options["order"] == "demon"
 
 
 def test_builder_defaults(tmp_path):
@@ -587,7 +667,71 @@ def test_builder_defaults(tmp_path):
     assert scenes11.build_options("test")["min_relative_baseline"] == 0.0
     assert scenes11.build_options("test")["depth_resampling"] == "demon"
     custom = data.get_builder("demon/custom", tmp_path, min_relative_baseline=1e-3)
-    assert custom.build_options("test")["depth_resampling"] == "centred"  # sparse readings
     assert custom.build_options("test")["min_relative_baseline"] == 1e-3
+    # DeMoN's protocol is every config's default, custom's included.
+    for config in ("scenes11", "sun3d", "rgbd", "custom"):
+        options = data.get_builder(f"demon/{config}", tmp_path).build_options("test")
+        assert options["depth_resampling"] == "demon", config
+        assert options["image_decoder"] == "demon", config
+        assert options["order"] == "demon", config
     with pytest.raises(ValueError, match="depth_resampling"):
         data.get_builder("demon/sun3d", tmp_path, depth_resampling="bilinear")
+
+
+def test_records_are_stored_and_read_in_demons_order(tmp_path, rng):
+    """DeMoN's reader op sorts a file's scene groups and takes them from the back; the
+    records keep that order (not TFDS's key hash), so index i is DeMoN's pair i."""
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(rng, 2, 24, 32)
+    write_file(manual_dir / "scenes11_test.h5", [(f"g{index}", views) for index in range(5)])
+    builder = data.prepare(
+        "demon/scenes11", tmp_path / "datasets", manual_dir, verify_checksums=False
+    )
+    source = builder.as_data_source(split="test")
+    ids = [records.decode(source[index])["id"] for index in range(len(source))]
+    assert ids == [f"scenes11_test.h5/g{index}/0-1" for index in (4, 3, 2, 1, 0)]
+    assert builder.info.metadata["build_options"]["test"]["order"] == "demon"
+
+
+def test_custom_resamples_depth_as_demon_by_default(tmp_path, rng):
+    manual_dir = tmp_path / "manual"
+    manual_dir.mkdir()
+    views = demon_files.moving_views(rng, 2, 240, 320)  # 1.25x 256x192: the rules differ
+    write_file(manual_dir / "custom_test.h5", [("s", views)])
+    builder = data.prepare("demon/custom", tmp_path / "datasets", manual_dir)
+    (record,) = [records.decode(r) for r in builder.as_data_source(split="test")]
+    stored = views[0]["depth"].astype(np.float16).astype(np.float32)
+    np.testing.assert_array_equal(record["depth1"], pairs.resize_depth_demon(stored, HEIGHT, WIDTH))
+    assert np.any(record["depth1"] != pairs.resize_depth_centred(stored, HEIGHT, WIDTH))
+    assert builder.info.metadata["build_options"]["test"]["depth_resampling"] == "demon"
+
+
+def test_sparse_readings_lost_by_demons_resampling_are_counted(tmp_path, rng):
+    views = demon_files.moving_views(rng, 2, 2 * HEIGHT, 2 * WIDTH)
+    sparse = np.zeros_like(views[0]["depth"])
+    sparse[101, 333] = 4.5  # DeMoN's rule samples even rows and columns only
+    views[0] = dict(views[0], depth=sparse)
+    path = write_file(tmp_path / "custom_test.h5", [("s", views)])
+    counts = {}
+    for resampling in ("demon", "centred"):
+        report = pairs.BuildReport("test")
+        ((_, example),) = pairs.generate([path], "test", depth_resampling=resampling, report=report)
+        counts[resampling] = (np.count_nonzero(example["depth1"]), report.as_dict())
+    assert counts["demon"][0] == 0 and counts["centred"][0] == 1
+    assert counts["demon"][1]["no_valid_depth_written"] == 1
+    assert counts["demon"][1]["files"]["custom_test.h5"]["no_valid_depth_written"] == 1
+    assert counts["centred"][1]["no_valid_depth_written"] == 0
+    report = pairs.BuildReport("test")
+    list(pairs.generate([path], "test", report=report))
+    assert "1 written pairs have no valid depth in view 1 after resampling" in report.format()
+    assert "depth_resampling=centred keeps them" in report.format()
+
+
+def test_this_protocol_is_a_new_version_never_read_from_an_older_build(tmp_path):
+    builder = data.get_builder("demon/custom", tmp_path)
+    assert str(builder.version) == "2.0.0" == data.version("demon/sun3d")
+    assert builder.data_path.name == "2.0.0"
+    notes = builder.info.release_notes["2.0.0"]
+    for change in ("image_decoder=demon", "DeMoN's order", "DeMoN's depth resampling"):
+        assert change in notes

@@ -1,14 +1,18 @@
 """Ground truth at the files' resolution (data/demon/file_truth.py), scored as DeMoN's
 evaluation scores it: a tiny demon/sun3d test split built from 640x480 files written
-by `demon_files`, evaluated against those files and checked against numpy by hand."""
+by `demon_files`, evaluated against those files and checked against numpy by hand; and
+DeMoN's protocol as the default of a demon/* evaluation (gld/evaluation/evaluation_run.py,
+experiments/evaluate.py)."""
 
 from __future__ import annotations
 
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import demon_files
 import h5py
@@ -19,7 +23,7 @@ from conftest import REPO_ROOT
 import data
 from data.demon import file_truth, reader
 from gld import input_pipeline
-from gld.evaluation import stored_predictions, trained_run
+from gld.evaluation import evaluation_run, stored_predictions, trained_run
 
 FILE_HEIGHT, FILE_WIDTH = 480, 640  # SUN3D's and RGB-D's files
 HEIGHT, WIDTH = 192, 256  # the records'
@@ -219,10 +223,79 @@ def test_an_exact_prediction_at_the_files_resolution_scores_zero(demon_sun3d, tm
         assert float(row["abs_inv"]) == pytest.approx(by_hand, rel=1e-4)
 
 
-def test_evaluate_scores_at_the_files_resolution_end_to_end(demon_sun3d, tmp_path):
+def test_file_truth_of_a_split_is_read_from_the_files_it_was_built_from(demon_sun3d, tmp_path):
+    manual_dir, builder, _ = demon_sun3d
+    # Without a folder: where the build found its files.
+    with file_truth.for_split(builder, "test") as truth:
+        assert truth.manual_dir == manual_dir.resolve()
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    shutil.copy(manual_dir / "sun3d_test.h5", copy)
+    with file_truth.for_split(builder, "test", copy) as truth:
+        assert truth.manual_dir == copy  # the same content elsewhere
+    with pytest.raises(FileNotFoundError, match=f"sun3d_test.h5 not in {tmp_path}"):
+        file_truth.for_split(builder, "test", tmp_path)
+    with h5py.File(copy / "sun3d_test.h5", "a") as h5_file:
+        h5_file.create_group("extra")
+    with pytest.raises(ValueError, match="are not those the test split was built from"):
+        file_truth.for_split(builder, "test", copy)
+    moved = SimpleNamespace(
+        info=SimpleNamespace(
+            full_name="demon/sun3d/2.0.0",
+            metadata={"sources": {"test": {"sun3d_test.h5": {"path": str(tmp_path / "gone/x")}}}},
+        )
+    )
+    with pytest.raises(FileNotFoundError, match="gone does not exist"):
+        file_truth.for_split(moved, "test")
+
+
+def _evaluate(builder, workdir, **arguments):
+    return evaluation_run.evaluate_split(
+        workdir,
+        prepare_dataset=lambda name: builder,
+        open_file_truth=file_truth.for_split,
+        dataset="demon/sun3d",
+        method="oracle_pair_median",
+        num_figures=0,
+        with_sfm_flow=False,
+        print_fn=lambda _: None,
+        **arguments,
+    )
+
+
+def test_a_demon_dataset_is_evaluated_by_demons_protocol_by_default(demon_sun3d, tmp_path):
+    _, builder, _ = demon_sun3d
+    report = _evaluate(builder, tmp_path / "run", max_examples=2)
+    # At the files' resolution, from the files the build recorded, in DeMoN's order:
+    # the first two pairs are DeMoN's first two.
+    assert report["truth_resolution"] == "file" and report["truth_resolutions"] == {"640x480": 2}
+    folder = tmp_path / "run" / "eval_first2_truth-file"
+    with (folder / "per_example_oracle_pair_median.csv").open() as stream:
+        ids = [row["id"] for row in csv.DictReader(stream)]
+    assert ids == ["sun3d_test.h5/stairs/0-1", "sun3d_test.h5/office/0-1"]
+    protocol = {"image_decoder": "demon", "depth_resampling": "demon", "order": "demon"}
+    assert report["records_protocol"] == protocol
+    stored = json.loads((folder / "metrics.json").read_text())
+    assert stored == report
+    note = (
+        "records built with image_decoder=demon, depth_resampling=demon; evaluated in the "
+        "records' stored order, order=demon (DeMoN's reader's: files as listed, each file's "
+        "scene groups reverse-sorted)"
+    )
+    assert report["protocol"].endswith(f"; {note}")
+    assert f"\n{report['protocol']}\n" in (folder / "table.md").read_text()
+    # The records' resolution, asked for by name, names the same records' protocol.
+    record = _evaluate(builder, tmp_path / "run", truth_resolution="record")
+    assert record["truth_resolution"] == "record" and record["records_protocol"] == protocol
+    assert "ground truth at the records' resolution, 256x192 px" in record["protocol"]
+    assert (tmp_path / "run" / "eval" / "metrics.json").exists()
+
+
+def test_evaluate_scores_demon_datasets_by_demons_protocol_end_to_end(demon_sun3d, tmp_path):
     manual_dir, builder, expected = demon_sun3d
     folder = _exact_predictions(expected, tmp_path / "exact")
     workdir = tmp_path / "run"
+    # Neither --manual_dir nor --truth_resolution: the files the build recorded.
     command = [
         sys.executable,
         "-m",
@@ -231,25 +304,19 @@ def test_evaluate_scores_at_the_files_resolution_end_to_end(demon_sun3d, tmp_pat
         "--predictions_scale=raw",
         "--dataset=demon/sun3d",
         f"--data_dir={builder.gld_data_dir}",
-        f"--manual_dir={manual_dir}",
-        "--truth_resolution=file",
         f"--workdir={workdir}",
         "--num_figures=0",
     ]
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
-
-    def run(*args):
-        return subprocess.run(
-            args, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=300
-        )
-
-    refused = run(*[arg for arg in command if not arg.startswith("--manual_dir")])
-    assert refused.returncode != 0 and not workdir.exists()
-    assert "--truth_resolution=file needs --manual_dir" in refused.stderr
-
-    result = run(*command)
+    result = subprocess.run(
+        command, capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((workdir / "eval_truth-file" / "metrics.json").read_text())
     assert report["methods"]["stored_predictions"]["abs_inv"]["mean"] == 0.0
     assert report["truth_resolution"] == "file" and report["truth_resolutions"] == {"640x480": 3}
+    assert report["truth_files"] == str(manual_dir.resolve())
     assert "ground truth at the source files' resolution (3 at 640x480)" in result.stdout
+    assert "records built with image_decoder=demon, depth_resampling=demon;" in result.stdout
+    rows = _per_example(workdir, "stored_predictions")
+    assert list(rows) == [f"sun3d_test.h5/{scene}/0-1" for scene in sorted(SCENES, reverse=True)]

@@ -85,14 +85,14 @@ def test_rebuild_replaces_the_dataset_only_once_the_new_build_succeeds(tmp_path)
 def test_reuse_with_another_build_option_is_refused(tmp_path):
     datasets = tmp_path / "datasets"
     _write_recording(tmp_path / "a", "kitchen")
-    data.prepare("demon/custom", datasets, tmp_path / "a")  # depth_resampling: centred
+    data.prepare("demon/custom", datasets, tmp_path / "a")  # depth_resampling: demon
     with pytest.raises(ValueError) as refused:
-        data.prepare("demon/custom", datasets, tmp_path / "a", depth_resampling="demon")
-    assert "train split: depth_resampling='demon' given, built with depth_resampling='centred'" in (
+        data.prepare("demon/custom", datasets, tmp_path / "a", depth_resampling="centred")
+    assert "train split: depth_resampling='centred' given, built with depth_resampling='demon'" in (
         str(refused.value)
     )
     # The options it was built with, and options that do not shape the records, reuse it.
-    data.prepare("demon/custom", datasets, depth_resampling="centred", strict=True)
+    data.prepare("demon/custom", datasets, depth_resampling="demon", strict=True)
 
 
 def test_a_build_without_recorded_sources_is_reused_with_a_warning(tmp_path, caplog):

@@ -385,7 +385,8 @@ def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
         tmp_path / "oracle",
     )
     assert oracle.returncode == 0, oracle.stderr[-3000:]
-    report = json.loads((tmp_path / "oracle" / "eval" / "metrics.json").read_text())
+    # A demon/* dataset is scored at its files' resolution by default (DeMoN's protocol).
+    report = json.loads((tmp_path / "oracle" / "eval_truth-file" / "metrics.json").read_text())
     assert report["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 2
     # No training split: the classical pipeline's failed pairs fall back to a fixed constant.
     assert report["methods"]["sfm_flow"]["abs_inv"]["count"] == 2

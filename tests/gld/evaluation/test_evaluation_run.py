@@ -23,7 +23,7 @@ def _builder(name, splits=("train", "test")):
     return SimpleNamespace(info=info)
 
 
-def _no_truth(folder):
+def _no_truth(builder, split, manual_dir):
     raise AssertionError("opened")
 
 
@@ -53,26 +53,57 @@ def test_the_dataset_and_the_truths_resolution_are_checked_first(tmp_path):
         dataset="gld_scenes/tiny",
         truth_resolution="file",
     )
-    _refused(
-        workdir,
-        "--truth_resolution=file needs --manual_dir",
-        method="sfm_flow",
-        dataset="demon/sun3d",
-        truth_resolution="file",
-    )
 
-    def missing(folder):
-        raise FileNotFoundError(f"no DeMoN files in {folder}")
+    def missing(builder, split, manual_dir):
+        raise FileNotFoundError(f"no DeMoN files in {manual_dir}")
 
     _refused(
         workdir,
-        "--manual_dir: no DeMoN files in nowhere",
+        "--truth_resolution=file: no DeMoN files in nowhere",
+        builder=_builder("demon/sun3d"),
         method="sfm_flow",
         dataset="demon/sun3d",
         truth_resolution="file",
         manual_dir="nowhere",
         open_file_truth=missing,
     )
+
+
+def test_demon_datasets_are_scored_at_their_files_resolution_by_default():
+    assert evaluation_run.default_truth_resolution("demon/sun3d") == "file"
+    assert evaluation_run.default_truth_resolution("demon/custom") == "file"
+    assert evaluation_run.default_truth_resolution("gld_scenes/tiny") == "record"
+
+
+def test_without_the_files_a_demon_dataset_is_refused_naming_both_ways_on(tmp_path):
+    opened = []
+
+    def missing(builder, split, manual_dir):
+        opened.append((builder.info.full_name, split, manual_dir))
+        raise FileNotFoundError("sun3d_test.h5 not in /data/demon")
+
+    _refused(
+        tmp_path / "run",
+        r"demon/sun3d/1.0.0 is scored as DeMoN scores it, against the depth of the files its "
+        r"test split was built from \(--truth_resolution=file, the default for demon/\* "
+        r"datasets\), and they are not at hand: sun3d_test.h5 not in /data/demon. Give "
+        r"--manual_dir=<the folder of those files>, or --truth_resolution=record to score "
+        r"at the records' 64x48 \(not DeMoN's protocol\)",
+        builder=_builder("demon/sun3d"),
+        method="sfm_flow",
+        dataset="demon/sun3d",
+        open_file_truth=missing,
+    )
+    assert opened == [("demon/sun3d/1.0.0", "test", None)]
+
+
+def test_the_records_protocol_is_read_from_the_build_options():
+    builder = _builder("demon/sun3d")
+    options = {"image_decoder": "demon", "depth_resampling": "demon", "order": "demon"}
+    builder.info.metadata = {"build_options": {"test": {**options, "flow_estimator": "dis"}}}
+    assert evaluation_run.records_protocol(builder, "test") == options
+    assert evaluation_run.records_protocol(builder, "train") == {}
+    assert evaluation_run.records_protocol(_builder("gld_scenes/tiny"), "test") == {}
 
 
 def test_the_split_and_the_dataset_mean_need_the_dataset_to_have_them(tmp_path):

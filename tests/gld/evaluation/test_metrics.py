@@ -173,6 +173,18 @@ def test_the_stamp_says_where_the_truth_was_scored():
         metrics.protocol_stamp(192, 256, 80, truth_resolution="native")
 
 
+def test_the_records_protocol_is_named_with_its_order():
+    demon = {"image_decoder": "demon", "depth_resampling": "demon", "order": "demon"}
+    assert metrics.records_protocol_note(demon) == (
+        "records built with image_decoder=demon, depth_resampling=demon; evaluated in the "
+        "records' stored order, order=demon (DeMoN's reader's: files as listed, each file's "
+        "scene groups reverse-sorted)"
+    )
+    assert metrics.records_protocol_note({"image_decoder": "opencv"}) == (
+        "records built with image_decoder=opencv; evaluated in the records' stored order"
+    )
+
+
 def test_table_says_how_many_pixels_each_method_had_excluded():
     def summary(excluded_mean, scored_mean, scored_examples):
         values = {
