@@ -27,6 +27,8 @@ from pathlib import Path
 
 from absl import app, flags
 
+from experiments import common
+
 FLAGS = flags.FLAGS
 
 flags.DEFINE_string("suite", "model", "Benchmark suite: model, renderer, pipeline, demon or robot.")
@@ -124,4 +126,4 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    app.run(main)
+    common.run(main)

@@ -10,7 +10,7 @@ Re-running the same command resumes from the last checkpoint.
 
 from __future__ import annotations
 
-from absl import app, flags
+from absl import flags
 
 from experiments import common
 from gld.runs import recipe
@@ -79,4 +79,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    common.run(main)

@@ -6,10 +6,15 @@
 Every file the project writes whole (configs, checksums, reports, exported models) goes
 through `write_atomically`: a temporary file in the same folder, synced, then
 `os.replace`.
+
+A full disk (or quota) is told apart from other failures by `no_space_error`, through
+the wrappers orbax puts around it; `DiskFullError` is what a writer that knows the
+directory raises instead, in one line.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from collections.abc import Callable
@@ -36,3 +41,35 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], N
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+
+
+# errno values that mean the file system has no room for the write: disk full, quota used.
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+
+class DiskFullError(RuntimeError):
+    """A write failed for lack of space; the message names the directory and what was kept."""
+
+
+def no_space_error(error: BaseException) -> BaseException | None:
+    """The error that says the file system is full, `error` or one it wraps (its cause,
+    context or group members), or None: an OSError with errno ENOSPC or EDQUOT, a
+    `DiskFullError`, or the message of one as tensorstore gives it to orbax
+    (`ValueError: RESOURCE_EXHAUSTED: ... No space left on device [os_error_code='28']`)."""
+    markers = [os.strerror(code) for code in NO_SPACE_ERRNOS]
+    markers += [f"[os_error_code='{code}']" for code in NO_SPACE_ERRNOS]
+    pending, seen = [error], set()
+    while pending:
+        current = pending.pop()
+        if current is None or id(current) in seen:
+            continue
+        seen.add(id(current))
+        if isinstance(current, DiskFullError):
+            return current
+        if isinstance(current, OSError) and current.errno in NO_SPACE_ERRNOS:
+            return current
+        if any(marker in str(current) for marker in markers):
+            return current
+        pending += [current.__cause__, current.__context__]
+        pending += list(getattr(current, "exceptions", ()))
+    return None

@@ -13,24 +13,29 @@ lists every step's fault and nothing is deleted. A resume moves the damaged newe
 to `corrupt_checkpoints/` (kept, never deleted) so that it can save those steps again;
 `load_trained` moves nothing. Checkpoints written before checksums existed are restored
 unverified, with a `CheckpointWarning`. Hashing needs the files on a local or mounted
-file system, and makes each save wait until orbax has written it.
+file system, and makes each save wait until orbax has written it. A save that finds the
+disk full removes what it wrote and raises `gld.files.DiskFullError` in one line: the
+checkpoints saved before stay as they were.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import json
+import logging
 import os
+import shutil
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import orbax.checkpoint as ocp
 
-from gld.files import write_atomically
+from gld.files import DiskFullError, no_space_error, write_atomically
 from gld.runs.state import TrainState
 
 CHECKSUMS_FILE = "checksums.json"
@@ -78,6 +83,18 @@ def checkpoint_manager(
             max_to_keep=keep, save_interval_steps=every, create=True
         ),
     )
+
+
+@contextlib.contextmanager
+def saving_manager(workdir: str | Path, *, keep: int) -> Iterator[ocp.CheckpointManager]:
+    """`checkpoint_manager` for a trainer that saves: on exit its pending saves finish,
+    then it closes."""
+    manager = checkpoint_manager(workdir, keep=keep)
+    try:
+        yield manager
+    finally:
+        manager.wait_until_finished()
+        manager.close()
 
 
 def step_directory(manager: ocp.CheckpointManager, step: int) -> Path:
@@ -145,21 +162,70 @@ def verify_checksums(step_dir: str | Path) -> bool:
 
 def save_checkpoint(manager: ocp.CheckpointManager, state: TrainState, iterator) -> None:
     """Saves `state` and the iterator at `state.step`, waits until orbax has written
-    them, and records their checksums (process 0)."""
+    them, and records their checksums (process 0).
+
+    Raises:
+      DiskFullError: the disk is full (or the quota used up). What this save wrote is
+        removed; the checkpoints saved before are left as they were (the newest is named).
+    """
     import grain
 
     step = int(jax.device_get(state.step))
-    manager.save(
-        step,
-        args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state), data=grain.checkpoint.CheckpointSave(iterator)
-        ),
-        force=True,
-    )
-    # The files are hashed as orbax left them, so saving cannot overlap the next steps.
-    manager.wait_until_finished()
+    try:
+        with _orbax_quiet_about_full_disk():
+            manager.save(
+                step,
+                args=ocp.args.Composite(
+                    state=ocp.args.StandardSave(state),
+                    data=grain.checkpoint.CheckpointSave(iterator),
+                ),
+                force=True,
+            )
+            # The files are hashed as orbax left them, so saving cannot overlap the next steps.
+            manager.wait_until_finished()
+        if jax.process_index() == 0:
+            record_checksums(step_directory(manager, step))
+    except Exception as error:
+        if no_space_error(error) is None:
+            raise
+        raise DiskFullError(_unsaved_for_lack_of_space(manager, step)) from None
+
+
+def _unsaved_for_lack_of_space(manager: ocp.CheckpointManager, step: int) -> str:
+    """Removes what a save of `step` that ran out of space wrote (orbax's temporary folder,
+    or the step orbax finished but without its checksums) and says what is kept."""
+    step_dir = step_directory(manager, step)
     if jax.process_index() == 0:
-        record_checksums(step_directory(manager, step))
+        partial = list(step_dir.parent.glob(f"{step}{ocp.utils.TMP_DIR_SUFFIX}*"))
+        if not (step_dir / CHECKSUMS_FILE).exists():
+            partial.append(step_dir)
+        for path in partial:
+            shutil.rmtree(path, ignore_errors=True)
+    manager.reload()
+    kept = [saved for saved in manager.all_steps() if saved != step]
+    newest = f"newest: step {max(kept)}" if kept else "there were none"
+    return (
+        f"disk full: no space left in {step_dir.parent} to save the checkpoint of step "
+        f"{step}; its partial files are removed and the checkpoints saved before are kept "
+        f"({newest}). Free space, then relaunch the same command to resume"
+    )
+
+
+@contextlib.contextmanager
+def _orbax_quiet_about_full_disk() -> Iterator[None]:
+    """Orbax logs a failed write with its traceback once per thread it passes through;
+    on a full disk `save_checkpoint` says it in one line instead. Other logs pass."""
+
+    def keep(record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        return error is None or no_space_error(error) is None
+
+    logger = logging.getLogger("absl")
+    logger.addFilter(keep)
+    try:
+        yield
+    finally:
+        logger.removeFilter(keep)
 
 
 def _on_these_devices(leaf) -> jax.ShapeDtypeStruct:

@@ -10,7 +10,15 @@
 
 The lock (`gld.runs.lock`), the verified checkpoints (`gld.runs.checkpoints`) and the
 metrics log (`gld.runs.metrics_log`) have modules of their own; this one holds the
-stored configuration and loads a trained run.
+stored configuration, the trainer's hold on its workdir (`held_run`) and loads a trained
+run.
+
+The hold. A trainer checks its options and the stored config (reading only), then takes
+the lock before its costly start-up (the state, the data, compiling), so that a second
+launch is refused before it builds anything, and checks the stored config again under
+the lock. On a new workdir the lock's file is thus the first thing written: a launch
+that fails after taking it (in the start-up, before its first step) leaves the folder
+with an empty `train.lock` and nothing else.
 
 The stored configuration. `check_run_config` only reads: it refuses a workdir trained
 with another architecture, dataset or resolution and returns the options that differ
@@ -64,19 +72,17 @@ FIXED_OPTIONS = ("dataset", "height", "width")
 
 
 @contextlib.contextmanager
-def held_run(workdir: str | Path, keep: int, check: Callable[[], Any]) -> Iterator[tuple[Any, Any]]:
-    """A trainer's hold on its workdir: the lock taken, `check()` run again under it (the
-    previous holder may have changed the stored config) before the checkpoint manager
-    opens; yields (what `check` returned, the manager). On exit pending saves finish and
-    the manager closes, then the lock is released."""
+def held_run(workdir: str | Path, check: Callable[[], Any]) -> Iterator[Any]:
+    """A trainer's hold on its workdir, taken before its costly start-up (the state, the
+    data, compiling) so that a second launch is refused before it builds anything: the
+    lock taken, then `check()` run again under it (the previous holder may have changed
+    the stored config); yields what `check` returned. The lock is released on exit.
+
+    Raises:
+      gld.runs.lock.WorkdirLockedError: another process holds the workdir.
+    """
     with training_lock(workdir):
-        checked = check()
-        manager = checkpoint_manager(workdir, keep=keep)
-        try:
-            yield checked, manager
-        finally:
-            manager.wait_until_finished()
-            manager.close()
+        yield check()
 
 
 # ------------------------------------------------------------------ the stored config

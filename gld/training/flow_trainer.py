@@ -358,6 +358,8 @@ def train_flow(
       gld.runs.lock.WorkdirLockedError: another process trains in the workdir.
       gld.runs.checkpoints.CorruptCheckpointError: no checkpoint of the workdir is intact.
       gld.training.loop.NonFiniteLossError: the loss became NaN/inf (the step is named).
+      gld.files.DiskFullError: the workdir's disk is full (the checkpoints saved before
+        are kept).
     """
     return loop.train(
         FlowRun(config), workdir, train_source, test_source, progress=progress, print_fn=print_fn

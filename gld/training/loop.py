@@ -5,20 +5,24 @@
 A trainer says what is its own as a `TrainingRun` (`gld.training.trainer.DepthRun`,
 `gld.training.flow_trainer.FlowRun`): its model, the check of a workdir's stored config,
 a fresh state, the data it reads, its train step, its evaluation and the records it
-writes when it starts. `train` does the rest, the same for every trainer: everything is
-checked before anything is written (the options, the model, optimiser and state, the
-workdir's stored config), then the workdir is locked (`gld.runs.workdir.held_run`), the
-newest intact checkpoint restored (`resume`) and `run_loop` steps to the end, over a
-mesh of all devices (`gld.sharding`), saving verified checkpoints of the state and the
-data iterator, logging metrics and evaluating periodically.
+writes when it starts. `train` does the rest, the same for every trainer: the options,
+the model and optimiser and the workdir's stored config are checked before anything is
+written; then the workdir is held (`gld.runs.workdir.held_run`) before the costly
+start-up (the fresh state, the data, compiling), so that a second launch is refused at
+once; the newest intact checkpoint is restored (`resume`) and `run_loop` steps to the
+end, over a mesh of all devices (`gld.sharding`), saving verified checkpoints of the
+state and the data iterator, logging metrics and evaluating periodically. A full disk
+ends the run with a `gld.files.DiskFullError` naming the workdir; the checkpoints saved
+before are kept.
 """
 
 from __future__ import annotations
 
 import abc
+import contextlib
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +34,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from gld import input_pipeline, sharding
+from gld.files import DiskFullError, no_space_error
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import metrics_log
 from gld.runs import workdir as workdir_lib
@@ -118,8 +123,11 @@ def train(
     """Trains `run` (resuming from the workdir's newest intact checkpoint) and evaluates
     it every `eval_every` steps on `test_source`.
 
-    Everything is checked before anything is written into the workdir: the options, the
-    model, optimiser and state, the workdir's stored config, the lock, the checkpoints.
+    The options, the model and optimiser and the workdir's stored config are checked
+    before anything is written. The workdir is then held (locked, its stored config read
+    again under the lock) before the costly start-up: initialising the state, opening the
+    data, compiling. A second launch on a held workdir is refused before it builds
+    anything.
 
     Returns:
       The final TrainState.
@@ -129,6 +137,8 @@ def train(
       gld.runs.lock.WorkdirLockedError: another process trains in the workdir.
       gld.runs.checkpoints.CorruptCheckpointError: no checkpoint of the workdir is intact.
       NonFiniteLossError: the loss became NaN/inf (the step is named; nothing is saved).
+      gld.files.DiskFullError: the disk of the workdir is full (the checkpoints saved
+        before are kept).
     """
     workdir = Path(workdir)
     config = run.config
@@ -138,47 +148,72 @@ def train(
     model = run.make_model()
     optimizer = config.optimizer()
     run.check_workdir(workdir)
-    state = run.fresh_state(model, optimizer, workdir, print_fn)
-    if jax.process_index() == 0:
-        print_fn(f"devices: {mesh.devices.size} {jax.default_backend()}, batch split over them")
-        for name, count in run.parameter_counts(state).items():
-            print_fn(f"parameters {name}: {count:,}")
-    keys = run.batch_keys(model)
-    dataset = input_pipeline.train_dataset(
-        train_source,
-        batch_size=local_batch,
-        seed=config.seed,
-        augment=config.augment,
-        worker_count=config.worker_count,
-        keys=keys,
-        process_index=jax.process_index(),
-        process_count=jax.process_count(),
-        **run.data_options(),
-    )
-    iterator = iter(dataset)
     # The stored config is read again under the lock: the previous holder may have changed it.
-    with workdir_lib.held_run(
-        workdir, config.keep_checkpoints, lambda: run.check_workdir(workdir)
-    ) as (changes, manager):
-        state = resume(workdir, manager, state, iterator, print_fn)
-        start_step = int(jax.device_get(state.step))
-        after_checkpoint = run.begin(workdir, start_step, changes, print_fn)
-        return run_loop(
-            state,
-            iterator,
-            manager,
-            workdir=workdir,
-            mesh=mesh,
-            train_step=run.train_step(model, optimizer),
-            batch_keys=keys,
-            schedule=config,
-            evaluate=run.evaluation(model, mesh, test_source) if test_source is not None else None,
-            after_checkpoint=after_checkpoint,
-            progress=progress,
-            description=run.description,
-            postfix=run.postfix,
-            print_fn=print_fn,
+    with (
+        _one_line_when_the_disk_is_full(workdir),
+        workdir_lib.held_run(workdir, lambda: run.check_workdir(workdir)) as changes,
+    ):
+        state = run.fresh_state(model, optimizer, workdir, print_fn)
+        if jax.process_index() == 0:
+            print_fn(f"devices: {mesh.devices.size} {jax.default_backend()}, batch split over them")
+            for name, count in run.parameter_counts(state).items():
+                print_fn(f"parameters {name}: {count:,}")
+        keys = run.batch_keys(model)
+        dataset = input_pipeline.train_dataset(
+            train_source,
+            batch_size=local_batch,
+            seed=config.seed,
+            augment=config.augment,
+            worker_count=config.worker_count,
+            keys=keys,
+            process_index=jax.process_index(),
+            process_count=jax.process_count(),
+            **run.data_options(),
         )
+        iterator = iter(dataset)
+        with checkpoint_lib.saving_manager(workdir, keep=config.keep_checkpoints) as manager:
+            state = resume(workdir, manager, state, iterator, print_fn)
+            start_step = int(jax.device_get(state.step))
+            after_checkpoint = run.begin(workdir, start_step, changes, print_fn)
+            return run_loop(
+                state,
+                iterator,
+                manager,
+                workdir=workdir,
+                mesh=mesh,
+                train_step=run.train_step(model, optimizer),
+                batch_keys=keys,
+                schedule=config,
+                evaluate=(
+                    run.evaluation(model, mesh, test_source) if test_source is not None else None
+                ),
+                after_checkpoint=after_checkpoint,
+                progress=progress,
+                description=run.description,
+                postfix=run.postfix,
+                print_fn=print_fn,
+            )
+
+
+@contextlib.contextmanager
+def _one_line_when_the_disk_is_full(workdir: Path) -> Iterator[None]:
+    """A write into `workdir` that finds its disk full, however orbax or another writer
+    wrapped the error, ends the run with a `DiskFullError` saying what is kept."""
+    try:
+        yield
+    except Exception as error:
+        if isinstance(error, DiskFullError) or no_space_error(error) is None:
+            raise
+        newest = checkpoint_lib.last_checkpointed_step(workdir)
+        kept = (
+            f"the checkpoints saved before are kept (newest: step {newest})"
+            if newest
+            else "no checkpoint was saved yet"
+        )
+        raise DiskFullError(
+            f"disk full: no space left to write in {workdir}; {kept}. Free space, then "
+            "relaunch the same command to resume"
+        ) from None
 
 
 def resume(

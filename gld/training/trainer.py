@@ -244,12 +244,13 @@ def train_and_evaluate(
     """Trains a depth model (resuming from the workdir's newest intact checkpoint) and
     evaluates it periodically (`gld.training.loop.train`).
 
-    Everything is checked before anything is written into the workdir: the options,
-    the model, optimiser and state, the workdir's stored config, the lock, the
-    checkpoints. Then `config.json` and `records` are written atomically: on a new
-    workdir before the first step, on an existing one with the first checkpoint this
-    launch saves, if anything differs (the rule, and config.json's "history" of changed
-    options, are in `gld.runs.workdir`). The changed options are printed at every launch.
+    The options, the model and optimiser and the workdir's stored config are checked
+    before anything is written; the workdir is then locked before the costly start-up
+    (the state, the data, compiling), and the checkpoints are checked before a step.
+    Then `config.json` and `records` are written atomically: on a new workdir before the
+    first step, on an existing one with the first checkpoint this launch saves, if
+    anything differs (the rule, and config.json's "history" of changed options, are in
+    `gld.runs.workdir`). The changed options are printed at every launch.
 
     Args:
       config: the run.
@@ -269,6 +270,8 @@ def train_and_evaluate(
       WorkdirLockedError: another process is training in the workdir (it is named).
       CorruptCheckpointError: the workdir has checkpoints but none is intact.
       NonFiniteLossError: the loss became NaN/inf (the step is named; nothing is saved).
+      gld.files.DiskFullError: the workdir's disk is full (the checkpoints saved before
+        are kept).
     """
     return loop.train(
         DepthRun(config, records),

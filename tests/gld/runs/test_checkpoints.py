@@ -1,6 +1,9 @@
 """Checkpoints of a run: which steps a workdir holds, restored on any number of devices."""
 
+import errno
 import json
+import logging
+import os
 
 import pytest
 from conftest import run_python
@@ -47,3 +50,60 @@ def test_a_checkpoint_restores_on_another_number_of_devices(tmp_path, saved_on, 
     result = run_python(CHECKPOINT_SCRIPT, "restore", str(tmp_path), device_count=restored_on)
     restored = json.loads(result.stdout.strip().splitlines()[-1])
     assert restored == {"w": [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], "next": 1}
+
+
+def _no_space(kind: str) -> Exception:
+    """A full disk as Python's own writes report it, or as tensorstore reports it to orbax."""
+    if kind == "tensorstore":
+        return ValueError(
+            'RESOURCE_EXHAUSTED: Error writing "params.w/0" in OCDBT database: Failed to write '
+            "295463 bytes to file 5: No space left on device [os_error_code='28']"
+        )
+    return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "process_0-of-1.json")
+
+
+@pytest.mark.parametrize("kind", ["oserror", "tensorstore", "checksums"])
+def test_a_save_that_finds_the_disk_full_says_so_in_one_line_and_keeps_the_last_checkpoint(
+    tmp_path, monkeypatch, caplog, kind
+):
+    import grain
+    import jax.numpy as jnp
+
+    from gld.files import DiskFullError
+    from gld.runs.state import TrainState
+
+    def state_at(step: int) -> TrainState:
+        return TrainState(
+            step=jnp.int32(step),
+            params={"w": step * jnp.arange(4.0)},
+            batch_stats={},
+            opt_state=(),
+            rng=jnp.zeros(2, jnp.uint32),
+        )
+
+    iterator = iter(grain.MapDataset.range(10).to_iter_dataset())
+    manager = checkpoint_lib.checkpoint_manager(tmp_path)
+    checkpoint_lib.save_checkpoint(manager, state_at(2), iterator)
+
+    def full_disk(*args, **kwargs):
+        raise _no_space(kind)
+
+    if kind == "checksums":  # orbax has written the step; its checksums.json finds no room
+        monkeypatch.setattr(checkpoint_lib, "write_atomically", full_disk)
+    else:  # grain's iterator handler runs in orbax's background save thread
+        monkeypatch.setattr(grain.checkpoint.CheckpointHandler, "save", full_disk)
+    with pytest.raises(DiskFullError) as stopped:
+        checkpoint_lib.save_checkpoint(manager, state_at(4), iterator)
+    message = str(stopped.value)
+    assert "\n" not in message
+    assert message.startswith(f"disk full: no space left in {tmp_path / 'checkpoints'} ")
+    assert "step 4" in message and "(newest: step 2)" in message
+    # Orbax's own logs of the failure (one traceback per thread) are held back.
+    assert not [record for record in caplog.records if record.levelno >= logging.ERROR]
+    manager.close()
+    # What the failed save wrote is gone; the checkpoint before it restores.
+    assert sorted(path.name for path in (tmp_path / "checkpoints").iterdir()) == ["2"]
+    manager = checkpoint_lib.checkpoint_manager(tmp_path)
+    restored = checkpoint_lib.restore_intact_checkpoint(manager, state_at(0), print_fn=pytest.fail)
+    manager.close()
+    assert restored.step == 2 and restored.state.params["w"].tolist() == [0.0, 2.0, 4.0, 6.0]

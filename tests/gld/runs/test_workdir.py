@@ -189,7 +189,14 @@ def test_a_second_process_is_refused_naming_the_holder_until_the_holder_is_kille
     assert (tmp_path / "train.lock").read_text() == ""
 
 
-def test_training_in_a_locked_workdir_is_refused_before_writing(tiny_scenes, tmp_path):
+def test_training_in_a_locked_workdir_is_refused_before_writing_or_building(
+    tiny_scenes, tmp_path, monkeypatch
+):
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the state was initialised before the lock was taken")
+
+    # Initialising the state (compiling the model's init) is the costly part of a start-up.
+    monkeypatch.setattr(train, "create_train_state", not_reached)
     source = tiny_scenes.as_data_source("train")
     with lock_lib.WorkdirLock(tmp_path):
         with pytest.raises(lock_lib.WorkdirLockedError, match=f"pid {os.getpid()} "):

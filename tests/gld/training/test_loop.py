@@ -1,7 +1,10 @@
 """The skeleton every trainer runs, driven by a toy run: what a trainer adds is called in
-order, nothing is written before everything is checked, and a relaunch resumes."""
+order, nothing is written before everything is checked, a second launch is refused before
+its start-up, a full disk ends the run in one line, and a relaunch resumes."""
 
+import errno
 import json
+import os
 from pathlib import Path
 
 import flax.linen as nn
@@ -10,7 +13,11 @@ import jax.numpy as jnp
 import optax
 import pytest
 
+from gld import input_pipeline
+from gld.files import DiskFullError
 from gld.runs import checkpoints as checkpoint_lib
+from gld.runs import lock as lock_lib
+from gld.runs import metrics_log
 from gld.runs.state import TrainState
 from gld.runs.trainer_options import TrainerOptions
 from gld.training import loop
@@ -41,6 +48,7 @@ class ToyRun(loop.TrainingRun):
         return None if not (workdir / "toy.json").exists() else {}
 
     def fresh_state(self, model, optimizer, workdir, print_fn):
+        self.calls.append("fresh_state")
         params = model.init(jax.random.key(self.config.seed), jnp.zeros((1, 48, 64, 3)))["params"]
         return TrainState(
             step=jnp.zeros((), jnp.int32),
@@ -111,7 +119,8 @@ def test_the_skeleton_runs_a_trainers_parts_in_order_and_resumes(tiny_scenes, tm
     assert run.calls == [
         "make_model",
         "check_workdir",  # before anything is written
-        "check_workdir",  # again, under the lock
+        "check_workdir",  # again, under the lock, before the costly start-up
+        "fresh_state",
         "begin at 0, stored False",
         "after_checkpoint",
         "after_checkpoint",
@@ -139,3 +148,64 @@ def test_a_refused_workdir_is_left_untouched(tiny_scenes, tmp_path):
         loop.train(run, workdir, tiny_scenes.as_data_source("train"), progress=False)
     assert not workdir.exists()
     assert run.calls == ["make_model", "check_workdir"]
+
+
+def test_a_launch_on_a_held_workdir_is_refused_before_its_costly_start_up(
+    tiny_scenes, tmp_path, monkeypatch
+):
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the data was opened before the lock was taken")
+
+    monkeypatch.setattr(input_pipeline, "train_dataset", not_reached)
+    run = ToyRun(_config())
+    with lock_lib.WorkdirLock(tmp_path):
+        with pytest.raises(lock_lib.WorkdirLockedError, match=f"pid {os.getpid()} "):
+            loop.train(run, tmp_path, tiny_scenes.as_data_source("train"), progress=False)
+    assert run.calls == ["make_model", "check_workdir"]  # no state was initialised
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["train.lock"]
+
+
+def _full_disk_from_call(number: int, write):
+    """`write` that reports a full disk from its `number`-th call on."""
+    calls = []
+
+    def write_or_fail(*args, **kwargs):
+        calls.append(args)
+        if len(calls) >= number:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return write(*args, **kwargs)
+
+    return write_or_fail
+
+
+@pytest.mark.parametrize("writing", ["checkpoint", "metrics"])
+def test_a_full_disk_ends_the_run_in_one_line_and_the_relaunch_resumes(
+    tiny_scenes, tmp_path, monkeypatch, writing
+):
+    import grain
+
+    source = tiny_scenes.as_data_source("train")
+    if writing == "checkpoint":
+        # The second save (step 4) fails in grain's handler, inside orbax's save thread.
+        handler = grain.checkpoint.CheckpointHandler
+        monkeypatch.setattr(handler, "save", _full_disk_from_call(2, handler.save))
+        where = f"no space left in {tmp_path / 'checkpoints'} to save the checkpoint of step 4"
+    else:
+        # The second metrics line (step 4) finds the disk full.
+        logger = metrics_log.MetricsLogger
+        monkeypatch.setattr(logger, "write", _full_disk_from_call(2, logger.write))
+        where = f"no space left to write in {tmp_path};"
+    run = ToyRun(_config(eval_every=0))
+    with pytest.raises(DiskFullError) as stopped:
+        loop.train(run, tmp_path, source, progress=False, print_fn=lambda _: None)
+    message = str(stopped.value)
+    assert message.startswith(f"disk full: {where}") and "\n" not in message
+    assert "(newest: step 2)" in message
+    monkeypatch.undo()
+    # The lock was released and the step-2 checkpoint is intact: the relaunch resumes.
+    messages = []
+    state = loop.train(
+        ToyRun(_config()), tmp_path, source, progress=False, print_fn=messages.append
+    )
+    assert f"resumed from step 2 in {tmp_path / 'checkpoints'}" in messages
+    assert int(state.step) == 4
