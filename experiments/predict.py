@@ -31,7 +31,13 @@ Writes to `--output_dir` (see `gld.inference.predict`): depth/<frame1>__<frame2>
 millimetres; `--format=png`, the default for metric depth) or .npy (float32, the
 default without a scale), preview/ (`--previews`), ply/ (`--ply`, needs
 `--intrinsics`: fx,fy,cx,cy in pixels or a file with 4 numbers or a 3x3 K), pairs.csv
-and summary.json. Every flag is checked before the model is loaded or a file is written.
+and summary.json. Every flag is checked before the model is loaded or a file is written,
+and an error is one line naming what is wrong (`common.run`).
+
+A folder holds one run (`gld.inference.prediction_folder`): the run is written whole or
+not at all (a frame that fails part way leaves the folder as it was), and a folder that
+holds an earlier run is refused unless `--overwrite`, which removes that run's files (and
+only those: other files stay) once the new run is complete.
 
 `--measure_scale` instead measures how well metric depth is recovered on the test pairs
 of `--dataset` (default: the workdir's), whose records hold true depth and pose: the
@@ -84,6 +90,11 @@ flags.DEFINE_enum(
     ["resize", "crop"],
     "Frames of another aspect ratio than the model's: stretch them (a warning says by how "
     "much) or use their centred crop (no depth outside it).",
+)
+flags.DEFINE_bool(
+    "overwrite",
+    False,
+    "Replace the earlier run in --output_dir (its files only); without, such a folder is refused.",
 )
 flags.DEFINE_bool("measure_scale", False, "Measure metric scale recovery on a dataset instead.")
 flags.DEFINE_integer("max_examples", 0, "--measure_scale: the first N test pairs (0 = all).")
@@ -170,6 +181,7 @@ def main(argv):
             min_baseline=FLAGS.min_baseline,
             batch_size=FLAGS.batch_size,
             aspect=FLAGS.aspect,
+            overwrite=FLAGS.overwrite,
         )
     except ArgumentError as error:
         raise app.UsageError(str(error)) from None
@@ -184,4 +196,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    common.run(main)

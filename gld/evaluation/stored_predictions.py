@@ -23,12 +23,16 @@ so that a map is resized once, straight to the pixels it is scored on.
     evaluation.evaluate_predictor(predictions.predict, source)
 
 `check` reads every file and raises one error naming every missing, ambiguous,
-misshapen or non-finite file, so nothing is scored or written from a bad folder.
+misshapen or non-finite file, so nothing is scored or written from a bad folder. A file
+named by no example scored (a stray file, one in another format, or the rest of the
+split when only its first examples are scored) is left out with a warning naming it,
+and the protocol note and summary record it.
 """
 
 from __future__ import annotations
 
 import collections
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -147,6 +151,7 @@ class StoredPredictions:
         )
         self._suffixes: set[str] = set()
         self._shapes: dict[str, tuple[int, int]] = {}
+        self._unscored: list[str] = []
 
     def path(self, example_id: str) -> Path | None:
         """The example's file, None when there is none.
@@ -181,10 +186,13 @@ class StoredPredictions:
           FileNotFoundError naming the missing files, ValueError naming the others
           (ambiguous, unreadable, misshapen, non-finite), each listing every problem;
           ValueError when two ids map to one file name.
+
+        Warns:
+          UserWarning naming the files of the folder that no example names (not scored).
         """
         missing, problems, stems = [], [], {}
         self._baselines, self._resolutions, self._suffixes = {}, collections.Counter(), set()
-        self._shapes = {}
+        self._shapes, self._unscored = {}, []
         for example_id, baseline in examples:
             stem = file_stem(example_id)
             if stems.setdefault(stem, example_id) != example_id:
@@ -223,6 +231,20 @@ class StoredPredictions:
                 lines.append(f"... and {len(problems) - _NAMED_FILES} more bad file(s)")
             error_type = FileNotFoundError if missing else ValueError
             raise error_type("\n  ".join(lines))
+        # Not an error: scoring the first examples of a split's folder is allowed, and a
+        # file no example names changes no score; but it may be a misnamed prediction.
+        scored = {f"{stem}{suffix}" for stem in stems for suffix in SUFFIXES}
+        self._unscored = sorted(p.name for p in self.folder.iterdir() if p.name not in scored)
+        if self._unscored:
+            warnings.warn(
+                f"predictions in {self.folder}: {self._unscored_note()} (a file is named by "
+                'its example id with "/" replaced by "__")',
+                UserWarning,
+                stacklevel=2,
+            )
+
+    def _unscored_note(self) -> str:
+        return _listed("file(s) named by no example scored here, left out", self._unscored)
 
     def predict(self, batch: Mapping[str, Any]) -> dict[str, Any]:
         """{'depth': [B, H, W] float32} for the batch's ids, at the evaluation resolution
@@ -260,7 +282,8 @@ class StoredPredictions:
             if shape != (height, width):
                 text += f" resized to {width}x{height} by centre-aligned nearest neighbour"
             resolutions.append(text)
-        return f"stored predictions from {self.folder} ({scale}): " + ", ".join(resolutions)
+        note = f"stored predictions from {self.folder} ({scale}): " + ", ".join(resolutions)
+        return note + (f"; {self._unscored_note()}" if self._unscored else "")
 
     def summary(self) -> dict[str, Any]:
         """The fields metrics.json records about these predictions (after `check`)."""
@@ -272,4 +295,5 @@ class StoredPredictions:
             "predictions_depth_scale": self.depth_scale,
             "png_depth_scale": self.png_depth_scale,
             "prediction_resolutions": dict(by_file),
+            "predictions_unscored_files": list(self._unscored),
         }

@@ -1,7 +1,8 @@
 """A trained workdir's depth for a whole recording, every argument checked before the
 model is loaded or a file is written (`python -m experiments.predict`): the frames (a
 folder or a video), their pairs, the scale's measurements (range readings or a TUM
-trajectory), what the workdir's model needs besides the images, then
+trajectory), what the workdir's model needs besides the images, the output folder (one
+run per folder, `gld.inference.prediction_folder`), then
 `gld.inference.recordings.predict_recording`.
 
 The recording's files are read by the data layer's readers (`data.demon.recordings`),
@@ -10,7 +11,7 @@ which the caller gives (`RecordingFiles`): the library does not import the data 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -18,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gld.arguments import ArgumentError
-from gld.inference import recordings, scale
+from gld.inference import prediction_folder, recordings, scale
 from gld.inference.inputs import check_image
 from gld.inference.predict import DepthPredictor
 from gld.models import registry
@@ -116,6 +117,8 @@ def predict_recording_run(
     min_baseline: float = 0.0,
     batch_size: int = 8,
     aspect: str = "resize",
+    overwrite: bool = False,
+    print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Predicts depth for every pair of a recording with a trained workdir.
 
@@ -125,14 +128,26 @@ def predict_recording_run(
 
     Args:
       files: the readers of the recording's files (`data.demon.recordings`).
+      overwrite: replace an earlier run in `output_dir` (only its files; without, a
+        folder holding one is refused).
+      print_fn: told when an earlier run is to be replaced.
 
     Returns:
       `recordings.predict_recording`'s summary (what summary.json holds).
 
     Raises:
-      ArgumentError: an argument's file is missing or wrong, or the model needs what is
-        not given (the relative pose from `poses`, or the camera from `intrinsics`).
+      ArgumentError: an argument's file is missing or wrong, `output_dir` holds an earlier
+        run (without `overwrite`) or another tool's file where the run writes, or the
+        model needs what is not given (the relative pose from `poses`, or the camera
+        from `intrinsics`); all before anything is written. A frame that cannot be read
+        or predicted part way (naming it): nothing of the run is left in `output_dir`.
     """
+    try:
+        earlier = prediction_folder.check_output_dir(
+            Path(output_dir).expanduser(), overwrite=overwrite
+        )
+    except (FileExistsError, ValueError) as error:
+        raise _argument("output_dir", error) from None
     camera_matrix = None
     if intrinsics:
         try:
@@ -204,19 +219,33 @@ def predict_recording_run(
     except ValueError as error:
         raise _argument("ranges" if ranges else "poses", error) from None
 
-    predictor = DepthPredictor.from_workdir(workdir, step=step, aspect=aspect)
-    with tqdm(total=len(plan.pairs), desc="predict", unit="pair") as bar:
-        summary = recordings.predict_recording(
-            predictor,
-            frames,
-            plan,
-            Path(output_dir).expanduser(),
-            batch_size=batch_size,
-            depth_format=depth_format,
-            previews=previews,
-            camera_matrix=camera_matrix,
-            ply=ply,
-            progress=bar.update,
+    if earlier:
+        print_fn(
+            f"{output_dir}: the earlier prediction's {len(earlier)} file(s) are replaced when "
+            "this one is complete (--overwrite)"
         )
-    frames.close()
+    predictor = DepthPredictor.from_workdir(workdir, step=step, aspect=aspect)
+    try:
+        with tqdm(total=len(plan.pairs), desc="predict", unit="pair") as bar:
+            summary = recordings.predict_recording(
+                predictor,
+                frames,
+                plan,
+                Path(output_dir).expanduser(),
+                batch_size=batch_size,
+                depth_format=depth_format,
+                previews=previews,
+                camera_matrix=camera_matrix,
+                ply=ply,
+                overwrite=overwrite,
+                progress=bar.update,
+            )
+    except ValueError as error:
+        # A frame that cannot be read, or pairs the model refuses: the recording's fault.
+        raise _argument(
+            "images" if images else "video",
+            ValueError(f"{error} (the run stopped there; {output_dir} is as it was)"),
+        ) from None
+    finally:
+        frames.close()
     return summary

@@ -20,6 +20,9 @@ source, depth stays in baseline units. The output folder holds:
     ply/<frame1>__<frame2>.ply     binary PLY point cloud in the depth's units
     pairs.csv                      one row per written pair: frames, scale, source, units
     summary.json                   counts, units, skipped pairs by reason, settings
+
+A folder holds one run, written whole or not at all (`prediction_folder`: an earlier
+run's folder is refused unless `overwrite`, which replaces that run's files).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import cv2
 import numpy as np
 
 from gld import geometry
-from gld.inference import depth_io
+from gld.inference import depth_io, prediction_folder
 from gld.inference.inputs import check_image
 
 DEPTH_FORMATS = ("png", "npy")
@@ -347,6 +350,7 @@ def predict_recording(
     previews: bool = False,
     camera_matrix: np.ndarray | None = None,
     ply: bool = False,
+    overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Predicts depth for every planned pair in batches and writes it (module docstring).
@@ -358,16 +362,21 @@ def predict_recording(
       predictor: a `gld.inference.predict.DepthPredictor`.
       frames: the recording's frames (`ImageFolderFrames`, `VideoFrames`).
       plan: the pairs and their scale measurements (`plan_recording`).
-      out_dir: the output folder (created).
+      out_dir: the output folder (created); the run is moved into it when complete.
       batch_size: pairs per model call.
       depth_format: "png" (16-bit millimetres; needs metric depth) or "npy".
       previews: also write colour previews.
       camera_matrix: [3, 3] K of the frames (pixels), for point clouds.
       ply: write a PLY point cloud per pair (needs camera_matrix).
+      overwrite: replace an earlier run's files in `out_dir` (else it is refused).
       progress: called with the number of pairs done after each batch.
 
     Returns:
       The summary written to summary.json.
+
+    Raises:
+      FileExistsError, ValueError: `out_dir` is refused (`prediction_folder`), before
+        anything is written; ValueError naming the frames that fail, `out_dir` as it was.
     """
     if depth_format not in DEPTH_FORMATS:
         raise ValueError(f"depth format must be one of {DEPTH_FORMATS}, got {depth_format!r}")
@@ -382,13 +391,14 @@ def predict_recording(
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     first = plan.pairs[0][0]
     check_image(frames.read(first), f"frame {frames.names[first]}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     units = "baseline" if plan.scale_source == "none" else "metres"
     unstored_pixels = 0
-    with (out_dir / "pairs.csv").open("w", newline="") as stream:
+    with (
+        prediction_folder.staged_run(out_dir, overwrite=overwrite) as run_dir,
+        (run_dir / prediction_folder.PAIRS_CSV).open("w", newline="") as stream,
+    ):
         writer = csv.writer(stream)
-        writer.writerow(["pair", "frame1", "frame2", "scale", "scale_source", "units", "depth"])
+        writer.writerow(prediction_folder.PAIRS_HEADER)
         for start in range(0, len(plan.pairs), batch_size):
             indices = list(range(start, min(start + batch_size, len(plan.pairs))))
             padded = indices + [indices[-1]] * (batch_size - len(indices))
@@ -426,17 +436,17 @@ def predict_recording(
             for position, k in enumerate(indices):
                 name = pair_name(frames.names, plan.pairs[k])
                 depth = outputs["depth"][position]
-                depth_path = out_dir / "depth" / f"{name}.{depth_format}"
+                depth_path = run_dir / "depth" / f"{name}.{depth_format}"
                 if depth_format == "png":
                     unstored_pixels += depth_io.write_depth_png(depth_path, depth)
                 else:
                     depth_io.write_depth_npy(depth_path, depth)
                 colour_image = _display_image(images1[position])
                 if previews:
-                    depth_io.write_preview(out_dir / "preview" / f"{name}.png", colour_image, depth)
+                    depth_io.write_preview(run_dir / "preview" / f"{name}.png", colour_image, depth)
                 if ply:
                     points, colours = depth_io.point_cloud(depth, camera_matrix, colour_image)
-                    depth_io.write_ply(out_dir / "ply" / f"{name}.ply", points, colours)
+                    depth_io.write_ply(run_dir / "ply" / f"{name}.ply", points, colours)
                 first, second = plan.pairs[k]
                 writer.writerow(
                     [
@@ -446,27 +456,27 @@ def predict_recording(
                         f"{float(outputs['scale'][position]):.6g}",
                         plan.scale_source,
                         units,
-                        depth_path.relative_to(out_dir).as_posix(),
+                        depth_path.relative_to(run_dir).as_posix(),
                     ]
                 )
             stream.flush()
             if progress is not None:
                 progress(len(indices))
-    summary = {
-        "pairs_written": len(plan.pairs),
-        "pairs_skipped": plan.skipped,
-        "scale_source": plan.scale_source,
-        "units": units,
-        "depth_format": depth_format,
-        "png_depth_scale": depth_io.PNG_DEPTH_SCALE if depth_format == "png" else None,
-        "png_unstored_pixels": unstored_pixels if depth_format == "png" else None,
-        "previews": previews,
-        "ply": ply,
-        "camera_matrix": None if camera_matrix is None else np.asarray(camera_matrix).tolist(),
-        "model_resolution": [predictor.height, predictor.width],
-        "aspect": predictor.aspect,
-    }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        summary = {
+            "pairs_written": len(plan.pairs),
+            "pairs_skipped": plan.skipped,
+            "scale_source": plan.scale_source,
+            "units": units,
+            "depth_format": depth_format,
+            "png_depth_scale": depth_io.PNG_DEPTH_SCALE if depth_format == "png" else None,
+            "png_unstored_pixels": unstored_pixels if depth_format == "png" else None,
+            "previews": previews,
+            "ply": ply,
+            "camera_matrix": None if camera_matrix is None else np.asarray(camera_matrix).tolist(),
+            "model_resolution": [predictor.height, predictor.width],
+            "aspect": predictor.aspect,
+        }
+        (run_dir / prediction_folder.SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 

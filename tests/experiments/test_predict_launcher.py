@@ -1,6 +1,8 @@
 """`python -m experiments.predict` end to end in a subprocess: a folder of frames with
 range readings and intrinsics -> metric depth PNGs, previews, point clouds; bad flags
-are refused by name before anything is written; --measure_scale on the tiny benchmark."""
+are refused by name before anything is written; an output folder holds one run (an
+earlier one refused in one line, or replaced with --overwrite; a run failing part way
+leaves nothing); --measure_scale on the tiny benchmark."""
 
 import csv
 import json
@@ -11,8 +13,9 @@ import numpy as np
 import pytest
 from conftest import launch
 
+from data.demon import recordings
 from gld.evaluation import stored_predictions
-from gld.inference import depth_io
+from gld.inference import depth_io, recording_run
 
 HEIGHT, WIDTH = 72, 96  # the tiny model's 4:3 at 1.5x its 64x48
 FX, FY, CX, CY = 80.0, 82.0, 47.0, 35.5
@@ -131,3 +134,84 @@ def test_measure_scale_on_the_tiny_benchmark(trained_workdir, tiny_scenes_dir, t
     for name in ("true_baseline", "one_reading", "train_mean_baseline"):
         assert np.all(best <= np.asarray(stored["per_example"][name]) + 1e-6)
     assert "training-set mean baseline" in result.stdout
+
+
+def _files(folder):
+    """Every file under `folder` (hidden ones too) -> its bytes."""
+    return {path: path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+def _error_line(stderr):
+    """The launcher's error, its last line: no traceback and no dump of the flags' help
+    (a progress bar may come before it)."""
+    assert "Traceback" not in stderr and "flags:" not in stderr, stderr[-3000:]
+    return stderr.strip().splitlines()[-1]
+
+
+def test_an_output_folder_holds_one_run(trained_workdir, tmp_path):
+    frames, ranges = _recording(tmp_path)
+    out = tmp_path / "out"
+    # The earlier run, metric depth in 16-bit PNGs with previews, made here by the
+    # library's run of the launcher (a process fewer).
+    recording_run.predict_recording_run(
+        trained_workdir,
+        out,
+        files=recordings,
+        images=str(frames),
+        ranges=str(ranges),
+        depth_format="png",
+        previews=True,
+        batch_size=2,
+    )
+    assert sorted(path.name for path in (out / "preview").iterdir()) == [
+        "frame_0__frame_1.png",
+        "frame_2__frame_3.png",
+    ]
+    options = [f"--workdir={trained_workdir}", f"--images={frames}", f"--output_dir={out}"]
+    # Files of the user's own beside the run's, in the folder and among the depth files.
+    (out / "notes.txt").write_text("mine\n")
+    (out / "depth" / "README").write_text("mine\n")
+    before = _files(out)
+
+    # Another run (baseline units, .npy) is refused before anything is written.
+    refused = _launch(*options, "--batch_size=2")
+    assert refused.returncode != 0
+    assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr[-3000:]
+    message = _error_line(refused.stderr)
+    assert re.fullmatch(r"--output_dir: .*out holds an earlier prediction .*--overwrite.*", message)
+    assert _files(out) == before
+
+    # With --overwrite it replaces the earlier run's files, and only those.
+    replaced = _launch(*options, "--batch_size=2", "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr[-3000:]
+    names = ["frame_0__frame_1", "frame_1__frame_2", "frame_2__frame_3"]
+    assert sorted(path.name for path in out.iterdir()) == [
+        "depth",
+        "notes.txt",
+        "pairs.csv",
+        "summary.json",
+    ]
+    assert sorted(path.name for path in (out / "depth").iterdir()) == [
+        "README",
+        *[f"{name}.npy" for name in names],
+    ]
+    assert (out / "notes.txt").read_text() == (out / "depth" / "README").read_text() == "mine\n"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["units"] == "baseline" and summary["depth_format"] == "npy"
+    assert summary["pairs_written"] == 3 and summary["previews"] is False
+    rows = list(csv.DictReader((out / "pairs.csv").open()))
+    assert [row["pair"] for row in rows] == names
+    assert {row["units"] for row in rows} == {"baseline"}
+
+
+def test_a_run_that_fails_part_way_leaves_the_folder_as_it_was(trained_workdir, tmp_path):
+    frames, _ = _recording(tmp_path)
+    # A fifth frame that is no image: the pair (3, 4) fails after the first batch is written.
+    (frames / "frame_4.png").write_bytes(b"not an image")
+    out = tmp_path / "out"
+    options = [f"--workdir={trained_workdir}", f"--images={frames}", "--batch_size=2"]
+    failed = _launch(*options, f"--output_dir={out}")
+    assert failed.returncode != 0
+    message = _error_line(failed.stderr)
+    assert re.fullmatch(r"--images: .*cannot read image .*frame_4\.png.*", message), message
+    assert not out.exists()

@@ -1,6 +1,8 @@
 """Depth maps other systems stored (gld/evaluation/stored_predictions.py): names, formats,
 checks."""
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -85,7 +87,8 @@ def test_check_names_every_missing_and_bad_file(tmp_path):
     with pytest.raises(ValueError, match="run__2.npy: 1 NaN") as raised:
         predictions.check([ids[0], ids[2]], height=48, width=64)
     assert not isinstance(raised.value, FileNotFoundError)
-    predictions.check([ids[0]], height=48, width=64)
+    with pytest.warns(UserWarning, match=r"7 file\(s\) named by no example scored here"):
+        predictions.check([ids[0]], height=48, width=64)
 
 
 def test_a_missing_folder_and_unchecked_ids_are_refused(tmp_path):
@@ -144,3 +147,31 @@ def test_with_truth_shapes_each_map_goes_straight_to_its_examples_resolution(tmp
         ValueError, match=r"expected the aspect ratio of the evaluation resolution \[12, 12\]"
     ):
         predictions.check([("a/0", 1.0)], height=6, width=8, shapes={"a/0": (12, 12)})
+
+
+def test_a_file_of_no_scored_example_is_named_in_a_warning_and_in_the_record(tmp_path):
+    depth = np.full((6, 8), 2.0, np.float32)
+    folder = tmp_path / "predictions"
+    # a__9.npy is no example's; a__1.jpg is in a format that is not read.
+    _write_folder(folder, {"a__0.npy": depth, "a__1.npy": depth, "a__9.npy": depth})
+    (folder / "a__1.jpg").write_bytes(b"jpeg")
+    predictions = StoredPredictions(folder)
+    with pytest.warns(UserWarning) as caught:
+        predictions.check([("a/0", 1.0), ("a/1", 1.0)], height=6, width=8)
+    unscored = "2 file(s) named by no example scored here, left out: a__1.jpg, a__9.npy"
+    assert [str(warning.message) for warning in caught] == [
+        f'predictions in {folder}: {unscored} (a file is named by its example id with "/" '
+        'replaced by "__")'
+    ]
+    assert predictions.protocol_note() == (
+        f"stored predictions from {folder} (normalised depth (||t|| = 1)): 2 at 8x6; {unscored}"
+    )
+    assert predictions.summary()["predictions_unscored_files"] == ["a__1.jpg", "a__9.npy"]
+
+    # Every file an example's: no warning, nothing recorded.
+    (folder / "a__1.jpg").unlink()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        predictions.check([("a/0", 1.0), ("a/1", 1.0), ("a/9", 1.0)], height=6, width=8)
+    assert predictions.protocol_note().endswith(": 3 at 8x6")
+    assert predictions.summary()["predictions_unscored_files"] == []
