@@ -22,7 +22,7 @@ from __future__ import annotations
 from absl import app, flags
 
 import data
-from data.demon import pairs, reader
+from data.demon import images, pairs
 
 FLAGS = flags.FLAGS
 
@@ -62,7 +62,7 @@ flags.DEFINE_enum(
 flags.DEFINE_enum(
     "image_decoder",
     None,
-    list(reader.IMAGE_DECODERS),
+    list(images.IMAGE_DECODERS),
     "demon: WebP decoding, 'demon' (the default: libwebp as DeMoN's C++ reader; lossy "
     "images need the webp package, without which the build is refused) or 'opencv' "
     "(OpenCV's decoding, which approximates DeMoN's images).",
@@ -78,7 +78,7 @@ def main(argv):
         builder = data.prepare(
             FLAGS.dataset, FLAGS.data_dir, FLAGS.manual_dir, rebuild=FLAGS.rebuild, **options
         )
-    except reader.MissingDecoderError as error:
+    except images.MissingDecoderError as error:
         raise SystemExit(str(error)) from None  # one line, no traceback: what to install
     for split, info in builder.info.splits.items():
         print(f"{FLAGS.dataset} {split}: {info.num_examples} pairs")

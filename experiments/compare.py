@@ -15,6 +15,14 @@ flow, and writes <workdir>/compare/:
 The references, the dataset mean, the per-pair oracle constant (which sees the truth)
 and sfm_flow (the classical pipeline on the same flow: essential matrix + triangulation,
 no training), are in every comparison, listed in `--classical` or not.
+
+Every method is scored as `python -m experiments.evaluate` scores it: a demon/* dataset by
+DeMoN's protocol by default (--truth_resolution=file), against the depth of the files its
+split was built from (in --manual_dir, else where the build found them), each prediction
+resized to it by nearest neighbour. Without those files the comparison is refused before
+anything is trained: give --manual_dir, or --truth_resolution=record to score at the
+records' resolution, which is not DeMoN's protocol. The stamp names the resolution and the
+records' protocol.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ from absl import app, flags
 
 from experiments import common
 from gld import files
+from gld.evaluation import metrics
 
 FLAGS = flags.FLAGS
 
@@ -39,6 +48,14 @@ flags.DEFINE_list(
 common.define_training_flags(exclude=("model",), steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
 flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
+flags.DEFINE_enum(
+    "truth_resolution",
+    None,
+    list(metrics.TRUTH_RESOLUTIONS),
+    "Where the ground truth is scored, as experiments.evaluate's flag: file (the DeMoN "
+    "files' resolution, DeMoN's protocol; demon/* datasets only) or record. Default: file "
+    "for demon/* datasets, record for the others.",
+)
 common.define_data_flags()
 common.define_flow_net_flags()
 
@@ -46,7 +63,10 @@ common.define_flow_net_flags()
 def main(argv):
     del argv
     common.initialise()
+    from data.demon import file_truth
     from gld.analysis import comparison
+    from gld.arguments import ArgumentError
+    from gld.evaluation import evaluation_run
     from gld.models import registry
     from gld.models.baselines import CLASSICAL
 
@@ -62,21 +82,40 @@ def main(argv):
         common.train_config(model=name, model_config=model_configs[name])
     builder = common.prepare_dataset()
     height, width = common.dataset_resolution(builder)
-    comparison.run_comparison(
-        workdir=FLAGS.workdir,
-        dataset=builder.info.full_name,
-        train_source=common.data_source(builder, "train"),
-        eval_source=common.data_source(builder, FLAGS.split),
-        height=height,
-        width=width,
-        models=FLAGS.models,
-        classical_methods=FLAGS.classical,
-        train_config=common.training_options(),
-        split=FLAGS.split,
-        eval_batch_size=FLAGS.eval_batch_size,
-        max_examples=FLAGS.max_examples,
-        model_configs=model_configs,
-    )
+    eval_source = common.data_source(builder, FLAGS.split)
+    try:  # the truth is opened and checked before anything is trained
+        truth, _ = evaluation_run.open_truth(
+            builder,
+            FLAGS.split,
+            eval_source,
+            open_file_truth=file_truth.for_split,
+            truth_resolution=FLAGS.truth_resolution,
+            manual_dir=FLAGS.manual_dir,
+            max_examples=FLAGS.max_examples,
+        )
+    except ArgumentError as error:
+        raise app.UsageError(str(error)) from None
+    try:
+        comparison.run_comparison(
+            workdir=FLAGS.workdir,
+            dataset=builder.info.full_name,
+            train_source=common.data_source(builder, "train"),
+            eval_source=eval_source,
+            height=height,
+            width=width,
+            models=FLAGS.models,
+            classical_methods=FLAGS.classical,
+            train_config=common.training_options(),
+            split=FLAGS.split,
+            eval_batch_size=FLAGS.eval_batch_size,
+            max_examples=FLAGS.max_examples,
+            model_configs=model_configs,
+            truth=truth,
+            records_protocol=evaluation_run.records_protocol(builder, FLAGS.split),
+        )
+    finally:
+        if truth is not None:
+            truth.close()
     # Next to the table it produced: the flags that made it (a valid --flagfile).
     files.write_atomically(Path(FLAGS.workdir) / "compare" / "flags.txt", common.flags_file_text())
 

@@ -6,9 +6,19 @@ it with its references (the dataset mean, the per-pair oracle constant and sfm_f
 classical pipeline on the same flow) on the test split, prints the table and leaves
 everything in runs/demo.
 Re-running the same command resumes from the last checkpoint.
+
+The final evaluation scores as `python -m experiments.evaluate --workdir=...` does by
+default: a demon/* dataset by DeMoN's protocol, against the depth of the files its test
+split was built from (--manual_dir, else where the build found them), into
+<workdir>/eval_truth-file. When those files are not at hand at the end of the run, it is
+scored at the records' resolution into <workdir>/eval rather than lost: one line and the
+table's stamp say that it is not DeMoN's protocol and give the evaluate command that
+scores it by DeMoN's protocol once the files are back.
 """
 
 from __future__ import annotations
+
+import shlex
 
 from absl import flags
 
@@ -64,18 +74,29 @@ def main(argv):
         records={"flags.txt": common.flags_file_text()},
     )
     if FLAGS.final_eval:
-        from gld.evaluation import trained_run
+        from data.demon import file_truth
+        from gld.evaluation import evaluation_run
 
-        trained_run.evaluate_workdir(
+        evaluation_run.evaluate_split(
             FLAGS.workdir,
-            test_source,
-            train_source=train_source,
-            dataset=builder.info.full_name,
-            height=height,
-            width=width,
+            prepare_dataset=lambda _: builder,
+            open_file_truth=file_truth.for_split,
+            dataset=FLAGS.dataset,
+            manual_dir=FLAGS.manual_dir,
             num_figures=FLAGS.num_figures,
             batch_size=run_config.eval_batch_size,
+            rescore_command=_rescore_command(),
         )
+
+
+def _rescore_command() -> str:
+    """The command that scores the trained run by DeMoN's protocol once its DeMoN files
+    are back (the final evaluation's fallback names it)."""
+    words = ["python", "-m", "experiments.evaluate", f"--workdir={FLAGS.workdir}"]
+    if FLAGS.data_dir:
+        words.append(f"--data_dir={FLAGS.data_dir}")
+    command = shlex.join(words)
+    return f"{command} --manual_dir=<the folder of the DeMoN files>"
 
 
 if __name__ == "__main__":

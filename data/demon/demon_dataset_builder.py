@@ -41,7 +41,7 @@ import tensorflow_datasets as tfds
 
 import data
 from data import sources
-from data.demon import checksums, pairs, reader
+from data.demon import checksums, images, pairs, reader
 from gld import flow as flow_lib
 from gld import records
 from gld.runs import trained_flow
@@ -170,7 +170,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
     ):
         """Args: see the module docstring; `min_relative_baseline` None: per split
         (`pairs.MIN_RELATIVE_BASELINE`); `depth_resampling` None: the config's;
-        `image_decoder` None: DeMoN's (`reader.resolve_image_decoder`); `file_format` None:
+        `image_decoder` None: DeMoN's (`images.resolve_image_decoder`); `file_format` None:
         `data.FILE_FORMAT`. Other arguments go to TFDS."""
         if not 0.0 <= max_bad_fraction <= 1.0:
             raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
@@ -188,7 +188,7 @@ class Builder(tfds.core.GeneratorBasedBuilder):
         self._flow_estimator = flow_estimator
         self._min_relative_baseline = min_relative_baseline
         self._depth_resampling = depth_resampling
-        self._image_decoder = reader.resolve_image_decoder(image_decoder)
+        self._image_decoder = images.resolve_image_decoder(image_decoder)
         super().__init__(file_format=file_format or data.FILE_FORMAT, **kwargs)
 
     def build_options(self, split: str) -> dict[str, Any]:

@@ -8,7 +8,7 @@ multi-hour build never dies on one bad group.
 
 Which pairs are kept, and in which order, follows DeMoN's reader op: a pair is
 skipped for its baseline only when ||t|| < 1e-6 (`MIN_BASELINE`), counted apart from
-damage (`reader.FILTER_REASONS`); files come in the order given, each file's scene
+damage (`damage.FILTER_REASONS`); files come in the order given, each file's scene
 groups reverse-sorted (`reader.demon_order`), a group's pairs as listed. gld's
 relative threshold (baseline <= 1e-4 x median depth, no usable parallax) is a build
 option applied by default to the training split only (`MIN_RELATIVE_BASELINE`), so the
@@ -28,7 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from data.demon import reader
+from data.demon import damage, images, reader
 from gld import flow as flow_lib
 from gld import geometry
 from gld.runs import trained_flow
@@ -153,14 +153,14 @@ def relative_baseline(view1: reader.View, view2: reader.View, example_id: str) -
     """The pair's baseline ||t|| over view 1's median valid depth (NaN without valid depth).
 
     Raises:
-      reader.DamagedDataError (`zero_translation`) when ||t|| < MIN_BASELINE, as DeMoN skips.
+      damage.DamagedDataError (`zero_translation`) when ||t|| < MIN_BASELINE, as DeMoN skips.
     """
     _, translation = geometry.relative_pose(
         view1.rotation, view1.translation, view2.rotation, view2.translation
     )
     baseline = float(np.linalg.norm(translation))
     if not baseline >= MIN_BASELINE:
-        raise reader.DamagedDataError(
+        raise damage.DamagedDataError(
             "zero_translation", example_id, f"baseline {baseline:.3g} < {MIN_BASELINE}"
         )
     valid_depth = view1.depth[view1.depth > 0]
@@ -212,7 +212,7 @@ def make_example(
 class BuildReport:
     """Pairs written and skipped (by reason) per file of one split.
 
-    Skipped pairs are damage, or filtered (`reader.FILTER_REASONS`: no baseline, as
+    Skipped pairs are damage, or filtered (`damage.FILTER_REASONS`: no baseline, as
     DeMoN skips them, or below `min_relative_baseline`), which are counted apart.
     `small_baseline` counts, per file, the written pairs whose baseline is at most
     SMALL_RELATIVE_BASELINE x view 1's median depth (kept, as DeMoN keeps them);
@@ -238,18 +238,18 @@ class BuildReport:
 
     @property
     def num_damaged(self) -> int:
-        """Skipped pairs other than the filtered ones (`reader.FILTER_REASONS`)."""
+        """Skipped pairs other than the filtered ones (`damage.FILTER_REASONS`)."""
         return self.num_skipped - sum(self.filtered().values())
 
     def filtered(self) -> dict[str, int]:
         """Reason -> pairs skipped for it over all files, for each of
-        `reader.FILTER_REASONS` (0 included)."""
+        `damage.FILTER_REASONS` (0 included)."""
         return {
             reason: sum(counts.get(reason, 0) for counts in self.skipped.values())
-            for reason in reader.FILTER_REASONS
+            for reason in damage.FILTER_REASONS
         }
 
-    def skip(self, file_name: str, error: reader.DamagedDataError) -> None:
+    def skip(self, file_name: str, error: damage.DamagedDataError) -> None:
         self.skipped.setdefault(file_name, collections.Counter())[error.reason] += 1
         if len(self.first_errors) < 20:
             self.first_errors.append(str(error))
@@ -316,7 +316,7 @@ def _planned_pairs(demon_file: reader.DemonFile, split: str) -> list[tuple[str, 
     for group in reader.demon_order(demon_file.groups()):
         try:
             planned.extend((group, pair) for pair in demon_file.pairs(group, split))
-        except reader.DamagedDataError as error:
+        except damage.DamagedDataError as error:
             planned.append((group, error))
     return planned
 
@@ -343,26 +343,26 @@ def generate(
       split: "train" (all listed pairs per group) or "test" (the first pair per group).
       strict: raise at the first damaged pair instead of skipping it.
       max_bad_fraction: raise once more than this share of the planned pairs is damaged
-        (filtered pairs, `reader.FILTER_REASONS`, are not damaged).
+        (filtered pairs, `damage.FILTER_REASONS`, are not damaged).
       flow_estimator: see `make_example`.
       min_relative_baseline: skip a pair (`small_baseline`) whose baseline is at most
         this x view 1's median depth; None: the split's `MIN_RELATIVE_BASELINE`.
       depth_resampling: a `DEPTH_RESAMPLING` name (see `resize_view`).
-      image_decoder: a `reader.IMAGE_DECODERS` name, None for DeMoN's
-        (`reader.resolve_image_decoder`).
+      image_decoder: a `images.IMAGE_DECODERS` name, None for DeMoN's
+        (`images.resolve_image_decoder`).
       report: filled with written / skipped counts (a new one if None).
       height, width: output resolution.
 
     Raises:
-      reader.DamagedDataError: in strict mode, the first damaged pair.
-      reader.MissingDecoderError: DeMoN's decoding of a lossy image without `webp`.
+      damage.DamagedDataError: in strict mode, the first damaged pair.
+      images.MissingDecoderError: DeMoN's decoding of a lossy image without `webp`.
       ValueError: when the bad share exceeds `max_bad_fraction`.
     """
     if not 0.0 <= max_bad_fraction <= 1.0:
         raise ValueError(f"max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
     if min_relative_baseline is None:
         min_relative_baseline = MIN_RELATIVE_BASELINE[split]
-    image_decoder = reader.resolve_image_decoder(image_decoder)
+    image_decoder = images.resolve_image_decoder(image_decoder)
     report = report if report is not None else BuildReport(split)
     files = [reader.DemonFile(path, image_decoder) for path in paths]
     try:
@@ -370,8 +370,8 @@ def generate(
         plans = [(demon_file, _planned_pairs(demon_file, split)) for demon_file in files]
         report.planned = sum(len(plan) for _, plan in plans)
 
-        def skip(demon_file: reader.DemonFile, error: reader.DamagedDataError) -> None:
-            if strict and error.reason not in reader.FILTER_REASONS:
+        def skip(demon_file: reader.DemonFile, error: damage.DamagedDataError) -> None:
+            if strict and error.reason not in damage.FILTER_REASONS:
                 raise error
             report.skip(demon_file.name, error)
             if report.num_damaged > max_bad_fraction * report.planned:
@@ -384,7 +384,7 @@ def generate(
             report.written[demon_file.name] += 0  # list files without usable pairs too
             resized: dict[tuple[str, int], reader.View] = {}
             for group, pair in plan:
-                if isinstance(pair, reader.DamagedDataError):
+                if isinstance(pair, damage.DamagedDataError):
                     skip(demon_file, pair)
                     continue
                 example_id = reader.example_id(demon_file.name, group, pair)
@@ -401,16 +401,16 @@ def generate(
                         views.append(resized[group, index])
                     relative = relative_baseline(*views, example_id)
                     if relative <= min_relative_baseline:
-                        raise reader.DamagedDataError(
+                        raise damage.DamagedDataError(
                             "small_baseline",
                             example_id,
                             f"baseline {relative:.3g} x median depth <= min_relative_baseline="
                             f"{min_relative_baseline:g}",
                         )
                     example = make_example(*views, example_id, flow_estimator=flow_estimator)
-                except reader.DamagedDataError as error:
+                except damage.DamagedDataError as error:
                     if error.where != example_id:
-                        error = reader.DamagedDataError(
+                        error = damage.DamagedDataError(
                             error.reason, example_id, f"{error.where}: {error.detail}"
                         )
                     skip(demon_file, error)

@@ -15,17 +15,12 @@ Conventions of the stored camera, as DeMoN's own reader interprets it:
   Skew is dropped (gld's cameras have none; DeMoN's files store 0).
 * `ray_length` depth is converted to camera z: `z = r / ||K^-1 [x + 0.5, y + 0.5, 1]||`.
 
-Images are decoded by one of `IMAGE_DECODERS`: `demon` (the default: libwebp with
-`bypass_filtering` and `no_fancy_upsampling`, as DeMoN's C++ reader op that its
-networks were trained and evaluated with; the `webp` package) or `opencv` (libwebp's
-default decoding, as DeMoN's Python `view_io` reader; an approximation of DeMoN's
-images, asked for by name). The two differ on lossy WebP only (DeMoN's files: by a
-few grey levels on most pixels); lossless WebP decodes to the same pixels either way,
-so `demon` reads lossless images without the `webp` package and refuses a lossy one
-(`MissingDecoderError`) rather than approximate it.
+Images are decoded by `data.demon.images` (DeMoN's C++ reader's WebP decoding by
+default); `check_image_decoder` refuses, before a build, files whose lossy images that
+decoding cannot read here.
 
-Damage in a view raises `DamagedDataError` carrying a `reason` from `REASONS`, so a
-builder can skip the affected pair, count it and go on.
+Damage in a view raises `damage.DamagedDataError` carrying a reason from
+`damage.REASONS`, so a builder can skip the affected pair, count it and go on.
 """
 
 from __future__ import annotations
@@ -35,55 +30,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import cv2
 import h5py
 import lz4.block
 import numpy as np
 
+from data.demon import images
+from data.demon.damage import DamagedDataError
 from gld import geometry
 
-# Why a pair (or a whole scene group) could not be used.
-REASONS = (
-    "corrupt_image",  # missing image dataset, wrong format, undecodable WebP
-    "corrupt_depth",  # missing depth dataset, wrong format or metric, undecodable LZ4
-    "wrong_extents",  # extents missing or not matching the decompressed depth
-    "invalid_depth",  # a depth map without a single finite, positive value
-    "missing_camera",  # no camera dataset
-    "bad_camera",  # camera values not finite, not 17, no proper rotation, focal <= 0
-    "zero_translation",  # ||t|| < 1e-6: skipped as DeMoN skips it (no scale to normalise by)
-    "small_baseline",  # baseline <= min_relative_baseline x median depth (a build option)
-    "too_few_views",  # a scene group with fewer than two viewpoints
-    "bad_viewpoint_pairs",  # viewpoint_pairs malformed or naming a missing view
-    "unreadable_group",  # HDF5 error while reading the group
-)
-
-# Reasons that skip a pair by the protocol (DeMoN's ||t|| floor) or a build option
-# (`min_relative_baseline`) rather than report damage: they are counted apart, neither
-# count towards `max_bad_fraction` nor stop a strict build.
-FILTER_REASONS = ("zero_translation", "small_baseline")
-
 SPLITS = ("train", "test")
-
-# "demon": as DeMoN's C++ reader op; "opencv": libwebp's default decoding (module docstring).
-IMAGE_DECODERS = ("demon", "opencv")
-DEFAULT_IMAGE_DECODER = "demon"
-
-
-class MissingDecoderError(ImportError):
-    """DeMoN's WebP decoding is asked for (the default) and a lossy image needs the
-    `webp` package, which is not installed."""
-
-
-class DamagedDataError(ValueError):
-    """A view, pair or scene group that cannot be used; `reason` is one of `REASONS`."""
-
-    def __init__(self, reason: str, where: str, detail: str):
-        if reason not in REASONS:
-            raise ValueError(f"unknown damage reason {reason!r}; valid: {REASONS}")
-        super().__init__(f"{where}: {reason}: {detail}")
-        self.reason = reason
-        self.where = where
-        self.detail = detail
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,56 +71,6 @@ def _text(value: Any) -> str:
     return str(value)
 
 
-def webp_decoder_available() -> bool:
-    """Whether the `webp` package (libwebp bindings), which the `demon` image decoder
-    needs for lossy images, is installed and has the decoder-options layout it relies on."""
-    try:
-        import webp
-    except ImportError:
-        return False
-    # `webp` declares only `use_threads` of libwebp's WebPDecoderOptions, but allocates
-    # the whole struct; its layout (decode.h) puts bypass_filtering and
-    # no_fancy_upsampling at ints 0 and 1 and use_threads at int 10.
-    return webp.ffi.offsetof("WebPDecoderOptions", "use_threads") == 10 * webp.ffi.sizeof("int")
-
-
-def resolve_image_decoder(decoder: str | None) -> str:
-    """An `IMAGE_DECODERS` name; None is `DEFAULT_IMAGE_DECODER` ("demon"). The default
-    does not depend on what is installed, so the same build options give the same
-    records everywhere: without the `webp` package a lossy image is refused, not decoded
-    otherwise (`check_image_decoder`)."""
-    if decoder is None:
-        return DEFAULT_IMAGE_DECODER
-    if decoder not in IMAGE_DECODERS:
-        raise ValueError(f"unknown image decoder {decoder!r}; valid: {IMAGE_DECODERS}")
-    return decoder
-
-
-def missing_decoder_message(where: str) -> str:
-    """The one line that refuses to approximate DeMoN's decoding of `where`'s images."""
-    return (
-        f"DeMoN's WebP decoding (image_decoder=demon, the default) needs the `webp` package "
-        f"for the lossy images of {where}: pip install webp (or pip install -e '.[demon]'), "
-        f"or build with --image_decoder=opencv (python -m data.build; image_decoder='opencv' "
-        f"in data.prepare) to accept OpenCV's decoding, a few grey levels off DeMoN's"
-    )
-
-
-def webp_compression(data: bytes) -> str | None:
-    """How WebP bytes are compressed: "lossless" (VP8L only), "lossy" (a VP8 bitstream) or
-    None (no WebP container), from the RIFF chunk names alone: nothing is decoded."""
-    if len(data) < 16 or data[:4] != b"RIFF" or data[8:12] != b"WEBP":
-        return None
-    chunks, offset = set(), 12
-    while offset + 8 <= len(data):
-        chunks.add(bytes(data[offset : offset + 4]))
-        size = int.from_bytes(data[offset + 4 : offset + 8], "little")
-        offset += 8 + size + (size & 1)  # chunks are padded to an even size
-    if b"VP8 " in chunks:
-        return "lossy"
-    return "lossless" if b"VP8L" in chunks else None
-
-
 def lossy_image_files(paths: Sequence[str | Path]) -> list[Path]:
     """The files among `paths` whose first scene group's view 0 holds a lossy WebP image
     (DeMoN's files do; the converter writes lossless ones by default). One image per
@@ -180,7 +85,7 @@ def lossy_image_files(paths: Sequence[str | Path]) -> list[Path]:
                 except (OSError, KeyError, RuntimeError):
                     continue  # a damaged group; the build skips and counts it
                 if data is not None:
-                    if webp_compression(data) == "lossy":
+                    if images.webp_compression(data) == "lossy":
                         lossy.append(Path(path))
                     break
     return lossy
@@ -191,79 +96,13 @@ def check_image_decoder(decoder: str, paths: Sequence[str | Path]) -> None:
     `demon` decoder when the `webp` package is missing.
 
     Raises:
-      MissingDecoderError: one line naming the package and `--image_decoder=opencv`.
+      images.MissingDecoderError: one line naming the package and `--image_decoder=opencv`.
     """
-    if decoder != "demon" or webp_decoder_available():
+    if decoder != "demon" or images.webp_decoder_available():
         return
-    lossy = lossy_image_files(paths)
+    lossy = ", ".join(path.name for path in lossy_image_files(paths))
     if lossy:
-        raise MissingDecoderError(missing_decoder_message(", ".join(p.name for p in lossy)))
-
-
-def decode_webp_libwebp(
-    data: bytes, *, bypass_filtering: bool = True, no_fancy_upsampling: bool = True
-) -> np.ndarray | None:
-    """WebP bytes -> [H, W, 3] uint8 RGB by libwebp's advanced API (the `webp` package).
-
-    With both options on (the default) this is DeMoN's C++ reader op's decoding; with
-    both off it is libwebp's default, which OpenCV uses. Returns None if undecodable.
-    """
-    import webp
-
-    ffi, lib = webp.ffi, webp.lib
-    buffer = ffi.from_buffer(data)
-    config = ffi.new("WebPDecoderConfig*")
-    if not lib.WebPInitDecoderConfig(config):
-        raise RuntimeError("libwebp: WebPInitDecoderConfig failed (version mismatch)")
-    if lib.WebPGetFeatures(buffer, len(data), ffi.addressof(config, "input")) != 0:
-        return None
-    options = ffi.cast("int *", ffi.addressof(config, "options"))
-    options[0], options[1] = int(bypass_filtering), int(no_fancy_upsampling)
-    height, width = config.input.height, config.input.width
-    image = np.empty((height, width, 3), np.uint8)
-    config.output.colorspace = webp.WebPColorMode.RGB.value
-    config.output.u.RGBA.rgba = ffi.cast("uint8_t *", ffi.from_buffer(image))
-    config.output.u.RGBA.stride = 3 * width
-    config.output.u.RGBA.size = image.size
-    config.output.is_external_memory = 1
-    status = lib.WebPDecode(buffer, len(data), config)
-    lib.WebPFreeDecBuffer(ffi.addressof(config, "output"))
-    return image if status == 0 else None
-
-
-def _decode_opencv(data: bytes) -> np.ndarray | None:
-    """Bytes -> [H, W, 3] uint8 RGB by OpenCV (libwebp's defaults); None if undecodable."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    return None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
-def decode_image(
-    data: bytes, where: str = "image", decoder: str = DEFAULT_IMAGE_DECODER
-) -> np.ndarray:
-    """WebP (or any OpenCV-readable) bytes -> [H, W, 3] uint8 RGB.
-
-    Args:
-      data: the encoded bytes.
-      where: names the dataset in errors.
-      decoder: one of `IMAGE_DECODERS` (see the module docstring).
-
-    Raises:
-      DamagedDataError (`corrupt_image`): undecodable bytes.
-      MissingDecoderError: a decodable lossy image, `demon` asked for, no `webp` package.
-    """
-    # Lossless WebP decodes to the same pixels whichever libwebp options are set.
-    if decoder == "demon" and webp_compression(data) != "lossless":
-        if webp_decoder_available():
-            image = decode_webp_libwebp(data)
-        elif _decode_opencv(data) is not None:
-            raise MissingDecoderError(missing_decoder_message(where))
-        else:
-            image = None  # damaged, whichever the decoder
-    else:
-        image = _decode_opencv(data)
-    if image is None:
-        raise DamagedDataError("corrupt_image", where, f"undecodable image ({len(data)} bytes)")
-    return image
+        raise images.MissingDecoderError(images.missing_decoder_message(lossy))
 
 
 def decode_depth(data: bytes, extents: Any, where: str = "depth") -> np.ndarray:
@@ -363,11 +202,11 @@ def _dataset(group: h5py.Group, name: str, reason: str, where: str) -> h5py.Data
 
 
 def read_view(
-    view_group: h5py.Group, where: str, image_decoder: str = DEFAULT_IMAGE_DECODER
+    view_group: h5py.Group, where: str, image_decoder: str = images.DEFAULT_IMAGE_DECODER
 ) -> View:
     """Reads and validates `/<scene>/frames/t0/v<k>` -> View (depth converted to camera z).
 
-    `image_decoder` is one of `IMAGE_DECODERS`.
+    `image_decoder` is one of `images.IMAGE_DECODERS`.
 
     Raises:
       DamagedDataError naming `where` and the reason.
@@ -376,7 +215,7 @@ def read_view(
     image_format = _text(image_dataset.attrs.get("format", "webp"))
     if image_format != "webp":
         raise DamagedDataError("corrupt_image", f"{where}/image", f"format {image_format!r}")
-    image = decode_image(image_dataset[()].tobytes(), f"{where}/image", image_decoder)
+    image = images.decode_image(image_dataset[()].tobytes(), f"{where}/image", image_decoder)
 
     camera_dataset = _dataset(view_group, "camera", "missing_camera", where)
     camera_format = _text(camera_dataset.attrs.get("format", "pinhole"))
@@ -506,11 +345,11 @@ class DemonFile:
 
     Use as a context manager. Views are decoded on demand and cached per scene,
     so a training group with many pairs decodes each view once. `image_decoder` is
-    one of `IMAGE_DECODERS`, or None for `DEFAULT_IMAGE_DECODER`.
+    one of `images.IMAGE_DECODERS`, or None for DeMoN's.
     """
 
     def __init__(self, path: str | Path, image_decoder: str | None = None):
-        self.image_decoder = resolve_image_decoder(image_decoder)
+        self.image_decoder = images.resolve_image_decoder(image_decoder)
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"DeMoN file {self.path} does not exist")

@@ -12,22 +12,30 @@ a finished run is reused, an unfinished one resumed). <workdir>/compare/ receive
                 Abs-Inv as a multiple of the dataset mean's, the protocol stamp, and each
                 method's parameters, training and failures;
   results.json  the same numbers (every per-example metric's mean, std and count).
+
+Every method is scored against the records' ground truth, or, with `truth` (a demon/*
+dataset's DeMoN files, `gld.evaluation.evaluation_run.open_truth`), against the truth it
+looks up by id at its files' resolution, as `python -m experiments.evaluate` scores it
+(the oracle takes its constant from that truth); the stamp says which, and names the
+records' protocol (`records_protocol`).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from gld import input_pipeline
 from gld.evaluation import evaluate as evaluation
-from gld.evaluation import metrics, trained_run
+from gld.evaluation import metrics, stored_predictions, trained_run
 from gld.models import registry
 from gld.models.baselines.classical import CLASSICAL, LABELS
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import config
+from gld.runs import workdir as workdir_lib
 from gld.training import scored_run
 
 
@@ -46,6 +54,8 @@ def run_comparison(
     eval_batch_size: int = 16,
     max_examples: int = 0,
     model_configs: dict[str, dict[str, Any]] | None = None,
+    truth: evaluation.Truth | None = None,
+    records_protocol: Mapping[str, Any] | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Trains (or reuses) each learned model, evaluates all methods, writes the table.
@@ -65,7 +75,15 @@ def run_comparison(
       eval_batch_size, max_examples: evaluation batching; 0 examples = the whole split.
       model_configs: model name -> its constructor options (default: the model's
         defaults), e.g. the flow network's run of `global_local_flow_net`.
+      truth: the ground truth every method is scored against, looked up by example id
+        (checked here, before anything is trained); None: the records'.
+      records_protocol: the build options that make the records' protocol, named in the
+        stamp and results.json (`gld.evaluation.evaluation_run.records_protocol`).
       print_fn: progress messages.
+
+    Raises:
+      ValueError: an unknown model or method; `truth` cannot serve an example (before
+        anything is trained).
 
     Returns:
       The content of results.json.
@@ -80,6 +98,14 @@ def run_comparison(
     classical_methods = [*references, *(m for m in classical_methods if m not in references)]
     workdir = Path(workdir)
     flow_source = train_config.get("flow_source", "estimated")
+    file_resolutions = None
+    if truth is not None:
+        truth.check(
+            stored_predictions.record_ids_and_baselines(
+                input_pipeline.first_records(eval_source, max_examples)
+            )
+        )
+        file_resolutions = metrics.resolution_counts(truth.shapes().values())
 
     results: dict[str, dict] = {}
     runs: dict[str, dict] = {}
@@ -97,19 +123,22 @@ def run_comparison(
         train_seconds = scored_run.train_unless_finished(
             name, run_config, run_dir, train_source, eval_source, print_fn=print_fn
         )
-        scored = scored_run.score(
-            run_dir,
+        model, variables, saved = workdir_lib.load_trained(run_dir)
+        per_example, _ = evaluation.evaluate_source(
+            model,
+            variables,
             eval_source,
             batch_size=eval_batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
+            truth=truth,
         )
-        results[name], num_examples = evaluation.summarise_examples(scored.per_example)
+        results[name], num_examples = evaluation.summarise_examples(per_example)
         runs[name] = {
             "workdir": str(run_dir),
-            "parameters": scored.parameters,
+            "parameters": registry.parameter_counts(variables["params"])["total"],
             "steps": checkpoint_lib.last_checkpointed_step(run_dir),
-            "batch_size": scored.config.batch_size,
+            "batch_size": saved.batch_size,
             "train_seconds": train_seconds,
         }
 
@@ -117,12 +146,16 @@ def run_comparison(
         print_fn(f"{name}: evaluating")
         started = time.perf_counter()
         method = trained_run.fit_classical(name, train_source, flow_source)
+        predict = method.predict
+        if truth is not None and name == evaluation.ORACLE:
+            predict = trained_run.on_truth(predict, truth)
         per_example, _ = evaluation.evaluate_predictor(
-            method.predict,
+            predict,
             eval_source,
             batch_size=eval_batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
+            truth=truth,
         )
         results[name], num_examples = evaluation.summarise_examples(per_example)
         runs[name] = {"parameters": 0, "steps": 0, "eval_seconds": time.perf_counter() - started}
@@ -135,11 +168,22 @@ def run_comparison(
         f"{train_config.get('batch_size')}, {train_config.get('gt_pixels')} supervised "
         f"pixel(s) per image, seed {train_config.get('seed')}; {flow_source} flow for every method"
     )
-    stamp = metrics.protocol_stamp(height, width, num_examples, extra=budget)
+    records_note = metrics.records_protocol_note(records_protocol) if records_protocol else ""
+    stamp = metrics.protocol_stamp(
+        height,
+        width,
+        num_examples,
+        extra="; ".join(filter(None, [budget, records_note])),
+        truth_resolution="record" if truth is None else "file",
+        file_resolutions=file_resolutions,
+    )
     report = {
         "protocol": stamp,
         "dataset": dataset,
         "split": split,
+        "truth_resolution": "record" if truth is None else "file",
+        **({} if truth is None else {"truth_resolutions": file_resolutions, **truth.summary()}),
+        **({"records_protocol": dict(records_protocol)} if records_protocol else {}),
         "train_config": dict(train_config),
         "methods": results,
         "labels": {name: label for name, label in LABELS.items() if name in results},

@@ -9,8 +9,12 @@ which its builder made DeMoN's; the report names the records' protocol (their bu
 options: WebP decoder, depth resampling, order). Without the files the evaluation is
 refused, naming both ways on (`--manual_dir`, or `--truth_resolution=record`): a
 number at the records' resolution is not DeMoN's (on 640x480 files, Abs-Inv can differ
-by most of its value) and must be asked for. Other datasets are scored at the records'
-resolution.
+by most of its value) and must be asked for. The end of a training run is the exception
+(`rescore_command`): it is scored at the records' resolution rather than lost, saying so
+in one line and in the report's stamp, with the command that scores it by DeMoN's
+protocol once the files are back. Other datasets are scored at the records' resolution.
+`open_truth` chooses and opens the truth for any evaluation of a split (the comparison
+of methods too).
 
 The dataset and DeMoN's files are opened by the caller's `prepare_dataset` and
 `open_file_truth` (the data layer, which the library does not import).
@@ -18,14 +22,13 @@ The dataset and DeMoN's files are opened by the caller's `prepare_dataset` and
 
 from __future__ import annotations
 
-import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from gld import input_pipeline
 from gld.arguments import ArgumentError
-from gld.evaluation import metrics, reports, stored_predictions, trained_run
+from gld.evaluation import stored_predictions, trained_run
 from gld.evaluation.evaluate import Truth
 from gld.runs import workdir as workdir_lib
 
@@ -47,29 +50,105 @@ def records_protocol(builder: Any, split: str) -> dict[str, Any]:
     return {key: options[key] for key in RECORDS_PROTOCOL if key in options}
 
 
-def _stamp_records_protocol(
-    workdir: str | Path, report: Mapping[str, Any], protocol: Mapping[str, Any]
-) -> dict[str, Any]:
-    """Names `protocol` in the evaluation folder holding `report`, the one just written
-    (found by its metrics.json, byte for byte; `reports.stamp_records_protocol`), and
-    returns the amended report."""
-    written = json.dumps(report, indent=2) + "\n"
-    folders = [
-        path.parent
-        for path in sorted(Path(workdir).glob("eval*/metrics.json"))
-        if path.read_text() == written
-    ]
-    if not folders:
-        raise RuntimeError(f"no evaluation folder in {workdir} holds the report just written")
-    amended = [reports.stamp_records_protocol(folder, protocol) for folder in folders]
-    return amended[0]
+def resolve_truth_resolution(dataset: str, truth_resolution: str | None) -> str:
+    """`truth_resolution`, or the dataset's default (`default_truth_resolution`).
+
+    Raises:
+      ArgumentError: "file" for another dataset than demon/*.
+    """
+    resolved = truth_resolution or default_truth_resolution(dataset)
+    if resolved == "file" and not dataset.startswith("demon/"):
+        raise ArgumentError(
+            f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
+            f"by example id; {dataset} is not a demon/* dataset, its records are its "
+            f"only ground truth (use --truth_resolution=record)"
+        )
+    return resolved
+
+
+def _one_line(error: Exception) -> str:
+    """The first line of an error's message (a file truth's check names every example
+    on lines of their own)."""
+    return str(error).splitlines()[0].rstrip(":") if str(error) else type(error).__name__
+
+
+def open_truth(
+    builder: Any,
+    split: str,
+    source,
+    *,
+    open_file_truth: Callable[[Any, str, str | None], Truth],
+    truth_resolution: str | None = None,
+    manual_dir: str | None = None,
+    max_examples: int = 0,
+    rescore_command: str | None = None,
+    print_fn: Callable[[str], None] = print,
+) -> tuple[Truth | None, str]:
+    """The ground truth the first `max_examples` records of `source` (`split` of the built
+    dataset `builder`) are scored against.
+
+    Args:
+      open_file_truth, manual_dir: as `evaluate_split` takes them.
+      truth_resolution: "record", "file" or None: `default_truth_resolution`.
+      rescore_command: given, a demon/* dataset whose files are not at hand by default is
+        scored at the records' resolution instead of refused (the end of a training run,
+        which must not be lost): one line says so and names this command, which scores it
+        by DeMoN's protocol once the files are back.
+
+    Returns:
+      (truth, stamp note): truth None for the records' resolution, else DeMoN's files,
+      checked to serve every example (close it after use); the note, for the protocol
+      stamp, says that the files were not at hand ("" unless scored without them).
+
+    Raises:
+      ArgumentError: "file" for another dataset than demon/*; the files not at hand (or
+        not those the split was built from) when asked for by name, or by default
+        without `rescore_command` (naming --manual_dir and --truth_resolution=record).
+    """
+    dataset = builder.info.full_name
+    if resolve_truth_resolution(dataset, truth_resolution) == "record":
+        return None, ""
+    try:
+        truth = open_file_truth(builder, split, manual_dir)
+        try:
+            truth.check(
+                stored_predictions.record_ids_and_baselines(
+                    input_pipeline.first_records(source, max_examples)
+                )
+            )
+        except BaseException:
+            truth.close()
+            raise
+        return truth, ""
+    except (FileNotFoundError, ValueError) as error:
+        if truth_resolution:
+            raise ArgumentError(f"--truth_resolution=file: {error}") from None
+        height, width = (int(size) for size in builder.info.features["depth1"].shape)
+        if rescore_command is None:
+            raise ArgumentError(
+                f"{dataset} is scored as DeMoN scores it, against the depth of the files "
+                f"its {split} split was built from (--truth_resolution=file, the default "
+                f"for demon/* datasets), and they are not at hand: {error}. Give "
+                f"--manual_dir=<the folder of those files>, or --truth_resolution=record to "
+                f"score at the records' {width}x{height} (not DeMoN's protocol)"
+            ) from None
+        print_fn(
+            f"{dataset} {split} split: scored at the records' {width}x{height}, not by "
+            f"DeMoN's protocol (the depth of its files): the files it was built from are not "
+            f"at hand ({_one_line(error)}); to score it by DeMoN's protocol: {rescore_command}"
+        )
+        note = (
+            f"not DeMoN's protocol: the DeMoN files of the {split} split were not at hand "
+            f"(score by it: {rescore_command})"
+        )
+        return None, note
 
 
 def evaluate_split(
     workdir: str | Path,
     *,
     prepare_dataset: Callable[[str], Any],
-    open_file_truth: Callable[[str], Truth],
+    open_file_truth: Callable[[Any, str, str | None], Truth],
     dataset: str | None = None,
     method: str | None = None,
     predictions: stored_predictions.StoredPredictions | None = None,
@@ -84,6 +163,7 @@ def evaluate_split(
     with_sfm_flow: bool = True,
     step: int | None = None,
     flow_source: str | None = None,
+    rescore_command: str | None = None,
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Evaluates the workdir's model, or the classical `method`, or `predictions`, on
@@ -99,6 +179,8 @@ def evaluate_split(
         files are not those the split was built from.
       truth_resolution: "record" (the records' resolution), "file" (DeMoN's files;
         demon/* datasets only) or None: `default_truth_resolution`.
+      rescore_command: given, a demon/* dataset whose files are not at hand is scored at
+        the records' resolution rather than refused (`open_truth`).
       The others: `trained_run.evaluate_workdir`'s; `print_fn` also says which
         references a dataset without a training split goes without.
 
@@ -109,22 +191,15 @@ def evaluate_split(
     Raises:
       ArgumentError: no dataset for a method or predictions; the file resolution for
         another dataset than demon/*, or without the files the split was built from
-        (by default: naming --manual_dir and --truth_resolution=record); a split the
-        dataset lacks; the dataset mean without a training split.
+        (`open_truth`); a split the dataset lacks; the dataset mean without a training
+        split.
     """
     if method or predictions:
         if not dataset:
             raise ArgumentError("--dataset is needed with --method or --predictions")
     else:
         dataset = dataset or workdir_lib.load_run_config(workdir).dataset
-    chosen = truth_resolution
-    truth_resolution = truth_resolution or default_truth_resolution(dataset)
-    if truth_resolution == "file" and not dataset.startswith("demon/"):
-        raise ArgumentError(
-            f"--truth_resolution=file reads the ground truth from DeMoN's HDF5 files "
-            f"by example id; {dataset} is not a demon/* dataset, its records are its "
-            f"only ground truth (use --truth_resolution=record)"
-        )
+    resolve_truth_resolution(dataset, truth_resolution)  # before the dataset is built
     builder = prepare_dataset(dataset)
     height, width = (int(size) for size in builder.info.features["depth1"].shape)
     splits = builder.info.splits
@@ -135,21 +210,8 @@ def evaluate_split(
             f"--method=dataset_mean is fitted on the train split, which "
             f"{builder.info.full_name} lacks"
         )
-    truth = None
-    if truth_resolution == "file":
-        try:
-            truth = open_file_truth(builder, split, manual_dir)
-        except (FileNotFoundError, ValueError) as error:
-            if chosen:
-                raise ArgumentError(f"--truth_resolution=file: {error}") from None
-            raise ArgumentError(
-                f"{builder.info.full_name} is scored as DeMoN scores it, against the depth "
-                f"of the files its {split} split was built from (--truth_resolution=file, "
-                f"the default for demon/* datasets), and they are not at hand: {error}. "
-                f"Give --manual_dir=<the folder of those files>, or --truth_resolution="
-                f"record to score at the records' {width}x{height} (not DeMoN's protocol)"
-            ) from None
     decoders = input_pipeline.source_decoders()
+    source = builder.as_data_source(split, decoders=decoders)
     train_source = None
     if "train" in splits:
         train_source = builder.as_data_source("train", decoders=decoders)
@@ -161,10 +223,21 @@ def evaluate_split(
                 f"{builder.info.full_name} has no training split: sfm_flow's failed pairs "
                 f"are predicted as a fixed inverse depth, not the training mean"
             )
+    truth, protocol_note = open_truth(
+        builder,
+        split,
+        source,
+        open_file_truth=open_file_truth,
+        truth_resolution=truth_resolution,
+        manual_dir=manual_dir,
+        max_examples=max_examples,
+        rescore_command=rescore_command,
+        print_fn=print_fn,
+    )
     try:
-        report = trained_run.evaluate_workdir(
+        return trained_run.evaluate_workdir(
             workdir,
-            builder.as_data_source(split, decoders=decoders),
+            source,
             train_source=train_source,
             dataset=builder.info.full_name,
             height=height,
@@ -182,12 +255,9 @@ def evaluate_split(
             predictions=predictions,
             flow_source=flow_source,
             truth=truth,
+            records_protocol=records_protocol(builder, split),
+            protocol_note=protocol_note,
         )
     finally:
         if truth is not None:
             truth.close()
-    protocol = records_protocol(builder, split)
-    if report and protocol:  # process 0, a dataset that records its protocol
-        report = _stamp_records_protocol(workdir, report, protocol)
-        print_fn(metrics.records_protocol_note(protocol))
-    return report

@@ -9,6 +9,7 @@ an example mask so that padded, sharded batches give exact means through (sum, c
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Iterable, Mapping
 from typing import Any
@@ -189,6 +190,12 @@ def protocol_stamp(
         f"{num_examples} examples; no median scaling"
     )
     return f"{stamp}; {extra}" if extra else stamp
+
+
+def resolution_counts(shapes: Iterable[tuple[int, int]]) -> dict[str, int]:
+    """How many of the (height, width) `shapes` have each size, as {"<W>x<H>": count},
+    the most frequent first: the `file_resolutions` of `protocol_stamp`."""
+    return dict(collections.Counter(f"{width}x{height}" for height, width in shapes).most_common())
 
 
 # What a records' `order` stamp means (`records_protocol_note`).

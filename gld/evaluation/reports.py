@@ -4,16 +4,16 @@
 (`gld.evaluation.evaluate`), with the references' labels (the oracle sees the truth; the
 classical pipeline runs on the same flow, with no training), each method's Abs-Inv as a
 multiple of the dataset mean's, the pixels its predictions had excluded and the pairs a
-method failed on; `stamp_records_protocol` adds the protocol the evaluated records were
-built with (a DeMoN dataset's WebP decoder, depth resampling and order);
-`render_examples` draws image, truth, prediction and error with one colour scale for all.
+method failed on, and the protocol the evaluated records were built with (a DeMoN
+dataset's WebP decoder, depth resampling and order); `render_examples` draws image,
+truth, prediction and error with one colour scale for all.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,7 @@ def write_report(
     protocol_note: str = "",
     truth_resolution: str = "record",
     file_resolutions: dict[str, int] | None = None,
+    records_protocol: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Writes metrics.json, table.md and per_example_<method>.csv for several methods.
 
@@ -76,6 +77,10 @@ def write_report(
       protocol_note: appended to the protocol stamp (e.g. how stored predictions were read).
       truth_resolution, file_resolutions: where the ground truth was scored, for the
         stamp (`metrics.protocol_stamp`).
+      records_protocol: the build options that make the records' protocol (e.g. a DeMoN
+        dataset's {"image_decoder": ..., "depth_resampling": ..., "order": ...}): in
+        metrics.json as "records_protocol", and in the stamp, whose last clause
+        (`metrics.records_protocol_note`) names them.
 
     Returns:
       The metrics.json content.
@@ -100,11 +105,12 @@ def write_report(
             for row, example_id in enumerate(ids):
                 if mask[row]:
                     writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
+    records_note = metrics.records_protocol_note(records_protocol) if records_protocol else ""
     stamp = metrics.protocol_stamp(
         height,
         width,
         num_examples,
-        extra=protocol_note,
+        extra="; ".join(filter(None, [protocol_note, records_note])),
         truth_resolution=truth_resolution,
         file_resolutions=file_resolutions,
     )
@@ -113,6 +119,7 @@ def write_report(
     report = {
         "protocol": stamp,
         **(info or {}),
+        **({"records_protocol": dict(records_protocol)} if records_protocol else {}),
         "methods": summaries,
         "labels": labels,
         "abs_inv_vs_dataset_mean": metrics.ratios_to_reference(summaries.items()),
@@ -126,24 +133,6 @@ def write_report(
     if failures:
         table += f"\n{failures}\n"
     (out_dir / "table.md").write_text(table)
-    return report
-
-
-def stamp_records_protocol(out_dir: str | Path, protocol: dict[str, Any]) -> dict[str, Any]:
-    """Adds the protocol the evaluated records were built with to an evaluation folder
-    written by `write_report`: "records_protocol" in metrics.json, and its clause
-    (`metrics.records_protocol_note`) at the end of the protocol stamp of metrics.json
-    and table.md. Returns the new metrics.json content."""
-    out_dir = Path(out_dir)
-    report = json.loads((out_dir / "metrics.json").read_text())
-    stamp = report["protocol"]
-    report["protocol"] = f"{stamp}; {metrics.records_protocol_note(protocol)}"
-    report["records_protocol"] = dict(protocol)
-    table = (out_dir / "table.md").read_text()
-    if f"\n{stamp}\n" not in table:
-        raise ValueError(f"{out_dir / 'table.md'} does not hold the stamp of its metrics.json")
-    (out_dir / "table.md").write_text(table.replace(f"\n{stamp}\n", f"\n{report['protocol']}\n"))
-    (out_dir / "metrics.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
 
 

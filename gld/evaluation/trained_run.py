@@ -13,10 +13,9 @@ evaluated (`evaluation_dir`); a folder holding another evaluation is refused.
 
 from __future__ import annotations
 
-import collections
 import functools
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -195,6 +194,8 @@ def evaluate_workdir(
     predictions: stored_predictions.StoredPredictions | None = None,
     flow_source: str | None = None,
     truth: Truth | None = None,
+    records_protocol: Mapping[str, Any] | None = None,
+    protocol_note: str = "",
     print_fn: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Evaluates a workdir's trained model (or a classical method, or stored predictions)
@@ -216,7 +217,10 @@ def evaluate_workdir(
     Every method is scored against the records' ground truth at (height, width), or,
     with `truth`, against the truth it looks up by id (`score_against_truth`; stored
     predictions are then resized straight to each truth's resolution, and the oracle
-    takes its constant from that truth); the stamp says which.
+    takes its constant from that truth); the stamp says which. `records_protocol`, the
+    build options that make the records' protocol (a DeMoN dataset's WebP decoder, depth
+    resampling and order), and `protocol_note`, a clause of the caller's, are named in the
+    stamp and in metrics.json (`reports.write_report`).
 
     Raises:
       FileNotFoundError, ValueError: `truth` cannot serve an example, or `predictions`
@@ -227,7 +231,6 @@ def evaluate_workdir(
     fitted: dict[str, Any] = {}
     examples_count = min(max_examples, len(source)) if max_examples else len(source)
     info = {"dataset": dataset, "split": split, "examples": examples_count}
-    protocol_note = ""
     if truth is not None or predictions is not None:
         examples = stored_predictions.record_ids_and_baselines(
             input_pipeline.first_records(source, max_examples)
@@ -235,9 +238,7 @@ def evaluate_workdir(
     file_resolutions = None
     if truth is not None:
         truth.check(examples)
-        file_resolutions = dict(
-            collections.Counter(f"{w}x{h}" for h, w in truth.shapes().values()).most_common()
-        )
+        file_resolutions = metrics.resolution_counts(truth.shapes().values())
         info.update(truth_resolution="file", truth_resolutions=file_resolutions)
         info.update(truth.summary())
     else:
@@ -256,7 +257,7 @@ def evaluate_workdir(
                 width=width,
                 shapes=truth.shapes() if truth is not None else None,
             )
-            protocol_note = predictions.protocol_note()
+            protocol_note = "; ".join(filter(None, [predictions.protocol_note(), protocol_note]))
             info.update(predictions.summary())
         else:
             method = _fit_reference(classical_method, train_source, flow_source, fitted)
@@ -359,6 +360,7 @@ def evaluate_workdir(
         protocol_note=protocol_note,
         truth_resolution=info["truth_resolution"],
         file_resolutions=file_resolutions,
+        records_protocol=records_protocol,
     )
     if num_figures:
         evaluated = input_pipeline.first_records(source, max_examples)

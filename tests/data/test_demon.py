@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import data
-from data.demon import checksums, pairs, reader
+from data.demon import checksums, damage, images, pairs, reader
 from gld import records
 
 HEIGHT, WIDTH = pairs.HEIGHT, pairs.WIDTH
@@ -79,70 +79,70 @@ def test_ray_length_depth_becomes_camera_z(tmp_path, rng):
     float16_close(ray_view.depth, views[0]["depth"])
 
 
-needs_webp = pytest.mark.skipif(
-    not reader.webp_decoder_available(), reason="the optional `webp` package is not installed"
-)
+def test_demons_webp_decoding_is_at_hand():
+    # A dependency of gld (setup.cfg): DeMoN's protocol, the default, decodes with it.
+    assert images.webp_decoder_available()
 
 
-@needs_webp
 def test_webp_decoders_agree_on_lossless_images(rng):
     image = demon_files.texture(rng, HEIGHT, WIDTH)
     data = demon_files.webp_bytes(image)
-    for decoder in reader.IMAGE_DECODERS:
-        np.testing.assert_array_equal(reader.decode_image(data, decoder=decoder), image)
+    for decoder in images.IMAGE_DECODERS:
+        np.testing.assert_array_equal(images.decode_image(data, decoder=decoder), image)
 
 
-@needs_webp
 def test_demon_webp_decoder_bypasses_filtering_and_fancy_upsampling(tmp_path, rng):
     views = demon_files.moving_views(rng, 2, HEIGHT, WIDTH)
     lossy = demon_files.webp_bytes(views[0]["image"], quality=50)
-    opencv = reader.decode_image(lossy, decoder="opencv").astype(int)
+    opencv = images.decode_image(lossy, decoder="opencv").astype(int)
     # libwebp with both options off is OpenCV's decoding, bit for bit ...
-    plain = reader.decode_webp_libwebp(lossy, bypass_filtering=False, no_fancy_upsampling=False)
+    plain = images.decode_webp_libwebp(lossy, bypass_filtering=False, no_fancy_upsampling=False)
     np.testing.assert_array_equal(plain, opencv)
     # ... and each option on its own changes the image (both fields are really set).
     for bypass_filtering, no_fancy_upsampling in ((True, False), (False, True)):
-        alone = reader.decode_webp_libwebp(
+        alone = images.decode_webp_libwebp(
             lossy, bypass_filtering=bypass_filtering, no_fancy_upsampling=no_fancy_upsampling
         )
         assert np.abs(alone - opencv).mean() > 0.1
     path = write_file(tmp_path / "lossy.h5", [("s", views, (0, 1), {0: {"image_data": lossy}})])
     with reader.DemonFile(path, image_decoder="demon") as demon_file:
         image = demon_file.view("s", 0).image
-    np.testing.assert_array_equal(image, reader.decode_webp_libwebp(lossy))
+    np.testing.assert_array_equal(image, images.decode_webp_libwebp(lossy))
     assert np.abs(image - opencv).mean() > 1.0
 
 
 def test_image_decoder_choice(monkeypatch):
     with pytest.raises(ValueError, match="unknown image decoder"):
-        reader.resolve_image_decoder("pillow")
-    assert reader.resolve_image_decoder("opencv") == "opencv"
+        images.resolve_image_decoder("pillow")
+    assert images.resolve_image_decoder("opencv") == "opencv"
     # DeMoN's decoding is the default, whatever is installed: the same options, the
     # same records (without `webp`, lossy images are refused, not approximated).
     for available in (False, True):
-        monkeypatch.setattr(reader, "webp_decoder_available", lambda available=available: available)
-        assert reader.resolve_image_decoder(None) == "demon"
-        assert reader.resolve_image_decoder("demon") == "demon"
+        monkeypatch.setattr(images, "webp_decoder_available", lambda available=available: available)
+        assert images.resolve_image_decoder(None) == "demon"
+        assert images.resolve_image_decoder("demon") == "demon"
 
 
 def test_demon_decoding_of_lossless_images_needs_no_webp_package(rng, monkeypatch):
     image = demon_files.texture(rng, 24, 32)
     lossless, lossy = demon_files.webp_bytes(image), demon_files.webp_bytes(image, quality=80)
-    assert reader.webp_compression(lossless) == "lossless"
-    assert reader.webp_compression(lossy) == "lossy"
-    assert reader.webp_compression(b"RIFF\x04\x00\x00\x00WEBP") is None
-    monkeypatch.setattr(reader, "webp_decoder_available", lambda: False)
+    assert images.webp_compression(lossless) == "lossless"
+    assert images.webp_compression(lossy) == "lossy"
+    assert images.webp_compression(b"RIFF\x04\x00\x00\x00WEBP") is None
+    monkeypatch.setattr(images, "webp_decoder_available", lambda: False)
     # Lossless WebP has the same pixels whatever libwebp's options: DeMoN's, exactly.
-    np.testing.assert_array_equal(reader.decode_image(lossless, decoder="demon"), image)
-    with pytest.raises(reader.MissingDecoderError, match="pip install webp") as error:
-        reader.decode_image(lossy, "a.h5/s/frames/t0/v0/image", decoder="demon")
+    np.testing.assert_array_equal(images.decode_image(lossless, decoder="demon"), image)
+    with pytest.raises(images.MissingDecoderError, match="pip install webp") as error:
+        images.decode_image(lossy, "a.h5/s/frames/t0/v0/image", decoder="demon")
     assert "a.h5/s/frames/t0/v0/image" in str(error.value)
     assert "--image_decoder=opencv" in str(error.value)
-    assert reader.decode_image(lossy, decoder="opencv").shape == (24, 32, 3)
+    # A dependency of gld, not an extra.
+    assert "pip install -e . installs" in str(error.value) and "[demon]" not in str(error.value)
+    assert images.decode_image(lossy, decoder="opencv").shape == (24, 32, 3)
     # Damaged bytes stay damage, whatever is installed.
     for damaged in (b"not a webp", lossy[:60]):
-        with pytest.raises(reader.DamagedDataError, match="corrupt_image"):
-            reader.decode_image(damaged, decoder="demon")
+        with pytest.raises(damage.DamagedDataError, match="corrupt_image"):
+            images.decode_image(damaged, decoder="demon")
 
 
 def _lossy_scene(rng, name="s", quality=50):
@@ -161,11 +161,11 @@ def test_a_default_build_of_lossy_images_without_webp_is_refused_in_one_line(
     manual_dir = tmp_path / "manual"
     manual_dir.mkdir()
     write_file(manual_dir / "scenes11_test.h5", [_lossy_scene(rng)])
-    monkeypatch.setattr(reader, "webp_decoder_available", lambda: False)
+    monkeypatch.setattr(images, "webp_decoder_available", lambda: False)
     datasets = tmp_path / "datasets"
     with pytest.raises(ImportError) as error:
         data.prepare("demon/scenes11", datasets, manual_dir, verify_checksums=False)
-    assert isinstance(error.value, reader.MissingDecoderError)
+    assert isinstance(error.value, images.MissingDecoderError)
     message = str(error.value)
     assert "\n" not in message
     assert "needs the `webp` package for the lossy images of scenes11_test.h5" in message
@@ -178,7 +178,6 @@ def test_a_default_build_of_lossy_images_without_webp_is_refused_in_one_line(
     assert builder.info.metadata["build_options"]["test"]["image_decoder"] == "opencv"
 
 
-@needs_webp
 def test_a_default_build_decodes_webp_as_demons_reader(tmp_path, rng):
     manual_dir = tmp_path / "manual"
     manual_dir.mkdir()
@@ -189,8 +188,8 @@ def test_a_default_build_decodes_webp_as_demons_reader(tmp_path, rng):
     )
     (record,) = [records.decode(r) for r in builder.as_data_source(split="test")]
     lossy = scene[3][0]["image_data"]
-    np.testing.assert_array_equal(record["image1"], reader.decode_webp_libwebp(lossy))
-    opencv = reader.decode_image(lossy, decoder="opencv")
+    np.testing.assert_array_equal(record["image1"], images.decode_webp_libwebp(lossy))
+    opencv = images.decode_image(lossy, decoder="opencv")
     assert np.abs(record["image1"].astype(int) - opencv).mean() > 1.0
     assert builder.info.metadata["build_options"]["test"]["image_decoder"] == "demon"
 
@@ -496,7 +495,7 @@ def test_strict_fails_at_first_damaged_pair(tmp_path, rng):
     path = write_file(tmp_path / "strict.h5", scenes)
     written = []
     # DeMoN's order: c, b, a.
-    with pytest.raises(reader.DamagedDataError, match="strict.h5/c/0-1") as error:
+    with pytest.raises(damage.DamagedDataError, match="strict.h5/c/0-1") as error:
         for example_id, _ in pairs.generate([path], "test", strict=True):
             written.append(example_id)
     assert error.value.reason == "corrupt_depth"
@@ -581,7 +580,7 @@ def test_file_check_reads_structure_only(tmp_path, rng, monkeypatch):
     def no_decoding(*args, **kwargs):
         raise AssertionError("the file check must not decode images or depth")
 
-    monkeypatch.setattr(reader, "decode_image", no_decoding)
+    monkeypatch.setattr(images, "decode_image", no_decoding)
     monkeypatch.setattr(reader, "decode_depth", no_decoding)
     reader.check_files([path])
     no_views = write_file(tmp_path / "no_views.h5", [])

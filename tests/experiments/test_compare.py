@@ -5,8 +5,12 @@ import os
 import subprocess
 import sys
 
+import h5py
+import numpy as np
 import pytest
 from conftest import REPO_ROOT, run_python
+
+import data
 
 REFERENCES = ["dataset_mean", "oracle_pair_median", "sfm_flow"]
 ORACLE_ROW = "| oracle_pair_median — per-pair oracle constant (sees the truth) |"
@@ -125,6 +129,62 @@ def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tm
     assert f"{ORACLE_ROW} 0 | 0 | none | — |" in lines
     failed = results["runs"]["sfm_flow"]["failed_pairs"]
     assert f"{SFM_ROW} 0 | 0 | none | {failed} |" in lines
+
+
+def test_compare_scores_a_demon_dataset_by_demons_protocol_or_stops_before_training(tmp_path):
+    sys.path.insert(0, str(REPO_ROOT / "tests" / "data"))
+    import demon_files
+
+    manual_dir, data_dir = tmp_path / "manual", tmp_path / "data"
+    manual_dir.mkdir()
+    rng = np.random.default_rng(0)
+    for split in ("train", "test"):
+        with h5py.File(manual_dir / f"custom_{split}.h5", "w") as h5_file:
+            for scene in ("a", "b"):
+                demon_files.write_scene(h5_file, scene, demon_files.moving_views(rng, 2, 48, 64))
+    data.prepare("demon/custom", data_dir, manual_dir)
+    workdir = tmp_path / "compare"
+    command = [
+        sys.executable,
+        "-m",
+        "experiments.compare",
+        "--dataset=demon/custom",
+        f"--data_dir={data_dir}",
+        f"--workdir={workdir}",
+        "--classical=",
+        "--steps=2",
+        "--batch_size=2",
+    ]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+
+    def compare(*flags):
+        return subprocess.run(
+            [*command, *flags], capture_output=True, text=True, env=env, cwd=REPO_ROOT, timeout=600
+        )
+
+    # The files where the build found them: DeMoN's protocol, the files' 64x48 depth.
+    scored = compare("--models=")
+    assert scored.returncode == 0, scored.stderr[-3000:]
+    results = json.loads((workdir / "compare" / "results.json").read_text())
+    assert results["truth_resolution"] == "file" and results["truth_resolutions"] == {"64x48": 2}
+    assert results["records_protocol"]["depth_resampling"] == "demon"
+    assert "ground truth at the source files' resolution (2 at 64x48)" in results["protocol"]
+    assert results["methods"]["oracle_pair_median"]["abs_inv"]["count"] == 2
+
+    # Elsewhere: refused, naming both ways on, before anything is trained.
+    manual_dir.rename(tmp_path / "elsewhere")
+    refused = compare("--models=small_encdec", f"--workdir={tmp_path / 'refused'}")
+    assert refused.returncode != 0
+    assert (
+        "demon/custom/2.0.0 is scored as DeMoN scores it, against the depth of the files its "
+        "test split was built from (--truth_resolution=file, the default for demon/* "
+        "datasets), and they are not at hand: " in refused.stderr
+    )
+    assert (
+        "Give --manual_dir=<the folder of those files>, or --truth_resolution=record to score "
+        "at the records' 256x192 (not DeMoN's protocol)" in refused.stderr
+    )
+    assert not (tmp_path / "refused").exists()  # nothing trained
 
 
 def test_compare_flagfiles_parse_with_the_compare_flags():

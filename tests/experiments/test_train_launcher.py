@@ -397,6 +397,45 @@ def test_a_dataset_with_one_split_serves_what_needs_only_that_split(tmp_path):
     assert "--method=dataset_mean is fitted on the train split" in mean.stderr
 
 
+# Two launches at DeMoN's 256x192: ~3 minutes on the 2-core machine. The same fallback,
+# fast, on the library: tests/gld/evaluation/test_evaluation_run.py.
+@pytest.mark.slow
+def test_the_final_evaluation_of_a_demon_dataset_is_demons_protocol_or_says_why_not(tmp_path):
+    manual_dir, data_dir, workdir = tmp_path / "manual", tmp_path / "data", tmp_path / "run"
+    _write_custom_file(manual_dir / "custom_train.h5", scenes=2)
+    _write_custom_file(manual_dir / "custom_test.h5", scenes=2)
+    train = ["experiments.train", f"--workdir={workdir}", "--steps=3", "--eval_every=0"]
+    train += ["--num_figures=0", *TINY_FLAGS]
+    trained = _launch([*train, f"--manual_dir={manual_dir}"], data_dir, dataset="demon/custom")
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    # As experiments.evaluate scores it by default: against the files' depth (64x48).
+    report = json.loads((workdir / "eval_truth-file" / "metrics.json").read_text())
+    assert report["truth_resolution"] == "file" and report["truth_resolutions"] == {"64x48": 2}
+    assert report["records_protocol"]["image_decoder"] == "demon"
+    assert "not DeMoN's protocol" not in report["protocol"]
+    assert not (workdir / "eval").exists()
+
+    # The files gone at the end of a run: scored at the records' resolution rather than
+    # lost, saying so in one line and in the stamp, with the command to score it later.
+    manual_dir.rename(tmp_path / "elsewhere")
+    resumed = _launch(train, data_dir, dataset="demon/custom")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    command = (
+        f"python -m experiments.evaluate --workdir={workdir} --data_dir={data_dir} "
+        "--manual_dir=<the folder of the DeMoN files>"
+    )
+    (line,) = [text for text in resumed.stdout.splitlines() if "not by DeMoN's protocol" in text]
+    assert line.startswith("demon/custom/2.0.0 test split: scored at the records' 256x192, not")
+    assert line.endswith(f"to score it by DeMoN's protocol: {command}")
+    fallback = json.loads((workdir / "eval" / "metrics.json").read_text())
+    assert fallback["truth_resolution"] == "record" and fallback["step"] == 3
+    assert (
+        "not DeMoN's protocol: the DeMoN files of the test split were not at hand (score by "
+        f"it: {command})" in fallback["protocol"]
+    )
+    assert fallback["protocol"] in (workdir / "eval" / "table.md").read_text()
+
+
 def test_diagnose_self_supervised_launcher(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "struct2depth"
     trained = _launch(

@@ -173,6 +173,14 @@ def test_the_stamp_says_where_the_truth_was_scored():
         metrics.protocol_stamp(192, 256, 80, truth_resolution="native")
 
 
+def test_truth_resolutions_are_counted_as_width_by_height_most_frequent_first():
+    shapes = [(240, 320), (480, 640), (480, 640), (192, 256), (480, 640)]
+    counts = metrics.resolution_counts(shapes)
+    assert counts == {"640x480": 3, "320x240": 1, "256x192": 1}
+    assert list(counts)[0] == "640x480"
+    assert metrics.resolution_counts([]) == {}
+
+
 def test_the_records_protocol_is_named_with_its_order():
     demon = {"image_decoder": "demon", "depth_resampling": "demon", "order": "demon"}
     assert metrics.records_protocol_note(demon) == (

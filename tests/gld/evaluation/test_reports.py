@@ -52,6 +52,34 @@ def test_report_labels_the_oracle_and_gives_each_method_as_a_multiple_of_the_mea
     assert [row["id"] for row in rows] == ["pair/0", "pair/1"]
 
 
+def test_report_names_the_records_protocol_once_written(tmp_path):
+    results = {"dataset_mean": _per_example([0.03, 0.05], [True, True])}
+    protocol = {"image_decoder": "opencv", "depth_resampling": "centred", "order": "demon"}
+    report = reports.write_report(
+        tmp_path,
+        results,
+        height=48,
+        width=64,
+        info={"split": "test"},
+        protocol_note="depth maps read as stored",
+        records_protocol=protocol,
+    )
+    # The caller's clause, then the records' protocol, at the end of one stamp.
+    assert report["protocol"].endswith(
+        "no median scaling; depth maps read as stored; records built with "
+        "image_decoder=opencv, depth_resampling=centred; evaluated in the records' stored "
+        "order, order=demon (DeMoN's reader's: files as listed, each file's scene groups "
+        "reverse-sorted)"
+    )
+    assert report["records_protocol"] == protocol
+    assert json.loads((tmp_path / "metrics.json").read_text()) == report
+    table = (tmp_path / "table.md").read_text()
+    assert f"\n{report['protocol']}\n" in table and table.count("records built with") == 1
+    # A dataset without a records' protocol: neither the field nor the clause.
+    plain = reports.write_report(tmp_path / "plain", results, height=48, width=64)
+    assert "records_protocol" not in plain and "records built" not in plain["protocol"]
+
+
 def test_report_counts_the_pixels_each_method_had_excluded(tmp_path):
     nan = float("nan")
     results = {
