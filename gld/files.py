@@ -73,3 +73,24 @@ def no_space_error(error: BaseException) -> BaseException | None:
         pending += [current.__cause__, current.__context__]
         pending += list(getattr(current, "exceptions", ()))
     return None
+
+
+def write_problem(folder: str | Path) -> str | None:
+    """Why files cannot be written in `folder` (made if missing), or None.
+
+    Tried with a probe file in `folder`, or in its nearest existing parent when it is
+    missing, removed at once: permission bits do not stop root, and a read-only mount
+    stops everyone. Nothing is left behind either way.
+    """
+    existing = Path(folder)
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a folder"
+    try:
+        handle, probe = tempfile.mkstemp(dir=existing, prefix=".write-check-")
+    except OSError as error:
+        return f"cannot write in {existing} ({error.strerror or error})"
+    os.close(handle)
+    os.unlink(probe)
+    return None

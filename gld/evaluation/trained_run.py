@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from gld import contract, input_pipeline
+from gld.arguments import ArgumentError
 from gld.evaluation import metrics, reports, stored_predictions
 from gld.evaluation.evaluate import (
     ORACLE,
@@ -34,6 +35,7 @@ from gld.evaluation.evaluate import (
     evaluate_source,
     split_batches,
 )
+from gld.files import write_problem
 from gld.models import layers
 from gld.models.baselines import classical
 from gld.runs import workdir as workdir_lib
@@ -174,6 +176,13 @@ def _check_identity(out_dir: Path, info: dict[str, Any]) -> None:
         )
 
 
+def _check_writable(out_dir: Path) -> None:
+    """Refuses, before anything is evaluated, a folder the report could not be written in."""
+    problem = write_problem(out_dir) if jax.process_index() == 0 else None
+    if problem:
+        raise ArgumentError(f"the evaluation would be written to {out_dir}: {problem}")
+
+
 def evaluate_workdir(
     workdir: str | Path,
     source,
@@ -226,6 +235,8 @@ def evaluate_workdir(
       FileNotFoundError, ValueError: `truth` cannot serve an example, or `predictions`
         lack a file or hold a bad one (`StoredPredictions.check`), before anything is
         evaluated or written.
+      gld.arguments.ArgumentError: the evaluation folder cannot be written in (a
+        read-only workdir), before anything is evaluated.
     """
     results = {}
     fitted: dict[str, Any] = {}
@@ -272,6 +283,7 @@ def evaluate_workdir(
             truth_resolution=info["truth_resolution"],
         )
         _check_identity(out_dir, {**info, "model": name, "flow_source": flow_source})
+        _check_writable(out_dir)
         predict = host_predictor(name, method.predict)
         results[name] = evaluate_predictor(
             predict,
@@ -301,6 +313,7 @@ def evaluate_workdir(
             dataset=None if _same_dataset(dataset, config.dataset) else dataset,
         )
         _check_identity(out_dir, {**info, "model": config.model, "flow_source": flow_source})
+        _check_writable(out_dir)
         results[config.model] = evaluate_source(
             model,
             variables,

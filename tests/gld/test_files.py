@@ -1,8 +1,12 @@
 """A full disk is told apart from other failures through the wrappers around it
-(`gld.files.no_space_error`)."""
+(`gld.files.no_space_error`); a folder that cannot be written in is found by a probe
+(`gld.files.write_problem`)."""
 
 import errno
 import os
+from pathlib import Path
+
+import pytest
 
 from gld import files
 
@@ -54,3 +58,19 @@ def test_other_failures_are_not_a_full_disk():
         KeyError("space"),
     ):
         assert files.no_space_error(error) is None, error
+
+
+def test_a_writable_folder_is_probed_and_nothing_is_left(tmp_path):
+    assert files.write_problem(tmp_path) is None
+    assert files.write_problem(tmp_path / "new" / "eval") is None
+    assert list(tmp_path.iterdir()) == []  # the probe removed, the missing folders not made
+    (tmp_path / "plain").write_text("x")
+    assert (
+        files.write_problem(tmp_path / "plain" / "eval") == f"{tmp_path / 'plain'} is not a folder"
+    )
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc")
+def test_a_folder_nobody_can_write_in_is_named():
+    # Permission bits do not stop root; /proc stops everyone.
+    assert files.write_problem("/proc/self/run/eval").startswith("cannot write in /proc/self (")

@@ -5,6 +5,7 @@ dataset mean. The evaluation itself: tests/gld/evaluation/test_evaluate.py and t
 launcher's tests (tests/experiments/test_train_launcher.py)."""
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -241,3 +242,29 @@ def test_the_records_protocol_is_in_the_report_as_written(tiny_scenes, tmp_path)
     again, _ = _oracle(workdir, _demon_builder(tiny_scenes), _no_truth, truth_resolution="record")
     assert again["protocol"] == report["protocol"]
     assert (folder / "table.md").read_text().count("records built with") == 1
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc")
+def test_a_workdir_that_cannot_be_written_is_refused_before_anything_is_evaluated(
+    tiny_scenes, monkeypatch
+):
+    from gld.evaluation import trained_run
+
+    def evaluated(*args, **kwargs):
+        raise AssertionError("evaluated")
+
+    monkeypatch.setattr(trained_run, "evaluate_predictor", evaluated)
+    with pytest.raises(ArgumentError) as refused:
+        evaluation_run.evaluate_split(
+            "/proc/self/run",
+            prepare_dataset=lambda name: tiny_scenes,
+            open_file_truth=_no_truth,
+            dataset="gld_scenes/tiny",
+            method="triangulation_gt_pose",
+            flow_source="gt",
+            print_fn=lambda line: None,
+        )
+    assert str(refused.value).startswith(
+        "the evaluation would be written to /proc/self/run/eval_flow-gt: cannot write in "
+        "/proc/self ("
+    )
