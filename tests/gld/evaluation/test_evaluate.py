@@ -3,6 +3,7 @@ carries its references."""
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -99,11 +100,11 @@ def test_the_oracle_alone_is_evaluated_once(tiny_scenes, tmp_path):
     assert ORACLE_ROW in table and SFM_ROW in table
 
 
-@pytest.fixture
-def untrained_workdir(tiny_scenes, tmp_path):
+@pytest.fixture(scope="module")
+def untrained_run(tiny_scenes, tmp_path_factory):
     """A workdir whose only checkpoint (step 0) holds the tiny model's initial state."""
     config = tiny_train_config()
-    workdir = tmp_path / "run"
+    workdir = tmp_path_factory.mktemp("untrained") / "run"
     workdir.mkdir()
     workdir_lib.write_run_config(workdir, config)
     model = registry.make_model(config.model, **config.model_config)
@@ -120,6 +121,12 @@ def untrained_workdir(tiny_scenes, tmp_path):
     manager.wait_until_finished()
     manager.close()
     return workdir
+
+
+@pytest.fixture
+def untrained_workdir(untrained_run, tmp_path):
+    """A copy of `untrained_run` for one test, which writes its evaluations there."""
+    return Path(shutil.copytree(untrained_run, tmp_path / "run"))
 
 
 def test_a_model_is_reported_with_the_references(tiny_scenes, untrained_workdir):

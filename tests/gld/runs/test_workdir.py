@@ -3,6 +3,7 @@ workdirs, the lock, verified checkpoints, the metrics log."""
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -206,12 +207,12 @@ def test_training_in_a_locked_workdir_is_refused_before_writing_or_building(
     assert sorted(path.name for path in tmp_path.iterdir()) == ["train.lock"]
 
 
-@pytest.fixture
-def two_checkpoints(tiny_scenes, tmp_path):
+@pytest.fixture(scope="module")
+def two_checkpoints_once(tiny_scenes, tmp_path_factory):
     """A workdir with checkpoints at steps 2 and 4 (different parameters) and the
     parameters of each."""
     config = tiny_train_config()
-    run_dir = tmp_path / "run"
+    run_dir = tmp_path_factory.mktemp("two_checkpoints") / "run"
     workdir.write_run_config(run_dir, config)
     model = registry.make_model(config.model, **config.model_config)
     state = state_lib.create_train_state(
@@ -232,6 +233,13 @@ def two_checkpoints(tiny_scenes, tmp_path):
         checkpoint_lib.save_checkpoint(manager, state, iterator)
     manager.close()
     return run_dir, params
+
+
+@pytest.fixture
+def two_checkpoints(two_checkpoints_once, tmp_path):
+    """A copy of `two_checkpoints_once` for one test, which may damage it."""
+    run_dir, params = two_checkpoints_once
+    return shutil.copytree(run_dir, tmp_path / "run"), params
 
 
 def _largest_array_file(step_dir):
