@@ -41,10 +41,14 @@ def _run(*args):
     return result.stdout
 
 
-def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_path):
+@pytest.mark.slow  # the whole suite; each task once
+def test_suite_killed_continues_reports_reuses_and_finishes(tiny_scenes_dir, tmp_path):
+    """A suite killed after its first task continues where it stopped and reports what is
+    finished; an analysis retrains a run whose checkpoint is gone; then the whole suite,
+    DispNet, FCRN and the flow experiment included, finishes on the tasks already done."""
     workdir, report_dir = tmp_path / "suite", tmp_path / "report"
     results = report_dir / "results"
-    # The analyses that need no other run; the rest are in the slow whole-suite test.
+    # First the analyses that need no other run.
     only = "train/global_local_1px,train/global_local_no_epipolar,classical/tiny,filters"
     # Killed (the whole process group) once its first task has finished.
     process = subprocess.Popen(
@@ -98,13 +102,9 @@ def test_suite_killed_continues_then_reports_and_reuses(tiny_scenes_dir, tmp_pat
     assert "global_local_no_epipolar: no checkpoint" not in continued  # filters reads one run
     assert json.loads((moved / "results" / "filters.json").read_text())["pairs"] == 16
 
-
-@pytest.mark.slow
-def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
-    """Every run and analysis of the suite, DispNet, FCRN and the flow experiment
-    included."""
+    # The whole suite, in the same places: the finished tasks are reused.
     result = subprocess.run(
-        [*_command(tiny_scenes_dir, tmp_path / "w", tmp_path / "r", "train")[:-2], "--noprogress"],
+        [*_command(tiny_scenes_dir, workdir, report_dir, "train")[:-2], "--noprogress"],
         capture_output=True,
         text=True,
         env=ENV,
@@ -112,9 +112,10 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
         timeout=3000,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    readme = (tmp_path / "r" / "README.md").read_text()
+    assert "train/global_local_no_epipolar: done (reused" in result.stdout
+    assert first_result.stat().st_mtime_ns == stamp
+    readme = (report_dir / "README.md").read_text()
     assert f"{RUNS} of {RUNS} training runs finished" in readme
-    results = tmp_path / "r" / "results"
     probe = json.loads((results / "pose_probe.json").read_text())["errors"]
     settings = {"scratch_mlp", "pretrained_mlp", "scratch_full", "pretrained_full"}
     assert settings <= set(probe["global_local_1px"])
@@ -123,7 +124,7 @@ def test_whole_tiny_suite(tiny_scenes_dir, tmp_path):
     assert set(curves) == {"global_local", "triangulation_gt_pose", "triangulation_predicted_pose"}
     assert sum(curves["global_local"]["count"]) == sum(curves["triangulation_gt_pose"]["count"])
     for figure in ("flow_error.png", "overfitting.png", "density.png", "qualitative.png"):
-        assert (tmp_path / "r" / figure).exists(), figure
+        assert (report_dir / figure).exists(), figure
     # The flow experiment: the fixed network is the one trained on the exact flow.
     flow_net = json.loads((results / "flow_net.json").read_text())["methods"]["flow_net"]
     after = json.loads((results / "flow_finetuning.json").read_text())["epe"]
