@@ -65,7 +65,6 @@ def main(argv):
     common.initialise()
     from data.demon import file_truth
     from gld.analysis import comparison
-    from gld.arguments import ArgumentError
     from gld.evaluation import evaluation_run
     from gld.models import registry
     from gld.models.baselines import CLASSICAL
@@ -83,18 +82,16 @@ def main(argv):
     builder = common.prepare_dataset()
     height, width = common.dataset_resolution(builder)
     eval_source = common.data_source(builder, FLAGS.split)
-    try:  # the truth is opened and checked before anything is trained
-        truth, _ = evaluation_run.open_truth(
-            builder,
-            FLAGS.split,
-            eval_source,
-            open_file_truth=file_truth.for_split,
-            truth_resolution=FLAGS.truth_resolution,
-            manual_dir=FLAGS.manual_dir,
-            max_examples=FLAGS.max_examples,
-        )
-    except ArgumentError as error:
-        raise app.UsageError(str(error)) from None
+    # The truth is opened and checked before anything is trained.
+    truth, _ = evaluation_run.open_truth(
+        builder,
+        FLAGS.split,
+        eval_source,
+        open_file_truth=file_truth.for_split,
+        truth_resolution=FLAGS.truth_resolution,
+        manual_dir=FLAGS.manual_dir,
+        max_examples=FLAGS.max_examples,
+    )
     try:
         comparison.run_comparison(
             workdir=FLAGS.workdir,

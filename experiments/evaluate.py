@@ -111,7 +111,6 @@ def main(argv):
     del argv
     common.initialise()
     from data.demon import file_truth
-    from gld.arguments import ArgumentError
     from gld.evaluation import evaluation_run
 
     if FLAGS.method and FLAGS.predictions:
@@ -123,28 +122,25 @@ def main(argv):
             depth_scale=FLAGS.predictions_scale,
             png_depth_scale=FLAGS.png_depth_scale,
         )
-    try:
-        evaluation_run.evaluate_split(
-            FLAGS.workdir,
-            prepare_dataset=common.prepare_dataset,
-            open_file_truth=file_truth.for_split,
-            dataset=FLAGS.dataset,
-            method=FLAGS.method,
-            predictions=predictions,
-            truth_resolution=FLAGS.truth_resolution,
-            manual_dir=FLAGS.manual_dir,
-            split=FLAGS.split,
-            batch_size=FLAGS.batch_size,
-            num_figures=FLAGS.num_figures,
-            max_examples=FLAGS.max_examples,
-            with_dataset_mean=FLAGS.dataset_mean,
-            with_oracle=FLAGS.oracle,
-            with_sfm_flow=FLAGS.sfm_flow,
-            step=FLAGS.step,
-            flow_source=FLAGS.flow_source,
-        )
-    except ArgumentError as error:
-        raise app.UsageError(str(error)) from None
+    evaluation_run.evaluate_split(
+        FLAGS.workdir,
+        prepare_dataset=common.prepare_dataset,
+        open_file_truth=file_truth.for_split,
+        dataset=FLAGS.dataset,
+        method=FLAGS.method,
+        predictions=predictions,
+        truth_resolution=FLAGS.truth_resolution,
+        manual_dir=FLAGS.manual_dir,
+        split=FLAGS.split,
+        batch_size=FLAGS.batch_size,
+        num_figures=FLAGS.num_figures,
+        max_examples=FLAGS.max_examples,
+        with_dataset_mean=FLAGS.dataset_mean,
+        with_oracle=FLAGS.oracle,
+        with_sfm_flow=FLAGS.sfm_flow,
+        step=FLAGS.step,
+        flow_source=FLAGS.flow_source,
+    )
 
 
 if __name__ == "__main__":

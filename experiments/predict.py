@@ -140,51 +140,44 @@ def main(argv):
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     common.initialise()
     from data.demon import recordings
-    from gld.arguments import ArgumentError
     from gld.inference import recording_run, scale_recovery
 
     if FLAGS.measure_scale:
-        try:
-            scale_recovery.measure_workdir(
-                FLAGS.workdir,
-                prepare_dataset=common.prepare_dataset,
-                dataset=FLAGS.dataset,
-                step=FLAGS.step,
-                seed=FLAGS.seed,
-                batch_size=FLAGS.batch_size,
-                max_examples=FLAGS.max_examples,
-                output_dir=FLAGS.output_dir,
-            )
-        except ArgumentError as error:
-            raise app.UsageError(str(error)) from None
+        scale_recovery.measure_workdir(
+            FLAGS.workdir,
+            prepare_dataset=common.prepare_dataset,
+            dataset=FLAGS.dataset,
+            step=FLAGS.step,
+            seed=FLAGS.seed,
+            batch_size=FLAGS.batch_size,
+            max_examples=FLAGS.max_examples,
+            output_dir=FLAGS.output_dir,
+        )
         return
     _check_flags()
-    try:
-        summary = recording_run.predict_recording_run(
-            FLAGS.workdir,
-            FLAGS.output_dir,
-            files=recordings,
-            images=FLAGS.images,
-            video=FLAGS.video,
-            step=FLAGS.step,
-            frame_gap=FLAGS.frame_gap,
-            pairs=FLAGS.pairs,
-            depth_format=_depth_format(),
-            previews=FLAGS.previews,
-            ply=FLAGS.ply,
-            intrinsics=FLAGS.intrinsics,
-            ranges=FLAGS.ranges,
-            range_scale=FLAGS.range_scale,
-            range_metric=FLAGS.range_metric,
-            poses=FLAGS.poses,
-            max_time_difference=FLAGS.max_time_difference,
-            min_baseline=FLAGS.min_baseline,
-            batch_size=FLAGS.batch_size,
-            aspect=FLAGS.aspect,
-            overwrite=FLAGS.overwrite,
-        )
-    except ArgumentError as error:
-        raise app.UsageError(str(error)) from None
+    summary = recording_run.predict_recording_run(
+        FLAGS.workdir,
+        FLAGS.output_dir,
+        files=recordings,
+        images=FLAGS.images,
+        video=FLAGS.video,
+        step=FLAGS.step,
+        frame_gap=FLAGS.frame_gap,
+        pairs=FLAGS.pairs,
+        depth_format=_depth_format(),
+        previews=FLAGS.previews,
+        ply=FLAGS.ply,
+        intrinsics=FLAGS.intrinsics,
+        ranges=FLAGS.ranges,
+        range_scale=FLAGS.range_scale,
+        range_metric=FLAGS.range_metric,
+        poses=FLAGS.poses,
+        max_time_difference=FLAGS.max_time_difference,
+        min_baseline=FLAGS.min_baseline,
+        batch_size=FLAGS.batch_size,
+        aspect=FLAGS.aspect,
+        overwrite=FLAGS.overwrite,
+    )
     skipped = sum(summary["pairs_skipped"].values())
     print(
         f"{summary['pairs_written']} pair(s) written to {FLAGS.output_dir} "

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from absl import app, flags
+from absl import flags
 
 from experiments import common
 
@@ -49,21 +49,17 @@ def main(argv):
     import data
     from data.gld_scenes import redraw
     from gld.analysis import regimes_run
-    from gld.arguments import ArgumentError
 
-    try:
-        summary = regimes_run.write_regimes(
-            FLAGS.workdir,
-            FLAGS.output_dir,
-            get_builder=lambda name: data.get_builder(name, FLAGS.data_dir),
-            texture_reader=redraw.texture_reader,
-            dataset=FLAGS.dataset,
-            eval_dir=FLAGS.eval_dir,
-            reference=FLAGS.reference,
-            num_bins=FLAGS.num_bins,
-        )
-    except ArgumentError as error:
-        raise app.UsageError(str(error)) from None
+    summary = regimes_run.write_regimes(
+        FLAGS.workdir,
+        FLAGS.output_dir,
+        get_builder=lambda name: data.get_builder(name, FLAGS.data_dir),
+        texture_reader=redraw.texture_reader,
+        dataset=FLAGS.dataset,
+        eval_dir=FLAGS.eval_dir,
+        reference=FLAGS.reference,
+        num_bins=FLAGS.num_bins,
+    )
     print(summary)
     print(f"wrote {Path(FLAGS.output_dir)}/regimes.csv, regimes.md, regimes.png")
 
