@@ -436,6 +436,7 @@ def test_the_final_evaluation_of_a_demon_dataset_is_demons_protocol_or_says_why_
     assert fallback["protocol"] in (workdir / "eval" / "table.md").read_text()
 
 
+@pytest.mark.slow  # two trainings and a diagnosis in subprocesses (about 90 s alone)
 def test_diagnose_self_supervised_launcher(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "struct2depth"
     trained = _launch(
