@@ -378,7 +378,6 @@ def test_tiny_baseline_test_pair_is_kept_and_counted(tmp_path, rng):
     # The input pipeline can normalise it (it refuses only DeMoN's ||t|| < 1e-6).
     from gld import contract
 
-    assert pairs.MIN_BASELINE == contract._MIN_TRANSLATION_NORM
     example = examples["test.h5/e_tiny/0-1"]
     normalised = contract.normalise_scale(
         {"id": "e", "translation": example["translation"], "depth": example["depth1"]}
@@ -661,7 +660,8 @@ def test_builder_builds_test_split_with_report(tmp_path, rng, capsys):
 
 def test_builder_defaults(tmp_path):
     scenes11 = data.get_builder("demon/scenes11", tmp_path)
-    assert scenes11.info.file_format.value == data.FILE_FORMAT == "array_record"
+    # The builder writes what grain and TFDS read without TensorFlow.
+    assert scenes11.info.file_format.value == "array_record"
     assert scenes11.build_options("train")["min_relative_baseline"] == 1e-4
     assert scenes11.build_options("test")["min_relative_baseline"] == 0.0
     assert scenes11.build_options("test")["depth_resampling"] == "demon"

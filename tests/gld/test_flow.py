@@ -46,7 +46,6 @@ def test_identical_images_have_no_flow(pair):
 
 
 def test_default_and_named_estimators_are_the_documented_functions(pair):
-    assert flow.DEFAULT_ESTIMATOR == "dis"
     np.testing.assert_array_equal(flow.estimate(*pair), flow.dis_flow(*pair))
     np.testing.assert_array_equal(
         flow.estimate(*pair, method="dis_fast"), flow.dis_flow(*pair, preset="fast")

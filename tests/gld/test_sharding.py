@@ -3,6 +3,7 @@
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import _interpreter, run_python
@@ -20,26 +21,87 @@ def test_a_local_batch_becomes_a_global_array_sharded_on_the_batch_axis():
     np.testing.assert_array_equal(sharding.gather(global_batch)["x"], batch["x"])
 
 
-def test_the_global_batch_must_split_over_the_devices():
-    mesh = sharding.make_mesh()
-    devices = mesh.devices.size
-    assert sharding.per_process_batch_size(4 * devices, mesh) == 4 * devices
-    if devices > 1:
-        with pytest.raises(ValueError, match="not divisible"):
-            sharding.per_process_batch_size(devices + 1, mesh)
+class _Devices:
+    """A mesh's device array, as far as the batch-size functions read it."""
+
+    def __init__(self, count):
+        self.devices = np.empty(count, object)
 
 
-def test_ids_come_back_as_strings_in_order():
-    assert sharding.gather_strings(np.array(["a/1", "b/2"])) == ["a/1", "b/2"]
+@pytest.mark.parametrize("processes, devices_per_process", [(1, 1), (1, 4), (2, 2), (4, 3)])
+def test_each_process_feeds_its_share_of_a_batch_that_splits_over_all_devices(
+    monkeypatch, processes, devices_per_process
+):
+    monkeypatch.setattr(jax, "process_count", lambda: processes)
+    mesh = _Devices(processes * devices_per_process)
+    for global_batch in range(1, 4 * processes * devices_per_process + 1):
+        if global_batch % (processes * devices_per_process):
+            with pytest.raises(ValueError, match="not divisible"):
+                sharding.per_process_batch_size(global_batch, mesh)
+            continue
+        local = sharding.per_process_batch_size(global_batch, mesh)
+        # The processes' rows make the global batch, and each process's rows split
+        # evenly over its own devices.
+        assert local * processes == global_batch
+        assert local % devices_per_process == 0
 
 
-def test_without_a_mesh_per_example_code_runs_unsharded():
-    apply = lambda banks, inputs, head: inputs  # noqa: E731
-    assert sharding.on_batch_shards(apply, 8) is apply
-    mesh = sharding.make_mesh(jax.devices()[:1])
-    with jax.set_mesh(mesh):
-        # one device: nothing to split
-        assert sharding.on_batch_shards(apply, 8) is apply
+def test_ids_of_every_process_come_back_as_strings_in_process_order(monkeypatch):
+    from jax.experimental import multihost_utils
+
+    # Three simulated processes: each encodes its own ids; the all-gather stacks what
+    # they sent, in process order.
+    ids = [np.array(["scenes/0", "scenes/3"]), np.array(["b/é", "x" * 200]), np.array([7, 8])]
+    sent = []
+    monkeypatch.setattr(jax, "process_count", lambda: len(ids))
+
+    def record(encoded, tiled):
+        sent.append(encoded)
+        return encoded
+
+    monkeypatch.setattr(multihost_utils, "process_allgather", record)
+    for values in ids:
+        sharding.gather_strings(values)
+    monkeypatch.setattr(
+        multihost_utils, "process_allgather", lambda encoded, tiled: np.concatenate(sent)
+    )
+    gathered = sharding.gather_strings(ids[0])
+    # Every string up to max_bytes (120) of its UTF-8 encoding.
+    assert gathered == ["scenes/0", "scenes/3", "b/é", "x" * 120, "7", "8"]
+    monkeypatch.setattr(jax, "process_count", lambda: 1)
+    assert sharding.gather_strings(np.array([3, 4])) == ["3", "4"]
+
+
+def test_per_example_code_runs_on_each_devices_share_of_the_batch():
+    from jax.sharding import AbstractMesh
+
+    seen = []
+
+    def apply(banks, inputs, head):
+        seen.append((banks.shape, inputs.shape, head.shape))
+        return inputs * head.sum()
+
+    def shapes_seen(batch_size, devices):
+        seen.clear()
+        mesh = AbstractMesh((devices,), (sharding.BATCH_AXIS,))
+        with jax.sharding.use_abstract_mesh(mesh):
+            jaxpr = jax.make_jaxpr(sharding.on_batch_shards(apply, batch_size))(
+                jnp.zeros((batch_size, 3)), jnp.zeros((batch_size, 2)), jnp.zeros(5)
+            )
+        assert jaxpr.out_avals[0].shape == (batch_size, 2)  # the whole batch comes back
+        return seen
+
+    # Four devices, eight examples: each device two; the shared head whole on every one.
+    assert shapes_seen(8, 4) == [((2, 3), (2, 2), (5,))]
+    # A batch the devices do not divide, or one device: the whole batch in one call.
+    assert shapes_seen(6, 4) == [((6, 3), (6, 2), (5,))]
+    assert shapes_seen(8, 1) == [((8, 3), (8, 2), (5,))]
+    # No mesh at all.
+    seen.clear()
+    jax.make_jaxpr(sharding.on_batch_shards(apply, 8))(
+        jnp.zeros((8, 3)), jnp.zeros((8, 2)), jnp.zeros(5)
+    )
+    assert seen == [((8, 3), (8, 2), (5,))]
 
 
 def test_an_evaluation_batch_is_rounded_up_to_the_devices():

@@ -1,10 +1,11 @@
 """Converting a model to ONNX (gld/inference/onnx_export.py): refusals, and the converted
-graph against the live model."""
+graph against the network written out in numpy."""
 
 import json
 import sys
 
 import export_checks
+import global_local_reference as reference
 import numpy as np
 import pytest
 from export_checks import HEIGHT, WIDTH
@@ -43,7 +44,7 @@ def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
     assert json.loads(stored.metadata_props[0].value) == metadata
     assert metadata["formulation"] == "shifted" and metadata["inputs"][0]["shape"][0] == "batch"
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    assert [entry.name for entry in session.getexport_checks.model_inputs()] == [
+    assert [entry.name for entry in session.get_inputs()] == [
         "image1",
         "image2",
         "flow",
@@ -53,6 +54,6 @@ def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
     for batch_size in (1, 3):
         image1, image2, flow = export_checks.model_inputs(batch_size, seed=batch_size)
         got = session.run(names, {"image1": image1, "image2": image2, "flow": flow})
-        want = model.apply(variables, image1, image2, flow)
+        want = reference.global_local(model, variables, image1, image2, flow)
         for key, value in zip(names, got, strict=True):
-            np.testing.assert_allclose(value, want[key], rtol=1e-5, atol=1e-5)
+            np.testing.assert_allclose(value, want[key], rtol=1e-4, atol=1e-5)

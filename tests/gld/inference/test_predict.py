@@ -4,11 +4,13 @@ dtypes, metric scale, intrinsics, clear errors, and the files a recording's run 
 import warnings
 
 import cv2
+import global_local_reference as reference
 import jax
 import numpy as np
 import pytest
 from conftest import TINY_MODEL
 
+from gld import flow as flow_lib
 from gld.inference import depth_io, inputs, recordings
 from gld.inference.predict import DepthPredictor
 from gld.models import global_local as model_lib
@@ -38,29 +40,100 @@ def _pair(height=HEIGHT, width=WIDTH, seed=0):
     return image1, np.roll(image1, 2, axis=1)
 
 
-def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(trained_workdir, eval_batch):
-    predictor = DepthPredictor.from_workdir(trained_workdir)
+def _resize_weights(out_size, in_size, kind):
+    """[out, in] weights of a 1-D resize, pixel centres at integer coordinates.
+
+    "area": output pixel i averages the input over [i, i + 1) * in / out, each input
+    pixel weighted by its overlap. "linear": output pixel i interpolates the input at
+    (i + 0.5) * in / out - 0.5, clamped to the image.
+    """
+    scale = in_size / out_size
+    weights = np.zeros((out_size, in_size))
+    for i in range(out_size):
+        if kind == "area":
+            for j in range(in_size):
+                overlap = min(j + 1, (i + 1) * scale) - max(j, i * scale)
+                weights[i, j] = max(overlap, 0.0) / scale
+        else:
+            source = min(max((i + 0.5) * scale - 0.5, 0.0), in_size - 1)
+            low = int(np.floor(source))
+            high = min(low + 1, in_size - 1)
+            weights[i, low] += 1.0 - (source - low)
+            weights[i, high] += source - low
+    return weights
+
+
+def _resized(images, height, width, kind):
+    """[B, H, W, C] -> [B, height, width, C], separable weights of `_resize_weights`."""
+    rows = _resize_weights(height, images.shape[1], kind)
+    cols = _resize_weights(width, images.shape[2], kind)
+    return np.einsum("ih,bhwc,jw->bijc", rows, np.asarray(images, np.float64), cols)
+
+
+def _model_by_hand(predictor, image1, image2, flow):
+    """The model's outputs on a batch at any size, the documented way: images to [0, 1],
+    area-resized to the model's size, shifted to [-0.5, 0.5]; the flow area-resized and
+    each component scaled as its axis (pixels of the model's image); the network written
+    out in numpy."""
+    _, in_height, in_width, _ = flow.shape
+    images = [_resized(image / 255.0, HEIGHT, WIDTH, "area") - 0.5 for image in (image1, image2)]
+    model_flow = _resized(flow, HEIGHT, WIDTH, "area") * [WIDTH / in_width, HEIGHT / in_height]
+    return reference.global_local(predictor.model, predictor.variables, *images, model_flow)
+
+
+def test_prediction_is_the_documented_pipeline_written_out_by_hand(tiny_predictor):
+    # Pairs at 1.5 times the model's size. The model's inverse depth is resized
+    # bilinearly to the input and inverted, then times the baseline.
+    in_height, in_width = 3 * HEIGHT // 2, 3 * WIDTH // 2
+    rng = np.random.default_rng(3)
+    image1 = rng.integers(0, 256, (2, in_height, in_width, 3), dtype=np.uint8)
+    image2 = rng.integers(0, 256, (2, in_height, in_width, 3), dtype=np.uint8)
+    flow = rng.normal(0.0, 4.0, (2, in_height, in_width, 2)).astype(np.float32)
+    outputs = tiny_predictor.predict(image1, image2, flow=flow, baseline=[0.3, 2.0])
+    expected = _model_by_hand(tiny_predictor, image1, image2, flow)
+    np.testing.assert_allclose(
+        outputs["global_params"], expected["global_params"], rtol=1e-4, atol=1e-6
+    )
+    np.testing.assert_allclose(outputs["inv_depth"], expected["inv_depth"], rtol=1e-4)
+    inv_depth = _resized(expected["inv_depth"][..., None], in_height, in_width, "linear")
+    depth = 1.0 / inv_depth[..., 0]
+    np.testing.assert_allclose(outputs["depth_baseline_units"], depth, rtol=1e-4)
+    np.testing.assert_allclose(outputs["depth"][0], 0.3 * depth[0], rtol=1e-4)
+    np.testing.assert_allclose(outputs["depth"][1], 2.0 * depth[1], rtol=1e-4)
+
+    # Another aspect ratio, stretched to the model's: x shrinks by 2/3, y not at all.
+    pair = (image1[:1, :HEIGHT], image2[:1, :HEIGHT], flow[:1, :HEIGHT])
+    with pytest.warns(UserWarning, match="stretched"):
+        stretched = tiny_predictor.predict(*pair)
+    expected = _model_by_hand(tiny_predictor, *pair)
+    np.testing.assert_allclose(stretched["inv_depth"], expected["inv_depth"], rtol=1e-4)
+
+    # Without flow=, the flow is estimated (DIS) on the resized images, in their pixels.
+    resized = [
+        cv2.resize(image.astype(np.float32) / 255.0, (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA)
+        for image in (image1[0], image2[0])
+    ]
+    expected = reference.global_local(
+        tiny_predictor.model,
+        tiny_predictor.variables,
+        resized[0][None] - 0.5,
+        resized[1][None] - 0.5,
+        flow_lib.estimate(*resized, "dis")[None],
+    )
+    estimated = tiny_predictor.predict(image1[0], image2[0])
+    np.testing.assert_allclose(estimated["inv_depth"], expected["inv_depth"][0], rtol=1e-4)
+
+
+def test_predictor_accepts_any_size_and_dtype_and_returns_input_size(tiny_predictor):
     rng = np.random.default_rng(0)
     image1 = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
     image2 = np.roll(image1, 2, axis=1)
-    depth = predictor(image1, image2)
+    outputs = tiny_predictor.predict(image1, image2)
+    depth = outputs["depth"]
     assert depth.shape == (60, 80) and np.all(depth > 0) and np.all(np.isfinite(depth))
+    assert outputs["units"] == "baseline" and outputs["scale_source"] == "none"
     # float images in [0, 1] give the same answer as the uint8 ones
-    np.testing.assert_allclose(predictor(image1 / 255.0, image2 / 255.0), depth, rtol=1e-4)
-    # at the model's own size, with the dataset's flow, it matches a direct model call
-    images1 = eval_batch["image1"] + 0.5
-    images2 = eval_batch["image2"] + 0.5
-    batched = predictor.predict(images1, images2, flow=eval_batch["flow"])
-    direct = predictor.model.apply(
-        predictor.variables, eval_batch["image1"], eval_batch["image2"], eval_batch["flow"]
-    )
-    np.testing.assert_allclose(batched["depth"], np.asarray(direct["depth"]), rtol=1e-4)
-    np.testing.assert_allclose(
-        batched["global_params"], np.asarray(direct["global_params"]), rtol=1e-4, atol=1e-7
-    )
-    assert batched["units"] == "baseline" and batched["scale_source"] == "none"
-    with pytest.raises(FileNotFoundError, match="config.json"):
-        DepthPredictor.from_workdir(trained_workdir / "nowhere")
+    np.testing.assert_allclose(tiny_predictor(image1 / 255.0, image2 / 255.0), depth, rtol=1e-4)
 
 
 def test_baseline_and_ranges_give_metric_depth(tiny_predictor):

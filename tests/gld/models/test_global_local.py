@@ -1,3 +1,4 @@
+import global_local_reference as reference
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,11 +19,24 @@ def _inputs(batch=2, height=24, width=32, seed=0):
     )
 
 
-def test_paper_architecture_shapes_and_hypernetwork_size():
+def _init(model, *inputs, **extra):
+    # Compiled, with the 'rbg' generator: op by op, the paper model's init takes seconds.
+    key = jax.random.key(0, impl="rbg")
+    return jax.jit(lambda inputs, extra: model.init(key, *inputs, **extra))(inputs, extra)
+
+
+@pytest.fixture(scope="module")
+def paper_model():
+    """The paper's model, its initial variables, a batch of two 32x24 pairs, and its
+    compiled apply."""
     model = model_lib.GlobalLocal()
-    image1, image2, flow = _inputs()
-    variables = model.init(jax.random.key(0), image1, image2, flow)
-    outputs = model.apply(variables, image1, image2, flow)
+    inputs = _inputs()
+    return model, _init(model, *inputs), inputs, jax.jit(model.apply)
+
+
+def test_paper_architecture_shapes_and_hypernetwork_size(paper_model):
+    model, variables, (image1, image2, flow), apply = paper_model
+    outputs = apply(variables, image1, image2, flow)
     assert outputs["inv_depth"].shape == (2, 24, 32)
     assert bool(jnp.all(outputs["inv_depth"] > 0))
     np.testing.assert_allclose(outputs["depth"] * outputs["inv_depth"], 1.0, rtol=1e-5)
@@ -39,12 +53,24 @@ def test_paper_architecture_shapes_and_hypernetwork_size():
     assert counts["final_conv"] == 3 * 3 * 20 + 1
 
 
-def test_different_pairs_get_different_filters():
-    model = model_lib.GlobalLocal()
-    image1, image2, flow = _inputs()
-    variables = model.init(jax.random.key(0), image1, image2, flow)
-    banks = model.apply(variables, image1, image2, flow)["filter_banks"]
-    assert not np.allclose(banks[0].kernel[0], banks[0].kernel[1])
+def test_the_model_is_the_documented_network_written_out_in_numpy(paper_model):
+    # Every parameter moved off its initial value (zero biases would hide a misplaced one).
+    model, variables, inputs, apply = paper_model
+    rng = np.random.default_rng(1)
+    variables = jax.tree.map(
+        lambda x: x + 0.05 * rng.standard_normal(x.shape, np.float32), variables
+    )
+    outputs = apply(variables, *inputs)
+    expected = reference.global_local(model, variables, *(np.asarray(x) for x in inputs))
+    np.testing.assert_allclose(
+        outputs["global_params"], expected["global_params"], rtol=1e-4, atol=1e-6
+    )
+    # Each pair's filters are the hypernetwork's linear map of its own global parameters.
+    for bank, (kernel, bias) in zip(outputs["filter_banks"], expected["banks"], strict=True):
+        np.testing.assert_allclose(bank.kernel, kernel, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(bank.bias, bias, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(outputs["inv_depth"], expected["inv_depth"], rtol=1e-4)
+    np.testing.assert_allclose(outputs["depth"], expected["depth"], rtol=1e-4)
 
 
 @pytest.mark.parametrize(
@@ -59,8 +85,16 @@ def test_different_pairs_get_different_filters():
 def test_ablations_change_what_the_model_sees(ablation, local_channels):
     model = model_lib.GlobalLocal(**ablation)
     image1, image2, flow = _inputs()
-    variables = model.init(jax.random.key(0), image1, image2, flow)
-    outputs = model.apply(variables, image1, image2, flow)
+    # Shapes alone, unless the check reads values (computing them compiles the model).
+    needs_values = ablation.get("use_global_module") is False or ablation.get("use_flow") is False
+    if needs_values:
+        variables = _init(model, image1, image2, flow)
+        apply = jax.jit(model.apply)
+        outputs = apply(variables, image1, image2, flow)
+    else:
+        outputs, variables = jax.eval_shape(
+            model.init_with_output, jax.random.key(0), image1, image2, flow
+        )
     assert outputs["filter_banks"][0].kernel.shape[-2] == local_channels
     assert outputs["inv_depth"].shape == (2, 24, 32)
     params = variables["params"]
@@ -74,14 +108,12 @@ def test_ablations_change_what_the_model_sees(ablation, local_channels):
         assert params["global_encoder"]["conv0"]["kernel"].shape[-2] == 2
     if ablation.get("use_flow") is False:
         # flow must not matter at all
-        other = model.apply(variables, image1, image2, flow * 0 + 5.0)
+        other = apply(variables, image1, image2, flow * 0 + 5.0)
         np.testing.assert_allclose(other["inv_depth"], outputs["inv_depth"], rtol=1e-6)
 
 
-def test_gradients_reach_the_hypernetwork_and_the_global_encoder():
-    model = model_lib.GlobalLocal()
-    image1, image2, flow = _inputs()
-    variables = model.init(jax.random.key(0), image1, image2, flow)
+def test_gradients_reach_the_hypernetwork_and_the_global_encoder(paper_model):
+    model, variables, (image1, image2, flow), _ = paper_model
     batch = {
         "image1": image1,
         "depth": jnp.full((2, 24, 32), 3.0),
@@ -92,7 +124,7 @@ def test_gradients_reach_the_hypernetwork_and_the_global_encoder():
         outputs = model.apply({"params": params}, image1, image2, flow)
         return losses.total_loss(outputs, batch)[0]
 
-    grads = jax.grad(loss_fn)(variables["params"])
+    grads = jax.jit(jax.grad(loss_fn))(variables["params"])
     for module in ("global_encoder", "hypernet", "final_conv"):
         norm = sum(float(jnp.sum(g**2)) for g in jax.tree_util.tree_leaves(grads[module]))
         assert norm > 0, module
@@ -100,10 +132,8 @@ def test_gradients_reach_the_hypernetwork_and_the_global_encoder():
     assert float(jnp.abs(first_conv).sum()) > 0
 
 
-def test_bad_inputs_are_named():
-    model = model_lib.GlobalLocal()
-    image1, image2, flow = _inputs()
-    variables = model.init(jax.random.key(0), image1, image2, flow)
+def test_bad_inputs_are_named(paper_model):
+    model, variables, (image1, image2, flow), _ = paper_model
     with pytest.raises(ValueError, match="flow"):
         model.apply(variables, image1, image2, flow[..., :1])
     with pytest.raises(ValueError, match="image2"):
@@ -129,16 +159,14 @@ def _local_network_by_hand(variables, filter_banks, local_flow):
     return layers.depth_outputs(logits)["inv_depth"]
 
 
-def test_local_flow_units_scale_only_the_local_input():
-    image1, image2, flow = _inputs()
-    normalised = model_lib.GlobalLocal()
+def test_local_flow_units_scale_only_the_local_input(paper_model):
+    normalised, variables, (image1, image2, flow), apply = paper_model
     pixels = model_lib.GlobalLocal(local_flow_units="pixels")
-    variables = normalised.init(jax.random.key(0), image1, image2, flow)
     # Same parameters: the global module sees flow / [W, H] * flow_scale in both models,
     # so both generate the same filters; the local network sees that same normalised
     # flow in one and the flow in pixels in the other.
-    a = pixels.apply(variables, image1, image2, flow)
-    b = normalised.apply(variables, image1, image2, flow)
+    a = jax.jit(pixels.apply)(variables, image1, image2, flow)
+    b = apply(variables, image1, image2, flow)
     np.testing.assert_allclose(a["global_params"], b["global_params"], rtol=1e-6)
     for bank_a, bank_b in zip(a["filter_banks"], b["filter_banks"], strict=True):
         np.testing.assert_allclose(bank_a.kernel, bank_b.kernel, rtol=1e-6)
@@ -153,21 +181,25 @@ def test_local_flow_units_scale_only_the_local_input():
     )
     assert not np.allclose(a["inv_depth"], b["inv_depth"], rtol=1e-3)
     with pytest.raises(ValueError, match="local_flow_units"):
-        model_lib.GlobalLocal(local_flow_units="metres").init(
-            jax.random.key(0), image1, image2, flow
+        jax.eval_shape(
+            model_lib.GlobalLocal(local_flow_units="metres").init,
+            jax.random.key(0),
+            image1,
+            image2,
+            flow,
         )
 
 
-def test_flow_scale_multiplies_the_flow_both_modules_see():
-    image1, image2, flow = _inputs()
-    scaled = model_lib.GlobalLocal(flow_scale=10.0)
-    plain = model_lib.GlobalLocal(flow_scale=1.0)
-    variables = plain.init(jax.random.key(0), image1, image2, flow)
-    a = scaled.apply(variables, image1, image2, flow)
-    b = plain.apply(variables, image1, image2, flow * 10.0)
+def test_flow_scale_multiplies_the_flow_both_modules_see(paper_model):
+    # flow_scale changes no parameter: the paper model's variables serve both.
+    scaled, variables, (image1, image2, flow), apply_scaled = paper_model
+    assert scaled.flow_scale == 10.0
+    plain = jax.jit(model_lib.GlobalLocal(flow_scale=1.0).apply)
+    a = apply_scaled(variables, image1, image2, flow)
+    b = plain(variables, image1, image2, flow * 10.0)
     np.testing.assert_allclose(a["inv_depth"], b["inv_depth"], rtol=1e-5)
     np.testing.assert_allclose(a["global_params"], b["global_params"], rtol=1e-5, atol=1e-7)
-    c = plain.apply(variables, image1, image2, flow)
+    c = plain(variables, image1, image2, flow)
     assert not np.allclose(a["global_params"], c["global_params"])
 
 
@@ -236,19 +268,31 @@ def test_a_model_given_the_pose_steers_its_filters_with_it_and_has_no_encoder():
     assert model_lib.GlobalLocal().extra_inputs == ()
     variables = state.init_variables(model, 24, 32, seed=0)
     assert set(variables["params"]) == {"hypernet", "final_conv"}
-    outputs = model.apply(
-        variables, image1, image2, flow, rotation=rotation, translation=translation
-    )
+    apply = jax.jit(model.apply)
+    outputs = apply(variables, image1, image2, flow, rotation=rotation, translation=translation)
     np.testing.assert_allclose(
         outputs["global_params"], model_lib.pose_parameters(rotation, translation), atol=1e-6
     )
-    # Same inputs, other translation: other filters, other depth.
-    kernels = [np.asarray(bank.kernel) for bank in outputs["filter_banks"]]
-    assert not np.allclose(kernels[0][0], kernels[0][1])
-    swapped = model.apply(
-        variables, image1, image2, flow, rotation=rotation, translation=translation[::-1]
+    # Each pair's filters are the hypernetwork's linear map of its pose parameters, and
+    # its depth the local network's with those filters; with the translations swapped,
+    # the pairs' filters swap.
+    for given_translation in (translation, translation[::-1]):
+        given = apply(
+            variables, image1, image2, flow, rotation=rotation, translation=given_translation
+        )
+        expected = reference.global_local(
+            model,
+            variables,
+            *(np.asarray(x) for x in (image1, image2, flow)),
+            global_params=np.asarray(model_lib.pose_parameters(rotation, given_translation)),
+        )
+        for bank, (kernel, bias) in zip(given["filter_banks"], expected["banks"], strict=True):
+            np.testing.assert_allclose(bank.kernel, kernel, rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(bank.bias, bias, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(given["inv_depth"], expected["inv_depth"], rtol=1e-4)
+    np.testing.assert_allclose(
+        given["filter_banks"][0].kernel[::-1], outputs["filter_banks"][0].kernel, rtol=1e-6
     )
-    assert not np.allclose(swapped["inv_depth"], outputs["inv_depth"])
     with pytest.raises(ValueError, match="needs the relative pose"):
         model.apply(variables, image1, image2, flow)
     with pytest.raises(ValueError, match="global_dim is 4"):
@@ -278,10 +322,17 @@ def test_global_params_read_as_a_pose_invert_the_given_pose_parameters():
     )
     assert np.all(np.isfinite(gradient))
     image1, image2, flow = _inputs()
-    outputs = model_lib.GlobalLocal().init_with_output(jax.random.key(0), image1, image2, flow)[0]
-    assert outputs["global_pose"]["rotation"].shape == (2, 3, 3)
-    small = model_lib.GlobalLocal(global_dim=4)
-    assert "global_pose" not in small.init_with_output(jax.random.key(0), image1, image2, flow)[0]
+    for global_dim, has_pose in ((6, True), (4, False)):
+        outputs, _ = jax.eval_shape(
+            model_lib.GlobalLocal(global_dim=global_dim).init_with_output,
+            jax.random.key(0),
+            image1,
+            image2,
+            flow,
+        )
+        assert ("global_pose" in outputs) == has_pose
+        if has_pose:
+            assert outputs["global_pose"]["rotation"].shape == (2, 3, 3)
 
 
 # The first entries of `gld.models.global_local._PERTURBATION_MIX` when the pose-error runs of
@@ -368,13 +419,14 @@ def test_a_model_given_a_perturbed_pose_reads_it_and_refuses_it_without_a_given_
 
 def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnormalised():
     image1, image2, flow = _inputs()
-    variables = model_lib.GlobalLocal(encoder_norm="instance").init(
-        jax.random.key(0), image1, image2, flow
-    )
-    encoder = variables["params"]["global_encoder"]
-    assert {f"norm{i}" for i in range(5)} <= set(encoder)
-    plain = model_lib.GlobalLocal(encoder_norm="none").init(jax.random.key(0), image1, image2, flow)
-    assert not any(name.startswith("norm") for name in plain["params"]["global_encoder"])
+
+    def encoder_layers(norm):
+        model = model_lib.GlobalLocal(encoder_norm=norm)
+        variables = jax.eval_shape(model.init, jax.random.key(0), image1, image2, flow)
+        return set(variables["params"]["global_encoder"])
+
+    assert {f"norm{i}" for i in range(5)} <= encoder_layers("instance")
+    assert not any(name.startswith("norm") for name in encoder_layers("none"))
     # A stored config written before the option was trained without normalisation.
     assert registry.complete_stored_config("global_local", {})["encoder_norm"] == "none"
     with pytest.raises(ValueError, match="encoder_norm must be one of"):
@@ -386,22 +438,22 @@ def test_encoder_coordinates_reach_the_global_encoder_alone():
 
     image1, image2, flow = _inputs()
     with_coordinates = model_lib.GlobalLocal(use_image_pair=False, encoder_coordinates=True)
-    variables = with_coordinates.init(jax.random.key(0), image1, image2, flow)
+    variables = _init(with_coordinates, image1, image2, flow)
     # The flow (2 channels) and x, y: the encoder's first kernel reads 4 channels.
     assert variables["params"]["global_encoder"]["conv0"]["kernel"].shape[2] == 4
-    outputs = with_coordinates.apply(variables, image1, image2, flow)
+    outputs = jax.jit(with_coordinates.apply)(variables, image1, image2, flow)
     # The encoder's output is its own applied to the flow with the coordinates appended.
     coordinates = jnp.broadcast_to(
         geometry.normalised_coordinates(24, 32, jnp), (2, 24, 32, 2)
     ).astype(jnp.float32)
     encoder_inputs = jnp.concatenate([layers.normalise_flow(flow) * 10.0, coordinates], -1)
-    expected = model_lib.GlobalEncoder().apply(
+    expected = jax.jit(model_lib.GlobalEncoder().apply)(
         {"params": variables["params"]["global_encoder"]}, encoder_inputs
     )
     np.testing.assert_allclose(outputs["global_params"], expected, rtol=1e-5, atol=1e-7)
     # The local network's input is unchanged: flow and coordinates.
-    plain = model_lib.GlobalLocal(use_image_pair=False).init(
-        jax.random.key(0), image1, image2, flow
+    plain = jax.eval_shape(
+        model_lib.GlobalLocal(use_image_pair=False).init, jax.random.key(0), image1, image2, flow
     )
     assert plain["params"]["global_encoder"]["conv0"]["kernel"].shape[2] == 2
     assert jax.tree_util.tree_map(jnp.shape, plain["params"]["hypernet"]) == jax.tree_util.tree_map(

@@ -13,7 +13,6 @@ from gld.models import layers
 def test_leaky_relu_has_slope_0_2_below_zero_and_identity_above():
     x = jnp.array([-2.0, -0.5, 0.0, 0.25, 3.0])
     np.testing.assert_allclose(layers.leaky_relu(x), [-0.4, -0.1, 0.0, 0.25, 3.0], rtol=1e-6)
-    assert layers.NEGATIVE_SLOPE == 0.2
 
 
 def test_normalise_flow_divides_x_by_width_and_y_by_height():
@@ -42,15 +41,14 @@ def test_network_inputs_stack_images_then_normalised_flow():
 
 
 def test_positive_inv_depth_starts_at_the_initial_value_and_stays_above_the_floor():
-    # softplus(0 + log(expm1(0.1))) = 0.1 exactly; the floor is added on top.
+    # softplus(0 + log(expm1(c))) = c exactly; the floor is added on top.
     zero = layers.positive_inv_depth(jnp.zeros(3))
     np.testing.assert_allclose(zero, layers.INITIAL_INV_DEPTH + layers.MIN_INV_DEPTH, rtol=1e-6)
-    assert layers.INITIAL_INV_DEPTH == 0.1
     # Very negative logits saturate at the floor; very positive ones grow linearly.
     low = layers.positive_inv_depth(jnp.array([-100.0]))
     np.testing.assert_allclose(low, layers.MIN_INV_DEPTH, rtol=1e-4)
     high = layers.positive_inv_depth(jnp.array([50.0]))
-    expected_high = 50.0 + math.log(math.expm1(0.1)) + layers.MIN_INV_DEPTH
+    expected_high = 50.0 + math.log(math.expm1(layers.INITIAL_INV_DEPTH)) + layers.MIN_INV_DEPTH
     np.testing.assert_allclose(high, expected_high, rtol=1e-6)
     # Monotonic increasing.
     ramp = np.asarray(layers.positive_inv_depth(jnp.linspace(-10.0, 10.0, 101)))

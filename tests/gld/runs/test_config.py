@@ -1,5 +1,6 @@
 """The run configuration: one definition of every training option."""
 
+import copy
 import dataclasses
 
 import pytest
@@ -90,10 +91,35 @@ def test_validate_names_the_option_that_cannot_give_a_sound_run(values, named):
         config.TrainConfig(**values).validate()
 
 
-def test_the_defaults_and_the_main_job_are_valid():
-    assert config.TrainConfig().validate() == config.TrainConfig()
-    config.TrainConfig(model_config=recipe.ARCHITECTURE, **recipe.TRAINING).validate()
-    config.TrainConfig(eval_every=0, model="dispnet").validate()
+@pytest.mark.parametrize(
+    "values",
+    [
+        {},
+        {"model_config": recipe.ARCHITECTURE, **recipe.TRAINING},
+        {"eval_every": 0, "model": "dispnet"},
+        # Every bound is inclusive: the values on the bounds give a sound run.
+        {
+            "steps": 1,
+            "log_every": 1,
+            "checkpoint_every": 1,
+            "keep_checkpoints": 1,
+            "eval_every": 0,
+            "gt_pixels": 0,
+            "seed": 0,
+            "depth_weight": 0.0,
+            "smoothness_weight": 0.0,
+            "model_config": {"global_dim": 1, "bank_channels": [1], "encoder_strides": [1] * 5},
+        },
+        # The pose terms apply to the paper's model, whose six global parameters are a pose.
+        {"epipolar_weight": 0.1, "pose_teacher_weight": 0.1},
+    ],
+    ids=["defaults", "main_job", "no_evaluation", "on_the_bounds", "pose_terms"],
+)
+def test_a_sound_run_is_accepted_unchanged(values):
+    run = config.TrainConfig(**values)
+    before = copy.deepcopy(dataclasses.asdict(run))
+    assert run.validate() is run
+    assert dataclasses.asdict(run) == before  # validate checks; it changes no value
 
 
 def test_the_epipolar_term_applies_to_global_parameters_that_are_inferred_poses():

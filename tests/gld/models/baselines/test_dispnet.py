@@ -1,7 +1,9 @@
 import baseline_checks
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
+from global_local_reference import inv_depth_of
 
 from gld.models import baselines
 from gld.models.baselines.dispnet import DispNet
@@ -44,8 +46,28 @@ def test_original_layer_sizes():
     assert baselines.LEARNED["dispnet"] is DispNet
 
 
+def test_each_scale_is_its_prediction_layer_and_the_output_is_pr1_upsampled():
+    model = DispNet(**NARROW)
+    image1, image2, flow, _, _ = baseline_checks.tiny_batch(2, 32, 32)
+    variables = baseline_checks.drawn_variables(model, 32, 32)
+    apply = baseline_checks.capturing(model)
+    outputs, layers = apply(variables, image1, image2, flow)
+    # pr1 (1/2 resolution) up-sampled bilinearly is the depth; pr2 ... pr6 the pyramid.
+    full = baseline_checks.upsample_bilinear(layers["pr1"][..., 0], 32, 32)
+    np.testing.assert_allclose(outputs["inv_depth"], inv_depth_of(full), rtol=1e-5, atol=1e-6)
+    assert len(outputs["inv_depth_pyramid"]) == 5
+    for level, scale in enumerate(outputs["inv_depth_pyramid"], start=2):
+        np.testing.assert_allclose(
+            scale, inv_depth_of(layers[f"pr{level}"][..., 0]), rtol=1e-5, atol=1e-6
+        )
+    # The pairs of a batch are predicted independently.
+    changed, _ = apply(variables, image1, image2, flow + 5.0 * np.arange(2)[:, None, None, None])
+    np.testing.assert_array_equal(changed["inv_depth"][0], outputs["inv_depth"][0])
+    assert np.abs(changed["inv_depth"][1] - outputs["inv_depth"][1]).max() > 1e-4
+
+
 @pytest.mark.slow
-def test_training_lowers_sparse_loss():
-    losses, outputs, _ = baseline_checks.train_tiny(DispNet(**NARROW))
-    baseline_checks.check_trained_outputs(losses, outputs)
+def test_training_learns_depth_from_the_flow():
+    losses, outputs, inv_depth, _ = baseline_checks.train_tiny(DispNet(**NARROW), steps=250)
+    baseline_checks.check_learned(losses, outputs, inv_depth)
     assert len(outputs["inv_depth_pyramid"]) == 5

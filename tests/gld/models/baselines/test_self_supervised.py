@@ -139,12 +139,24 @@ def test_shapes_and_parameters():
     without_flow = baselines.parameter_count(SelfSupervised(), 192, 256)
     with_flow = baselines.parameter_count(SelfSupervised(use_flow=True), 192, 256)
     assert with_flow - without_flow == 2 * (7 * 7 * 2 * 16) + 3 * 3 * 2 * 16
-    assert SelfSupervisedFlow().use_flow and SelfSupervisedFlow.LOSS == "self_supervised"
+    assert SelfSupervisedFlow().use_flow
     assert baselines.parameter_count(SelfSupervisedFlow(), 192, 256) == with_flow
 
 
-def test_loss_selection_attribute_is_not_an_option():
-    assert SelfSupervised.LOSS == "self_supervised"
+def test_the_self_supervised_models_train_without_depth_labels_and_their_loss_is_no_option():
+    from gld.runs.config import TrainConfig
+    from gld.training import trainer
+
+    for name, model_class in (
+        ("struct2depth", SelfSupervised),
+        ("struct2depth_flow", SelfSupervisedFlow),
+    ):
+        assert baselines.LEARNED[name] is model_class
+        assert isinstance(TrainConfig(model=name).loss_weights(), photometric.SelfSupervisedWeights)
+        keys = trainer.batch_keys(model_class())
+        assert "depth" not in keys and {"intrinsics1", "intrinsics2"} <= set(keys)
+    # A supervised model of the same signature reads the depth.
+    assert "depth" in trainer.batch_keys(baselines.LEARNED["small_encdec"]())
     fields = {field.name for field in dataclasses.fields(SelfSupervised)}
     assert "LOSS" not in fields
     assert {"use_flow", "num_scales", "min_depth", "max_depth", "pose_scale"} <= fields
