@@ -113,15 +113,20 @@ def gather(tree: Any) -> Any:
     return multihost_utils.process_allgather(tree, tiled=True)
 
 
+def _utf8_prefix(text: str, max_bytes: int) -> bytes:
+    """At most `max_bytes` of `text`'s UTF-8 encoding, never half a character."""
+    return text.encode()[:max_bytes].decode(errors="ignore").encode()
+
+
 def gather_strings(values: Sequence[Any], max_bytes: int = 120) -> list[str]:
-    """Every process's strings (e.g. example ids, at most `max_bytes` each), in process
-    order, on every host."""
+    """Every process's strings (e.g. example ids, at most `max_bytes` of UTF-8 each, cut
+    between characters), in process order, on every host."""
     if jax.process_count() == 1:
         return [str(value) for value in values]
     from jax.experimental import multihost_utils
 
     encoded = np.array(
-        [list(str(value).encode()[:max_bytes].ljust(max_bytes, b"\0")) for value in values],
+        [list(_utf8_prefix(str(value), max_bytes).ljust(max_bytes, b"\0")) for value in values],
         np.uint8,
     )
     gathered = multihost_utils.process_allgather(encoded, tiled=True)

@@ -51,7 +51,11 @@ def test_ids_of_every_process_come_back_as_strings_in_process_order(monkeypatch)
 
     # Three simulated processes: each encodes its own ids; the all-gather stacks what
     # they sent, in process order.
-    ids = [np.array(["scenes/0", "scenes/3"]), np.array(["b/é", "x" * 200]), np.array([7, 8])]
+    ids = [
+        np.array(["scenes/0", "scenes/3"]),
+        np.array(["b/é", "x" * 200, "a" + "é" * 60]),
+        np.array([7, 8]),
+    ]
     sent = []
     monkeypatch.setattr(jax, "process_count", lambda: len(ids))
 
@@ -66,8 +70,8 @@ def test_ids_of_every_process_come_back_as_strings_in_process_order(monkeypatch)
         multihost_utils, "process_allgather", lambda encoded, tiled: np.concatenate(sent)
     )
     gathered = sharding.gather_strings(ids[0])
-    # Every string up to max_bytes (120) of its UTF-8 encoding.
-    assert gathered == ["scenes/0", "scenes/3", "b/é", "x" * 120, "7", "8"]
+    # Every string up to max_bytes (120) of its UTF-8 encoding, cut between characters.
+    assert gathered == ["scenes/0", "scenes/3", "b/é", "x" * 120, "a" + "é" * 59, "7", "8"]
     monkeypatch.setattr(jax, "process_count", lambda: 1)
     assert sharding.gather_strings(np.array([3, 4])) == ["3", "4"]
 
