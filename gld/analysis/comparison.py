@@ -168,14 +168,14 @@ def run_comparison(
         f"{train_config.get('batch_size')}, {train_config.get('gt_pixels')} supervised "
         f"pixel(s) per image, seed {train_config.get('seed')}; {flow_source} flow for every method"
     )
-    records_note = metrics.records_protocol_note(records_protocol) if records_protocol else ""
     stamp = metrics.protocol_stamp(
         height,
         width,
         num_examples,
-        extra="; ".join(filter(None, [budget, records_note])),
+        extra=budget,
         truth_resolution="record" if truth is None else "file",
         file_resolutions=file_resolutions,
+        records_protocol=records_protocol,
     )
     report = {
         "protocol": stamp,

@@ -152,6 +152,7 @@ def protocol_stamp(
     *,
     truth_resolution: str = "record",
     file_resolutions: Mapping[str, int] | None = None,
+    records_protocol: Mapping[str, Any] | None = None,
 ) -> str:
     """One line saying exactly how a table's numbers were computed.
 
@@ -165,6 +166,7 @@ def protocol_stamp(
         the source files, each prediction resized to it by `resize_nearest`, as DeMoN's
         evaluation does.
       file_resolutions: with "file", "<W>x<H>" -> how many examples had truth of that size.
+      records_protocol: the records' build options (`records_protocol_note`), named last.
     """
     if truth_resolution not in TRUTH_RESOLUTIONS:
         raise ValueError(
@@ -189,7 +191,8 @@ def protocol_stamp(
         f"and counted, as in DeMoN's metrics); per-example means averaged over "
         f"{num_examples} examples; no median scaling"
     )
-    return f"{stamp}; {extra}" if extra else stamp
+    records_note = records_protocol_note(records_protocol) if records_protocol else ""
+    return "; ".join(filter(None, [stamp, extra, records_note]))
 
 
 def resolution_counts(shapes: Iterable[tuple[int, int]]) -> dict[str, int]:

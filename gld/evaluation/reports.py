@@ -105,14 +105,14 @@ def write_report(
             for row, example_id in enumerate(ids):
                 if mask[row]:
                     writer.writerow([example_id, *(f"{per_example[n][row]:.6g}" for n in names)])
-    records_note = metrics.records_protocol_note(records_protocol) if records_protocol else ""
     stamp = metrics.protocol_stamp(
         height,
         width,
         num_examples,
-        extra="; ".join(filter(None, [protocol_note, records_note])),
+        extra=protocol_note,
         truth_resolution=truth_resolution,
         file_resolutions=file_resolutions,
+        records_protocol=records_protocol,
     )
     labels = {name: label for name, label in classical.LABELS.items() if name in summaries}
     excluded = {method: metrics.excluded_pixels(summary) for method, summary in summaries.items()}
