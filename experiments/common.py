@@ -121,6 +121,22 @@ def _stop(line: str) -> NoReturn:
     sys.exit(1)
 
 
+def define_truth_resolution_flag() -> None:
+    """--truth_resolution, as evaluate and compare read it."""
+    from gld.evaluation import metrics
+
+    flags.DEFINE_enum(
+        "truth_resolution",
+        None,
+        list(metrics.TRUTH_RESOLUTIONS),
+        "Where the ground truth is scored: file (the resolution of the DeMoN files the "
+        "split was built from, in --manual_dir or where the build found them, read by "
+        "example id, each prediction resized by nearest neighbour, as DeMoN evaluates; "
+        "demon/* datasets only) or record (the records' resolution). Default: file for "
+        "demon/* datasets, record for the others.",
+    )
+
+
 def define_data_flags(default_dataset: str = "gld_scenes/small") -> None:
     flags.DEFINE_string(
         "dataset", default_dataset, "TFDS dataset with config, e.g. gld_scenes/small, demon/sun3d."

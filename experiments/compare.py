@@ -33,7 +33,6 @@ from absl import app, flags
 
 from experiments import common
 from gld import files
-from gld.evaluation import metrics
 
 FLAGS = flags.FLAGS
 
@@ -48,14 +47,7 @@ flags.DEFINE_list(
 common.define_training_flags(exclude=("model",), steps=2500, eval_every=0)
 flags.DEFINE_string("split", "test", "Split every method is evaluated on.")
 flags.DEFINE_integer("max_examples", 0, "Evaluate the first N examples only (0 = all).")
-flags.DEFINE_enum(
-    "truth_resolution",
-    None,
-    list(metrics.TRUTH_RESOLUTIONS),
-    "Where the ground truth is scored, as experiments.evaluate's flag: file (the DeMoN "
-    "files' resolution, DeMoN's protocol; demon/* datasets only) or record. Default: file "
-    "for demon/* datasets, record for the others.",
-)
+common.define_truth_resolution_flag()
 common.define_data_flags()
 common.define_flow_net_flags()
 

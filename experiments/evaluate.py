@@ -45,7 +45,7 @@ from __future__ import annotations
 from absl import app, flags
 
 from experiments import common
-from gld.evaluation import metrics, stored_predictions
+from gld.evaluation import stored_predictions
 from gld.models.baselines import CLASSICAL
 
 FLAGS = flags.FLAGS
@@ -77,16 +77,7 @@ flags.DEFINE_float(
     "Depth per unit of a 16-bit PNG prediction (0.001: millimetres to metres); 0 means no "
     "prediction (the pixel is excluded and counted).",
 )
-flags.DEFINE_enum(
-    "truth_resolution",
-    None,
-    list(metrics.TRUTH_RESOLUTIONS),
-    "Where the ground truth is scored: file (the resolution of the DeMoN files the split "
-    "was built from, in --manual_dir or where the build found them, read by example id, "
-    "each prediction resized by nearest neighbour, as DeMoN evaluates; demon/* datasets "
-    "only) or record (the records' resolution). Default: file for demon/* datasets, "
-    "record for the others.",
-)
+common.define_truth_resolution_flag()
 flags.DEFINE_string("split", "test", "Split to evaluate.")
 flags.DEFINE_integer("batch_size", 16, "Evaluation batch size (last batch padded).")
 flags.DEFINE_integer("num_figures", 8, "Example figures to draw.")

@@ -71,6 +71,7 @@ class FileTruth:
         self._files: dict[str, reader.DemonFile] = {}
         self._baselines: dict[str, float] = {}
         self._shapes: dict[str, tuple[int, int]] = {}
+        self._checked: list[tuple[str, float]] | None = None
 
     def __enter__(self) -> FileTruth:
         return self
@@ -94,7 +95,8 @@ class FileTruth:
         return self._file(file_name).view(group, pair[which])
 
     def check(self, examples: Iterable[tuple[str, float]]) -> None:
-        """Reads both views of every example and remembers its ||t|| and truth shape.
+        """Reads both views of every example and remembers its ||t|| and truth shape;
+        the examples checked last are not read again.
 
         Args:
           examples: (id, ||t|| of its record) of each example to be scored
@@ -105,8 +107,11 @@ class FileTruth:
           missing or unreadable, whose views are damaged, or whose pair's ||t|| in the
           file differs from the record's.
         """
+        examples = list(examples)
+        if examples == self._checked:  # checked where it was opened, then by the scorer
+            return
         problems = []
-        self._baselines, self._shapes = {}, {}
+        self._baselines, self._shapes, self._checked = {}, {}, None
         for example_id, baseline in examples:
             try:
                 view1, view2 = self._view(example_id, 0), self._view(example_id, 1)
@@ -136,6 +141,7 @@ class FileTruth:
             if len(problems) > _NAMED_EXAMPLES:
                 lines.append(f"... and {len(problems) - _NAMED_EXAMPLES} more")
             raise ValueError("\n  ".join(lines))
+        self._checked = examples
 
     def shapes(self) -> dict[str, tuple[int, int]]:
         """id -> (height, width) of its truth, for every checked example."""

@@ -35,7 +35,6 @@ from gld.models import registry
 from gld.models.baselines.classical import CLASSICAL, LABELS
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import config
-from gld.runs import workdir as workdir_lib
 from gld.training import scored_run
 
 
@@ -123,22 +122,20 @@ def run_comparison(
         train_seconds = scored_run.train_unless_finished(
             name, run_config, run_dir, train_source, eval_source, print_fn=print_fn
         )
-        model, variables, saved = workdir_lib.load_trained(run_dir)
-        per_example, _ = evaluation.evaluate_source(
-            model,
-            variables,
+        scored = scored_run.score(
+            run_dir,
             eval_source,
             batch_size=eval_batch_size,
             flow_source=flow_source,
             max_examples=max_examples,
             truth=truth,
         )
-        results[name], num_examples = evaluation.summarise_examples(per_example)
+        results[name], num_examples = evaluation.summarise_examples(scored.per_example)
         runs[name] = {
             "workdir": str(run_dir),
-            "parameters": registry.parameter_counts(variables["params"])["total"],
+            "parameters": scored.parameters,
             "steps": checkpoint_lib.last_checkpointed_step(run_dir),
-            "batch_size": saved.batch_size,
+            "batch_size": scored.config.batch_size,
             "train_seconds": train_seconds,
         }
 

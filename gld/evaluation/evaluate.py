@@ -48,7 +48,9 @@ class Truth(Protocol):
 
     def check(self, examples: Iterable[tuple[str, float]]) -> None:
         """Finds the truth of every (id, ||t|| of its record) to be scored and remembers
-        ||t||; raises naming every example it cannot serve, before anything is scored."""
+        ||t||; raises naming every example it cannot serve, before anything is scored.
+        Checking the examples checked last again costs nothing (the opener and the
+        scorer both check)."""
 
     def shapes(self) -> dict[str, tuple[int, int]]:
         """id -> (height, width) of its truth, for every checked example."""

@@ -81,6 +81,7 @@ def score(
     batch_size: int | None = None,
     flow_source: str | None = None,
     max_examples: int = 0,
+    truth: evaluation.Truth | None = None,
 ) -> Scored:
     """Scores the trained run of `workdir` (its newest intact checkpoint) on `source`
     with the one evaluation loop (`gld.evaluation.evaluate.evaluate_source`).
@@ -88,6 +89,7 @@ def score(
     Args:
       batch_size, flow_source: the evaluation's (default: the run's own).
       max_examples: the first N examples only (0 = all).
+      truth: the checked ground truth looked up by example id (None: the records').
     """
     model, variables, saved = workdir_lib.load_trained(workdir)
     per_example, _ = evaluation.evaluate_source(
@@ -97,5 +99,6 @@ def score(
         batch_size=saved.eval_batch_size if batch_size is None else batch_size,
         flow_source=saved.flow_source if flow_source is None else flow_source,
         max_examples=max_examples,
+        truth=truth,
     )
     return Scored(per_example, registry.parameter_counts(variables["params"])["total"], saved)

@@ -111,6 +111,22 @@ def test_the_truth_is_view_1_of_the_file_scaled_as_the_record(demon_sun3d):
             )
 
 
+def test_the_examples_checked_last_are_not_read_again(demon_sun3d, monkeypatch):
+    manual_dir, builder, expected = demon_sun3d
+    examples = list(stored_predictions.record_ids_and_baselines(builder.as_data_source("test")))
+    with file_truth.FileTruth(manual_dir) as truth:
+        read = []
+        original = truth._view
+        monkeypatch.setattr(truth, "_view", lambda *args: read.append(args) or original(*args))
+        truth.check(examples)
+        assert len(read) == 2 * len(expected)  # both views of every example
+        truth.check(iter(examples))  # where it was opened, then by the scorer
+        assert len(read) == 2 * len(expected)
+        truth.check(examples[:1])  # other examples are read
+        assert len(read) == 2 * len(expected) + 2
+        assert list(truth.shapes()) == [examples[0][0]]
+
+
 def test_other_files_than_the_records_were_built_from_are_refused(demon_sun3d, tmp_path):
     _, builder, _ = demon_sun3d
     examples = stored_predictions.record_ids_and_baselines(builder.as_data_source("test"))
