@@ -32,6 +32,7 @@ from typing import Any
 import tensorflow_datasets as tfds
 
 from data import sources
+from gld.arguments import ArgumentError
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ FILE_FORMAT = "array_record"
 def builder_class(name: str) -> type[tfds.core.GeneratorBasedBuilder]:
     """The builder class registered under a dataset name (without config)."""
     if name not in DATASETS:
-        raise ValueError(f"unknown dataset {name!r}; valid: {sorted(DATASETS)}")
+        raise ArgumentError(f"--dataset: unknown dataset {name!r}; valid: {sorted(DATASETS)}")
     return importlib.import_module(DATASETS[name]).Builder
 
 
@@ -61,8 +62,8 @@ def parse_name(dataset: str) -> tuple[str, str]:
     cls = builder_class(name)
     configs = [c.name for c in cls.BUILDER_CONFIGS]
     if config not in configs:
-        raise ValueError(
-            f"unknown config {config!r} of dataset {name!r}; valid: "
+        raise ArgumentError(
+            f"--dataset={dataset}: unknown config {config!r} of dataset {name!r}; valid: "
             + ", ".join(f"{name}/{c}" for c in configs)
         )
     return name, config
@@ -190,7 +191,7 @@ def prepare(
             return _rebuild(dataset, data_dir, download_config, builder_kwargs)
         problems = reuse_problems(builder, manual_dir, builder_kwargs)
         if problems:
-            raise ValueError(
+            raise ArgumentError(
                 f"{dataset} in {builder.data_path} was built from other input than given:\n  "
                 + "\n  ".join(problems)
                 + f"\nTo replace it, build it again: python -m data.build --dataset={dataset} "
@@ -199,5 +200,28 @@ def prepare(
                 "another --data_dir, or leave out --manual_dir and the build options to use "
                 "it as it is."
             )
+    _check_manual_dir(builder, dataset, data_dir, manual_dir)
     builder.download_and_prepare(download_config=download_config)
     return builder
+
+
+def _check_manual_dir(builder, dataset: str, data_dir, manual_dir) -> None:
+    """A builder that reads files it cannot download needs their folder: the one given,
+    else TFDS's default (`<data_dir>/downloads/manual`); raises ArgumentError, naming
+    the flag, when that folder does not exist or is empty."""
+    if not getattr(builder, "MANUAL_DOWNLOAD_INSTRUCTIONS", None):
+        return
+    hint = f"the README's section on {dataset.partition('/')[0]} says which files it reads"
+    if manual_dir is not None:
+        folder = Path(manual_dir).expanduser()
+        if not folder.is_dir():
+            raise ArgumentError(f"--manual_dir={manual_dir}: no such directory ({hint})")
+        if not any(folder.iterdir()):
+            raise ArgumentError(f"--manual_dir={manual_dir}: the directory is empty ({hint})")
+        return
+    default = Path(data_dir or DEFAULT_DATA_DIR) / "downloads" / "manual"
+    if not default.is_dir() or not any(default.iterdir()):
+        raise ArgumentError(
+            f"--manual_dir: {dataset} is built from files you provide; give their folder "
+            f"(the default, {default}, is missing or empty; {hint})"
+        )

@@ -4,10 +4,8 @@ The flags of a run's options are made by `define_option_flags` from the options'
 fields (`TrainConfig`, `GlobalLocal`, `FlowTrainConfig`, `FlowNet`); this module chooses
 which a launcher has.
 
-A launcher ends with `common.run(main)`: a bad command line (a bad value, an unknown
-flag, a flagfile that is missing, a directory or not UTF-8 text) and an error that says
-what went wrong (a usage error, a workdir held by another run, a full disk) end it with
-one line on stderr and exit status 1: no traceback, no help text.
+A launcher ends with `common.run(main)` (`gld.launch.run`): a user's mistake ends it
+with one line on stderr, no traceback and no help text.
 """
 
 from __future__ import annotations
@@ -16,109 +14,15 @@ import dataclasses
 import os
 import subprocess
 import sys
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from absl import flags
 
+from gld.launch import parse_flags, run  # noqa: F401  (every launcher's ending)
+
 FLAGS = flags.FLAGS
-
-
-def run(main: Callable[[list[str]], Any]) -> None:
-    """Runs a launcher's `main(argv)` under absl (`app.run`), its flags parsed by
-    `parse_flags`. A usage or argument error, a workdir held by another run, a full disk
-    (however the writer wrapped it), a run without an intact checkpoint and a loss that
-    became NaN end the launcher with their line; other errors keep their traceback (they
-    are bugs to see)."""
-    from absl import app
-
-    def main_in_one_line(argv: list[str]) -> Any:
-        try:
-            return main(argv)
-        except Exception as error:
-            line = _line_of(error)
-            if line is None:
-                raise
-            _stop(line)
-
-    app.run(main_in_one_line, flags_parser=parse_flags)
-
-
-def parse_flags(argv: list[str]) -> list[str]:
-    """Parses the command line into FLAGS (`app.run`'s flags_parser) and returns what is
-    left of it. A bad command line ends the launcher with one line naming the flag or the
-    flagfile and what is wrong with it, before anything runs."""
-    try:
-        return FLAGS(argv)
-    except flags.CantOpenFlagFileError as error:
-        reason = error.__context__  # the OSError absl's message was made from
-        if isinstance(reason, OSError) and reason.filename:
-            _stop(f"--flagfile={reason.filename}: {reason.strerror}")
-        _stop(_one_line(str(error).removeprefix("ERROR:: ")))
-    except flags.Error as error:
-        _stop(_one_line(str(error)))
-    except UnicodeDecodeError as error:
-        _stop(_undecodable_flagfile(error))
-
-
-def _undecodable_flagfile(error: UnicodeDecodeError) -> str:
-    """The line for a flagfile absl could not decode: the file (absl's reader, nested
-    flagfiles included, names it `filename`), the line and the byte."""
-    path, frame = None, error.__traceback__
-    while frame is not None:
-        if frame.tb_frame.f_code.co_name == "_get_flag_file_lines":
-            path = frame.tb_frame.f_locals.get("filename", path)
-        frame = frame.tb_next
-    encoding = error.encoding.upper()
-    try:
-        data = Path(path).read_bytes()
-        data.decode(error.encoding)
-    except UnicodeDecodeError as found:
-        line = data.count(b"\n", 0, found.start) + 1
-        return (
-            f"--flagfile={path}: line {line} is not {encoding} text (byte "
-            f"0x{data[found.start]:02x}); save the file as {encoding}"
-        )
-    except (OSError, TypeError):
-        pass
-    return f"--flagfile={path or '?'}: not {encoding} text ({error.reason}); save it as {encoding}"
-
-
-def _line_of(error: Exception) -> str | None:
-    """The one line that says what `error` is, when it says what went wrong (None for
-    the others: bugs, whose traceback is wanted)."""
-    from absl import app
-
-    from gld.arguments import ArgumentError
-    from gld.files import DiskFullError, no_space_error
-    from gld.runs.checkpoints import CorruptCheckpointError
-    from gld.runs.lock import WorkdirLockedError
-    from gld.training.loop import NonFiniteLossError
-
-    said = (
-        app.UsageError,
-        ArgumentError,
-        WorkdirLockedError,
-        DiskFullError,
-        CorruptCheckpointError,
-        NonFiniteLossError,
-    )
-    if isinstance(error, said):
-        return _one_line(str(error))
-    no_space = no_space_error(error)
-    if no_space is not None:
-        return _one_line(f"disk full: {no_space}")
-    return None
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
-def _stop(line: str) -> NoReturn:
-    print(line, file=sys.stderr, flush=True)
-    sys.exit(1)
 
 
 def define_truth_resolution_flag() -> None:

@@ -61,9 +61,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from absl import app, flags
+from absl import flags
 
 from data.demon import recordings, writer
+from gld import launch
 
 flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
 flags.DEFINE_string("poses", None, "Trajectory file (see --pose_format).", required=True)
@@ -126,4 +127,4 @@ def main(argv: Sequence[str]) -> None:
 
 
 if __name__ == "__main__":
-    app.run(main)
+    launch.run(main)

@@ -44,11 +44,23 @@ from data import sources
 from data.demon import checksums, images, pairs, reader
 from gld import flow as flow_lib
 from gld import records
+from gld.arguments import ArgumentError
 from gld.runs import trained_flow
 
 _LOGGER = logging.getLogger(__name__)
 
 _DEMON_URL = "https://lmb.informatik.uni-freiburg.de/data/demon/"
+
+# One line of MANUAL_DOWNLOAD_INSTRUCTIONS, for an error.
+MISSING_FILES_HINT = (
+    f"DeMoN's files come from {_DEMON_URL}: testdata/<name>_test.tgz and "
+    "traindata/<name>_train.tgz, unpacked; the README's DeMoN section lists them"
+)
+
+
+class MissingFilesError(ArgumentError, FileNotFoundError):
+    """A split's DeMoN files are not in the manual directory (one line naming them)."""
+
 
 MANUAL_DOWNLOAD_INSTRUCTIONS = f"""\
 Put DeMoN's HDF5 files (Ummenhofer et al., CVPR 2017; research use only) in the
@@ -257,15 +269,15 @@ class Builder(tfds.core.GeneratorBasedBuilder):
                     continue
                 missing = [name for name in names if not (manual_dir / name).is_file()]
                 if missing:
-                    raise FileNotFoundError(
-                        f"demon/{config.name} {split} split: missing {missing} in {manual_dir}.\n"
-                        + MANUAL_DOWNLOAD_INSTRUCTIONS
+                    raise MissingFilesError(
+                        f"--manual_dir={manual_dir}: demon/{config.name} {split} split: missing "
+                        f"{missing} ({MISSING_FILES_HINT})"
                     )
         if not found:
             expected = list(config.train_files) + list(config.test_files)
-            raise FileNotFoundError(
-                f"demon/{config.name}: none of {expected} in {manual_dir}.\n"
-                + MANUAL_DOWNLOAD_INSTRUCTIONS
+            raise MissingFilesError(
+                f"--manual_dir={manual_dir}: demon/{config.name}: none of {expected} "
+                f"({MISSING_FILES_HINT})"
             )
         return found
 

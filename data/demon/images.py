@@ -17,13 +17,14 @@ import cv2
 import numpy as np
 
 from data.demon.damage import DamagedDataError
+from gld.arguments import ArgumentError
 
 # "demon": as DeMoN's C++ reader op; "opencv": libwebp's default decoding (module docstring).
 IMAGE_DECODERS = ("demon", "opencv")
 DEFAULT_IMAGE_DECODER = "demon"
 
 
-class MissingDecoderError(ImportError):
+class MissingDecoderError(ArgumentError, ImportError):
     """DeMoN's WebP decoding is asked for (the default) and a lossy image needs the
     `webp` package, which is not installed (or not of the layout it relies on)."""
 

@@ -22,13 +22,13 @@ from typing import Any
 
 import h5py
 import numpy as np
-from absl import app, flags
+from absl import flags
 
 import data
 from data.demon import pairs, reader, writer
 from data.gld_scenes import renderer, scenes
 from experiments.benchmarks import format_table
-from gld import geometry, records
+from gld import geometry, launch, records
 
 FLAGS = flags.FLAGS
 
@@ -161,4 +161,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    app.run(main)
+    launch.run(main)

@@ -15,11 +15,11 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from absl import app, flags
+from absl import flags
 
 import data
 from experiments.benchmarks import format_table
-from gld import input_pipeline
+from gld import input_pipeline, launch
 
 FLAGS = flags.FLAGS
 
@@ -172,4 +172,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    app.run(main)
+    launch.run(main)

@@ -16,12 +16,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from absl import app, flags
+from absl import flags
 
 import data
 from data.gld_scenes import example_records, renderer, scene_configs, scenes
 from experiments.benchmarks import format_table
-from gld import flow
+from gld import flow, launch
 
 FLAGS = flags.FLAGS
 
@@ -138,4 +138,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    app.run(main)
+    launch.run(main)

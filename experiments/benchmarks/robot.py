@@ -28,6 +28,8 @@ from typing import Any
 
 from absl import app, flags
 
+from gld import launch
+
 FLAGS = flags.FLAGS
 
 SIZES = ((192, 256), (96, 128))  # (height, width): the paper's, gld_scenes/small's
@@ -299,4 +301,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    app.run(main)
+    launch.run(main)

@@ -1,5 +1,6 @@
 """A launcher's bad command line, and an error that says what went wrong, end it with one
-line on stderr and exit status 1 (`experiments.common.run`); a bug keeps its traceback."""
+line on stderr (`gld.launch.run`): exit status 2 for a user's mistake, 1 for a run that
+could not go on; a bug keeps its traceback."""
 
 import os
 import subprocess
@@ -83,53 +84,54 @@ def test_a_flagfile_that_is_not_utf8_is_named_in_one_line(tmp_path):
     bad = tmp_path / "bad.flags"
     bad.write_bytes(b"--count=2\n# caf\xe9 (latin-1)\n")
     line = f"--flagfile={bad}: line 2 is not UTF-8 text (byte 0xe9); save the file as UTF-8"
-    assert _error(f"--flagfile={bad}") == (1, line + "\n", False)
+    assert _error(f"--flagfile={bad}") == (2, line + "\n", False)
     # Named also when another flagfile includes it.
     outer = tmp_path / "outer.flags"
     outer.write_text(f"--count=2\n--flagfile={bad}\n")
-    assert _error(f"--flagfile={outer}") == (1, line + "\n", False)
+    assert _error(f"--flagfile={outer}") == (2, line + "\n", False)
 
 
 def test_a_missing_flagfile_or_a_directory_is_named_in_one_line(tmp_path):
     missing = tmp_path / "missing.flags"
     assert _error(f"--flagfile={missing}") == (
-        1,
+        2,
         f"--flagfile={missing}: No such file or directory\n",
         False,
     )
     assert _error(f"--flagfile={tmp_path}") == (
-        1,
+        2,
         f"--flagfile={tmp_path}: Is a directory\n",
         False,
     )
 
 
 def test_a_bad_flag_value_or_an_unknown_flag_is_one_line_without_help():
-    assert _error("--count=0") == (1, "flag --count=0: 0 is not a positive integer\n", False)
+    assert _error("--count=0") == (2, "flag --count=0: 0 is not a positive integer\n", False)
     assert _error("--cuont=2") == (
-        1,
+        2,
         "Unknown command line flag 'cuont'. Did you mean: count ?\n",
         False,
     )
 
 
 @pytest.mark.parametrize(
-    "fail, line",
+    "fail, status, line",
     [
-        ("usage", "--count: not a count of anything"),
-        ("held", "workdir runs/x is in use by another training run"),
-        ("disk_full", "disk full: no space left to write in runs/x"),
+        ("usage", 2, "--count: not a count of anything"),
+        ("argument", 2, "--split=val: the dataset has only ['test', 'train']"),
+        ("held", 1, "workdir runs/x is in use by another training run"),
+        ("disk_full", 1, "disk full: no space left to write in runs/x"),
         (
             "wrapped_disk_full",
+            1,
             "disk full: [Errno 28] No space left on device: 'runs/x/m.json'",
         ),
-        ("argument", "--split=val: the dataset has only ['test', 'train']"),
-        ("no_intact_checkpoint", "no checkpoint in runs/x is intact"),
-        ("nan", "loss is nan at step 7; stopping"),
+        ("no_intact_checkpoint", 1, "no checkpoint in runs/x is intact"),
+        ("nan", 1, "loss is nan at step 7; stopping"),
     ],
 )
-def test_an_error_that_says_what_went_wrong_ends_the_launcher_in_one_line(fail, line):
-    assert _error(f"--fail={fail}") == (1, line + "\n", False)
+def test_an_error_that_says_what_went_wrong_ends_the_launcher_in_one_line(fail, status, line):
+    assert _error(f"--fail={fail}") == (status, line + "\n", False)
 
 
 def test_a_bug_keeps_its_traceback():
@@ -137,3 +139,57 @@ def test_a_bug_keeps_its_traceback():
     assert result.returncode == 1
     assert "Traceback (most recent call last)" in result.stderr
     assert result.stderr.rstrip().endswith("KeyError: 'a bug'")
+
+
+def test_the_dataset_launchers_say_a_users_mistake_in_one_line(tmp_path):
+    data_dir = tmp_path / "datasets"
+    missing = tmp_path / "no_such_folder"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [
+        (
+            ["data.build", "--dataset=gld_scenes/smal", f"--data_dir={data_dir}"],
+            "--dataset=gld_scenes/smal: unknown config 'smal' of dataset 'gld_scenes'; valid: ",
+        ),
+        (
+            ["data.build", "--dataset=scenes/small", f"--data_dir={data_dir}"],
+            "--dataset: unknown dataset 'scenes'",
+        ),
+        (
+            [
+                "data.build",
+                "--dataset=demon/sun3d",
+                f"--manual_dir={missing}",
+                f"--data_dir={data_dir}",
+            ],
+            f"--manual_dir={missing}: no such directory (",
+        ),
+        (
+            [
+                "data.build",
+                "--dataset=demon/sun3d",
+                f"--manual_dir={empty}",
+                f"--data_dir={data_dir}",
+            ],
+            f"--manual_dir={empty}: the directory is empty (",
+        ),
+        (
+            ["data.build", "--dataset=demon/sun3d", f"--data_dir={data_dir}"],
+            "--manual_dir: demon/sun3d is built from files you provide; give their folder",
+        ),
+        (["data.demon.convert", "--images=x"], "flag --poses=None: Flag --poses must have"),
+    ]
+    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
+    for (module, *args), start in cases:
+        result = subprocess.run(
+            [sys.executable, "-m", module, *args],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=REPO_ROOT,
+            timeout=120,
+        )
+        lines = result.stderr.splitlines()
+        assert (result.returncode, len(lines)) == (2, 1), (args, result.stderr)
+        assert lines[0].startswith(start), (args, lines[0])
+    assert not data_dir.exists()  # nothing written
