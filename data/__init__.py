@@ -186,7 +186,10 @@ def prepare(
         manual_dir=str(Path(manual_dir).expanduser()) if manual_dir else None
     )
     # (is_prepared() alone warns about a folder that does not exist yet.)
-    if builder.data_path.exists() and builder.is_prepared():
+    prepared = builder.data_path.exists() and builder.is_prepared()
+    if rebuild or not prepared:
+        _check_manual_dir(builder, dataset, data_dir, manual_dir)
+    if prepared:
         if rebuild:
             return _rebuild(dataset, data_dir, download_config, builder_kwargs)
         problems = reuse_problems(builder, manual_dir, builder_kwargs)
@@ -200,7 +203,6 @@ def prepare(
                 "another --data_dir, or leave out --manual_dir and the build options to use "
                 "it as it is."
             )
-    _check_manual_dir(builder, dataset, data_dir, manual_dir)
     builder.download_and_prepare(download_config=download_config)
     return builder
 

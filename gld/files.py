@@ -20,6 +20,8 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from gld.arguments import RunStoppedError
+
 
 def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], None]) -> None:
     """Writes `content` to `path` through a temporary file in the same folder (made if
@@ -47,7 +49,7 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], N
 NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
-class DiskFullError(RuntimeError):
+class DiskFullError(RunStoppedError):
     """A write failed for lack of space; the message names the directory and what was kept."""
 
 

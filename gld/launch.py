@@ -9,7 +9,7 @@ no traceback and no help text, before anything is written:
   argument that does not fit the data or the workdir (`gld.arguments.ArgumentError`);
 - exit status 1: a condition that stops a run (a workdir held by another run, a full
   disk however the writer wrapped it, a workdir without an intact checkpoint, a loss that
-  became NaN).
+  became NaN: `gld.arguments.RunStoppedError`).
 Any other error is a bug and keeps its traceback.
 """
 
@@ -21,6 +21,9 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from absl import flags
+
+from gld.arguments import ArgumentError, RunStoppedError
+from gld.files import no_space_error
 
 FLAGS = flags.FLAGS
 
@@ -90,21 +93,9 @@ def _line_of(error: Exception) -> tuple[str, int] | None:
     went wrong (None for the others: bugs, whose traceback is wanted)."""
     from absl import app
 
-    from gld.arguments import ArgumentError
-    from gld.files import DiskFullError, no_space_error
-
     if isinstance(error, app.UsageError | ArgumentError):
         return _one_line(str(error)), USAGE_STATUS
-    # The run's own errors, imported only when they may be the one (they pull in orbax
-    # and the trainer, which a dataset build does not need).
-    stopped: tuple[type, ...] = (DiskFullError,)
-    if "gld.runs.lock" in sys.modules:
-        stopped += (sys.modules["gld.runs.lock"].WorkdirLockedError,)
-    if "gld.runs.checkpoints" in sys.modules:
-        stopped += (sys.modules["gld.runs.checkpoints"].CorruptCheckpointError,)
-    if "gld.training.loop" in sys.modules:
-        stopped += (sys.modules["gld.training.loop"].NonFiniteLossError,)
-    if isinstance(error, stopped):
+    if isinstance(error, RunStoppedError):
         return _one_line(str(error)), STOPPED_STATUS
     no_space = no_space_error(error)
     if no_space is not None:

@@ -35,6 +35,7 @@ from typing import NamedTuple
 import jax
 import orbax.checkpoint as ocp
 
+from gld.arguments import RunStoppedError
 from gld.files import DiskFullError, no_space_error, write_atomically
 from gld.runs.state import TrainState
 
@@ -54,7 +55,7 @@ def last_checkpointed_step(workdir: str | Path) -> int:
     return max(steps, default=0)
 
 
-class CorruptCheckpointError(ValueError):
+class CorruptCheckpointError(RunStoppedError, ValueError):
     """A checkpoint's files do not match what was saved, or no checkpoint is intact."""
 
 

@@ -24,10 +24,12 @@ from pathlib import Path
 
 import jax
 
+from gld.arguments import RunStoppedError
+
 LOCK_FILE = "train.lock"
 
 
-class WorkdirLockedError(RuntimeError):
+class WorkdirLockedError(RunStoppedError):
     """Another training process holds the workdir."""
 
 

@@ -34,6 +34,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from gld import input_pipeline, sharding
+from gld.arguments import RunStoppedError
 from gld.files import DiskFullError, no_space_error
 from gld.runs import checkpoints as checkpoint_lib
 from gld.runs import metrics_log
@@ -45,7 +46,7 @@ from gld.runs.trainer_options import TrainerOptions
 Evaluation = Callable[[TrainState], tuple[dict[str, float], str]]
 
 
-class NonFiniteLossError(RuntimeError):
+class NonFiniteLossError(RunStoppedError):
     """The loss became NaN or inf; the last good checkpoint is kept."""
 
 
