@@ -212,11 +212,13 @@ def _pose_probe_fitter(
         )
         key_encoder, key_head = jax.random.split(jax.random.key(seed))
         if encoder_params is None:
-            encoder_params = encoder.init(key_encoder, inputs(peeked[0]))["params"]
+            encoder_params = layers.init_once(encoder, key_encoder, inputs(peeked[0]))["params"]
         else:
             encoder_params = _checked_encoder_params(encoder, encoder_params, inputs(peeked[0]))
         # A Dense layer's initial weights depend on the input's width only.
-        head_params = head.init(key_head, jnp.zeros((1, global_dim), jnp.float32))["params"]
+        head_params = layers.init_once(head, key_head, jnp.zeros((1, global_dim), jnp.float32))[
+            "params"
+        ]
         if standardise_global_params:
             initial_global_params = np.concatenate(
                 [

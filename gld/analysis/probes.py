@@ -36,6 +36,7 @@ from gld import geometry
 from gld.evaluation import evaluate as evaluation
 from gld.losses import supervised as losses
 from gld.models import global_local as model_lib
+from gld.models import layers
 
 
 def rotation_vector(rotation: np.ndarray) -> np.ndarray:
@@ -263,7 +264,7 @@ def pose_probe(
     targets = jnp.asarray((raw_targets - target_center) / target_scale, jnp.float32)
 
     model = PoseMLP(hidden=tuple(hidden))
-    params = model.init(jax.random.key(seed), inputs[:1])
+    params = layers.init_once(model, jax.random.key(seed), inputs[:1])
     optimizer = optax.adam(learning_rate)
 
     @jax.jit

@@ -7,7 +7,6 @@ run's base key); the optimiser is `gld.runs.optimizer`'s.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import flax
@@ -59,31 +58,12 @@ def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarra
     return batch
 
 
-# XLA's options for a function that runs once, a model's initialisation: the backend's
-# optimisation off. The initialisers' threefry draws, one stream per layer, then compile
-# in 2 s instead of 13 (the tests' tiny model on the 2-core CPU; 10 s for the main job's);
-# the values agree with an optimised compile to float rounding (6e-8), as an op-by-op run.
-RUN_ONCE_OPTIONS = {"xla_backend_optimization_level": 0}
-
-
-def run_once(fn: Callable[..., Any], *args: Any) -> Any:
-    """`fn(*args)`, compiled for the one call (`RUN_ONCE_OPTIONS`); traced as it is
-    under a transformation (`jax.eval_shape` of a state, for a restore)."""
-    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(args)):
-        return fn(*args)
-    return jax.jit(fn).lower(*args).compile(compiler_options=RUN_ONCE_OPTIONS)(*args)
-
-
 def init_variables(model: nn.Module, height: int, width: int, seed: int) -> dict[str, Any]:
-    """Initial model variables for images of the given size.
-
-    Compiled (`run_once`): run op by op, the init's forward pass of the main job's model
-    takes 24 s on the 2-core CPU.
-    """
+    """Initial model variables for images of the given size (`layers.init_once`: run op
+    by op, the init's forward pass of the main job's model takes 24 s on the 2-core CPU)."""
     batch = dummy_batch(1, height, width)
     args, extra = layers.model_arguments(model, batch)
-    init = lambda key, args, extra: model.init(key, *args, **extra, train=False)  # noqa: E731
-    return run_once(init, jax.random.key(seed), args, extra)
+    return layers.init_once(model, jax.random.key(seed), *args, **extra, train=False)
 
 
 def create_train_state(
