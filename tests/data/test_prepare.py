@@ -113,3 +113,50 @@ def test_a_build_without_recorded_sources_is_reused_with_a_warning(tmp_path, cap
 def test_datasets_without_a_manual_directory_are_unaffected(tiny_scenes_dir, tmp_path):
     builder = data.prepare("gld_scenes/tiny", tiny_scenes_dir, tmp_path, workers=2)
     assert builder.info.splits["train"].num_examples == 32
+
+
+def test_a_wrong_dataset_or_manual_directory_is_one_line_naming_the_flag(tmp_path):
+    from gld.arguments import ArgumentError
+
+    data_dir = tmp_path / "datasets"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [
+        (dict(dataset="scenes/small"), "--dataset: unknown dataset 'scenes'; valid: "),
+        (
+            dict(dataset="gld_scenes/smal"),
+            "--dataset=gld_scenes/smal: unknown config 'smal' of dataset 'gld_scenes'",
+        ),
+        (
+            dict(dataset="demon/sun3d", manual_dir=tmp_path / "none"),
+            f"--manual_dir={tmp_path / 'none'}: no such directory (",
+        ),
+        (
+            dict(dataset="demon/sun3d", manual_dir=empty),
+            f"--manual_dir={empty}: the directory is empty (",
+        ),
+        (
+            dict(dataset="demon/sun3d"),
+            f"--manual_dir: demon/sun3d is built from files you provide; give their folder "
+            f"(the default, {data_dir / 'downloads' / 'manual'}, is missing or empty;",
+        ),
+    ]
+    for arguments, start in cases:
+        with pytest.raises(ArgumentError) as refused:
+            data.prepare(data_dir=data_dir, **arguments)
+        assert str(refused.value).startswith(start) and "\n" not in str(refused.value)
+    assert not data_dir.exists()  # nothing written
+
+
+def test_missing_demon_files_are_one_line_naming_them(tmp_path):
+    from gld.arguments import ArgumentError
+
+    manual = tmp_path / "manual"
+    manual.mkdir()
+    (manual / "notes.txt").write_text("not a DeMoN file\n")
+    with pytest.raises(FileNotFoundError) as refused:
+        data.prepare("demon/sun3d", tmp_path / "datasets", manual)
+    assert isinstance(refused.value, ArgumentError)
+    line = str(refused.value)
+    assert line.startswith(f"--manual_dir={manual}: demon/sun3d: none of [")
+    assert "'sun3d_test.h5'" in line and "\n" not in line

@@ -421,6 +421,8 @@ def test_a_model_given_the_true_pose_trains_and_evaluates_on_the_batches_pose(
         deployed(*inputs)
 
 
+# 300 steps at batch 16 (~45 s); the term's value is checked in tests/gld/losses.
+@pytest.mark.slow
 def test_the_epipolar_term_teaches_the_global_parameters_the_motion(sixteen_pairs_dense):
     """150 steps on 16 pairs with true flow: with the epipolar term the pose g stands for
     approaches the true motion (translation direction ~32 deg off, from ~66), with the
