@@ -48,6 +48,7 @@ from typing import Any, NamedTuple
 import flax.linen as nn
 import jax
 
+from gld.arguments import ArgumentError
 from gld.files import write_atomically
 from gld.models import registry
 from gld.runs import config as config_lib
@@ -134,6 +135,29 @@ def stored_architecture(workdir: str | Path) -> dict[str, Any] | None:
     return None if previous is None else _completed_architecture(previous)
 
 
+def architecture_refusal(
+    workdir: Path, stored: Mapping[str, Any], current: Mapping[str, Any], what: str = "run"
+) -> str | None:
+    """The one line that refuses a run of architecture `current` in a workdir whose run
+    has architecture `stored` (None when they agree). Another model is the decisive
+    difference and is named alone (the options of two models do not compare); for the
+    same model each differing option is named. An option the stored run does not record
+    (it predates it) is no difference."""
+    if stored.get("model") != current.get("model"):
+        return (
+            f"--model={current.get('model')}: workdir {workdir} holds a {what} of model "
+            f"{stored.get('model')!r}; use another --workdir, or --model={stored.get('model')}"
+        )
+    differing = sorted(k for k in stored if k != "model" and stored[k] != current.get(k))
+    if not differing:
+        return None
+    details = ", ".join(f"--{k}={stored[k]!r} there, {current.get(k)!r} now" for k in differing)
+    return (
+        f"workdir {workdir} holds a {what} of another architecture ({details}); use "
+        "another --workdir or the original flags"
+    )
+
+
 def check_run_config(
     workdir: str | Path, config: config_lib.TrainConfig
 ) -> dict[str, tuple[Any, Any]] | None:
@@ -144,8 +168,8 @@ def check_run_config(
       {name: (stored, now)} (model options as "model_config.<name>").
 
     Raises:
-      ValueError: the workdir holds a run of another architecture, dataset or
-        resolution (every differing value is named).
+      ArgumentError: the workdir holds a run of another architecture, dataset or
+        resolution (`architecture_refusal`; the fixed options each named).
     """
     workdir = Path(workdir)
     previous = _read_stored(workdir)
@@ -153,25 +177,14 @@ def check_run_config(
         return None
     saved_arch = _completed_architecture(previous)
     current_arch = json.loads(json.dumps(config.architecture()))
-    differing = sorted(
-        key
-        for key in set(saved_arch) | set(current_arch)
-        if saved_arch.get(key) != current_arch.get(key)
-    )
-    if differing:
-        details = ", ".join(
-            f"{k}: {saved_arch.get(k)!r} in the workdir vs {current_arch.get(k)!r} now"
-            for k in differing
-        )
-        raise ValueError(
-            f"workdir {workdir} holds a run of a different architecture ({details}); "
-            "use another --workdir or the original flags"
-        )
+    refusal = architecture_refusal(workdir, saved_arch, current_arch)
+    if refusal:
+        raise ArgumentError(refusal)
     for key in FIXED_OPTIONS:
         if previous.get("config", {}).get(key) not in (None, getattr(config, key)):
-            raise ValueError(
-                f"workdir {workdir} was trained on {key}={previous['config'][key]!r}, "
-                f"not {getattr(config, key)!r}"
+            raise ArgumentError(
+                f"--{key}={getattr(config, key)}: workdir {workdir} was trained on "
+                f"{key}={previous['config'][key]!r}; use another --workdir or the original flags"
             )
     # Compared in today's form, so renamed or later-added fields are no difference.
     stored = _flatten(_stored_config(config_lib.from_stored(previous["config"])))

@@ -33,6 +33,7 @@ import optax
 from jax.sharding import Mesh
 
 from gld import files as files_lib
+from gld.arguments import ArgumentError
 from gld.evaluation import evaluate as evaluation
 from gld.evaluation.flow_network import (
     NETWORK,
@@ -224,7 +225,7 @@ def check_flow_workdir(workdir: str | Path, config: FlowTrainConfig) -> dict[str
             f"{k}: {stored_fixed.get(k)!r} in the workdir vs {fixed.get(k)!r} now"
             for k in differing
         )
-        raise ValueError(
+        raise ArgumentError(
             f"workdir {workdir} holds a flow run of another architecture or dataset "
             f"({details}); use another --workdir or the original flags"
         )

@@ -182,7 +182,7 @@ def test_a_relaunch_keeps_the_workdirs_architecture_and_the_probe_reads_its_g(
     # A flag given still asks for another architecture, which the workdir refuses.
     other = _launch([*common, "--steps=7", "--encoder_norm=instance", *TINY_FLAGS], tiny_scenes_dir)
     assert other.returncode != 0
-    assert "encoder_norm: 'none' in the workdir vs 'instance' now" in other.stderr
+    assert "--encoder_norm='none' there, 'instance' now" in other.stderr
 
     # The probe reads g as a pose for this run (trained with the epipolar term), even
     # without the MLP probe.

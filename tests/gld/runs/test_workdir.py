@@ -49,6 +49,24 @@ def test_a_workdir_refuses_another_architecture_listing_the_flags_and_writes_not
     }
 
 
+def test_another_model_is_refused_naming_the_model_alone(tmp_path):
+    from gld.arguments import ArgumentError
+
+    workdir.write_run_config(tmp_path, tiny_train_config(steps=2))
+    other = tiny_train_config(model="small_encdec", model_config={})
+    with pytest.raises(ArgumentError) as refused:
+        workdir.check_run_config(tmp_path, other)
+    assert str(refused.value) == (
+        f"--model=small_encdec: workdir {tmp_path} holds a run of model 'global_local'; "
+        "use another --workdir, or --model=global_local"
+    )
+    # The same model: each differing option named as its flag, both values given.
+    other = tiny_train_config(model_config=dict(TINY_MODEL, global_dim=3))
+    with pytest.raises(ArgumentError) as refused:
+        workdir.check_run_config(tmp_path, other)
+    assert "(--global_dim=6 there, 3 now)" in str(refused.value)
+
+
 def test_bad_options_and_record_names_fail_before_the_workdir_exists(tiny_scenes, tmp_path):
     source = tiny_scenes.as_data_source("train")
     run_dir = tmp_path / "run"
