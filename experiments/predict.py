@@ -15,17 +15,28 @@ never held in memory.
 
 Scale: `--ranges`, the range CSV of `data.demon.convert` (`frame,u,v,depth`, depth x
 `--range_scale` = metres, pixels of the frame; camera-z depth, or with
-`--range_metric=ray_length` the distance along the pixel's ray): each pair is scaled by
-its first frame's readings (the median ratio of reading to predicted depth). `--poses`, a
-TUM trajectory (`timestamp tx ty tz qx qy qz qw`; images named by time stamp are
-matched by time, otherwise the i-th pose is the i-th frame): each pair is scaled by the
-distance between its frames' positions, and a model trained given the relative pose
+`--range_metric=ray_length` the distance along the pixel's ray): a pair (i, j) is frame
+i's depth and is scaled by frame i's readings (the median ratio of reading to predicted
+depth). That is the converter's rule: its records supervise frame i's depth with frame
+i's readings. Frame j's readings are not used here; the converter needs one on frame j
+too only because the dataset's reader refuses a view without depth. `--poses`, a TUM
+trajectory (`timestamp tx ty tz qx qy qz qw`): each pair is scaled by the distance
+between its frames' positions, and a model trained given the relative pose
 (`--global_source=pose`) is given the pair's relative pose from the trajectory (it
 needs `--poses`); a model trained on the pose from its flow (`--global_source=flow_pose`)
 needs `--intrinsics`, as does one that refines its encoder's pose on the flow
 (`--pose_refinement_steps`). Pairs without a reading on the first frame, or
 with a baseline not above `--min_baseline`, are skipped and counted. With neither,
 depth is in units of the (unknown) baseline and written as .npy.
+
+Matching frames, `--match_frames` (as in `data.demon.convert`): `auto` (default) takes
+a reading's frame by name or index, and a pose by time stamp when the images are named
+by one (a plain decimal number, TUM's `1305031102.175304.png`), else by order; `time`
+matches poses and readings by time stamp (within `--max_time_difference` seconds),
+refused when a name is not one; `order` gives the i-th frame the i-th pose and the i-th
+frame of the readings (in the order the CSV first names them), refused when the counts
+differ: for images numbered by frame (`000000.png`) beside a timestamped trajectory.
+A video's frames have no time stamps (`time` is refused).
 
 Writes to `--output_dir` (see `gld.inference.predict`): depth/<frame1>__<frame2>.png (16-bit,
 millimetres; `--format=png`, the default for metric depth) or .npy (float32, the
@@ -71,7 +82,12 @@ flags.DEFINE_enum(
 flags.DEFINE_bool("previews", False, "Also write image 1 beside its colourised inverse depth.")
 flags.DEFINE_bool("ply", False, "Also write a PLY point cloud per pair (needs --intrinsics).")
 flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy in pixels of the frames, or a file.")
-flags.DEFINE_string("ranges", None, "Range readings CSV frame,u,v,depth (metric scale).")
+flags.DEFINE_string(
+    "ranges",
+    None,
+    "Range readings CSV frame,u,v,depth (metric scale): a pair is scaled by its first "
+    "frame's readings; pairs without are skipped.",
+)
 flags.DEFINE_float("range_scale", 1.0, "Metres per unit of the CSV's depth column.")
 flags.DEFINE_enum(
     "range_metric",
@@ -81,7 +97,17 @@ flags.DEFINE_enum(
     "range sensor's beam; needs --intrinsics).",
 )
 flags.DEFINE_string("poses", None, "TUM trajectory: baseline = distance between frames.")
-flags.DEFINE_float("max_time_difference", 0.02, "Seconds between image and pose stamps.")
+flags.DEFINE_float(
+    "max_time_difference", 0.02, "Seconds from a frame's time stamp to the one matched to it."
+)
+flags.DEFINE_enum(
+    "match_frames",
+    "auto",
+    ["auto", "time", "order"],  # data.demon.recordings.MATCH_FRAMES, imported late
+    "How poses and range readings find their frame: auto (readings by name or index; "
+    "poses by time stamp when the images have one, else by order), time (nearest time "
+    "stamp) or order (the i-th for the i-th frame).",
+)
 flags.DEFINE_float("min_baseline", 0.0, "Metres; pairs whose baseline is not above are skipped.")
 flags.DEFINE_integer("batch_size", 8, "Pairs per jit-compiled model call.")
 flags.DEFINE_enum(
@@ -173,6 +199,7 @@ def main(argv):
         range_metric=FLAGS.range_metric,
         poses=FLAGS.poses,
         max_time_difference=FLAGS.max_time_difference,
+        match_frames=FLAGS.match_frames,
         min_baseline=FLAGS.min_baseline,
         batch_size=FLAGS.batch_size,
         aspect=FLAGS.aspect,

@@ -10,11 +10,10 @@ Inputs
 * `--images`: a folder of images (PNG, JPEG, ...), in name order = time order.
 * `--poses`: `--pose_format=tum`: the TUM trajectory format, one line
   `timestamp tx ty tz qx qy qz qw` per pose, camera-to-world (the camera's position
-  and orientation in the world, as TUM defines it). Images named by their timestamp
-  (TUM's `1305031102.175304.png`) are matched to the nearest pose within
-  `--max_time_difference` seconds; otherwise the i-th pose belongs to the i-th image.
-  `--pose_format=matrix`: a `.npy` [N, 4, 4] or a text file with one row-major 4x4
-  per line (16 numbers, or 17 with a leading timestamp), in the i-th-image order;
+  and orientation in the world, as TUM defines it), matched to the images as
+  `--match_frames` says (below). `--pose_format=matrix`: a `.npy` [N, 4, 4] or a
+  text file with one row-major 4x4 per line (16 numbers, or 17 with a leading
+  timestamp, which is not read), in the i-th-image order;
   `--pose_direction` says whether they map camera to world (default, what SLAM
   systems export) or world to camera (`X_cam = R X_world + t`, DeMoN's convention).
 * `--intrinsics`: `fx,fy,cx,cy` in pixels, or a file with those 4 numbers or a 3x3 K
@@ -26,13 +25,32 @@ Inputs
   0 = no reading, e.g. TUM's with scale 0.0002) or `.npy` arrays; or a CSV
   `frame,u,v,depth` of sparse range readings (a single-pixel range sensor: every
   other pixel is invalid), `frame` being the image's name without extension or its
-  index in name order, `u, v` pixel coordinates in the image (rounded). A range
-  sensor measures along its beam: pass `--depth_metric=ray_length` if it does.
+  index in name order (see `--match_frames`), `u, v` pixel coordinates in the image
+  (rounded). A range sensor measures along its beam: pass `--depth_metric=ray_length`
+  if it does.
+
+Matching frames (`--match_frames`; the same flag as `python -m experiments.predict`'s):
+* `auto` (default): a depth image of the image's name, a reading whose `frame` is the
+  image's name or index; otherwise (poses always) the nearest time stamp within
+  `--max_time_difference` seconds when the images are named by one (TUM's
+  `1305031102.175304.png`) and the TUM poses or the depth images have stamps; else the
+  order.
+* `time`: the nearest time stamp, as above, for poses, depth images and readings (their
+  `frame` a time stamp); refused, naming the file, when a name is not one.
+* `order`: the i-th image gets the i-th pose, depth image, and frame of the readings (in
+  the order the CSV first names them); refused when their counts differ. For images
+  numbered by frame (`000000.png`) beside a timestamped trajectory.
+A name is a time stamp only when it is a plain decimal number (digits, at most one '.';
+not `07_1`, `-1`, `1e5`, `nan`). Images that look numbered by frame (whole numbers
+seconds away from every stamp) are refused with the hint to use `order`.
 
 Pairs: frame i with frame i + `--frame_gap`; with `--min_baseline` / `--max_baseline`
 (metres) instead frame i with the nearest later frame (at most `--max_frame_gap`
-ahead) whose camera centre lies in that distance range. Pairs whose frames have no
-depth reading are left out (and counted).
+ahead) whose camera centre lies in that distance range. A pair (i, j) is frame i's
+depth: training supervises it with frame i's readings, as the predictor scales it by
+them. It is written only when frame i has a depth reading, and frame j too (the
+`demon/custom` reader refuses a view without depth); the pairs left out are counted by
+the frame without (`no_reading_on_first_frame`, `no_reading_on_second_frame`).
 
 Output: `<output_dir>/custom_<split>.h5` (`custom_<split>_<recording>.h5` with
 `--recording`), one scene group per pair (`<frame1>__<frame2>`, two views,
@@ -69,7 +87,13 @@ from gld import launch
 flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
 flags.DEFINE_string("poses", None, "Trajectory file (see --pose_format).", required=True)
 flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy in pixels, or a file.", required=True)
-flags.DEFINE_string("depth", None, "Folder of depth images, or frame,u,v,depth CSV.", required=True)
+flags.DEFINE_string(
+    "depth",
+    None,
+    "Folder of depth images, or frame,u,v,depth CSV. A pair (i, j) is written when both "
+    "frames have a reading; frame i's is the pair's depth.",
+    required=True,
+)
 flags.DEFINE_string("output_dir", None, "Where custom_<split>.h5 go.", required=True)
 flags.DEFINE_enum("pose_format", "tum", recordings.POSE_FORMATS, "TUM lines or 4x4 matrices.")
 flags.DEFINE_enum(
@@ -90,7 +114,17 @@ flags.DEFINE_float("test_fraction", 0.0, "Last share of frames written as the te
 flags.DEFINE_enum("split", "train", ("train", "test"), "Split when test_fraction is 0.")
 flags.DEFINE_string("recording", None, "Name suffix: custom_<split>_<recording>.h5.")
 flags.DEFINE_integer("webp_quality", 101, "WebP quality; > 100 is lossless.")
-flags.DEFINE_float("max_time_difference", 0.02, "Seconds between image and pose stamps.")
+flags.DEFINE_float(
+    "max_time_difference", 0.02, "Seconds from an image's time stamp to the one matched to it."
+)
+flags.DEFINE_enum(
+    "match_frames",
+    "auto",
+    recordings.MATCH_FRAMES,
+    "How poses, depth images and range readings find their image: auto (same name, else "
+    "time stamp when both have one, else order), time (nearest time stamp) or order (the "
+    "i-th for the i-th image).",
+)
 flags.DEFINE_bool("overwrite", False, "Replace output files that exist already.")
 
 
@@ -116,6 +150,7 @@ def main(argv: Sequence[str]) -> None:
         recording=values.recording,
         webp_quality=values.webp_quality,
         max_time_difference=values.max_time_difference,
+        match_frames=values.match_frames,
         overwrite=values.overwrite,
     )
     for split_name, path in result["files"].items():

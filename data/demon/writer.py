@@ -5,6 +5,14 @@
 (`recordings`), pairs its frames, splits them into train and test, and writes
 `custom_<split>.h5` (`output_path`), the files the `demon/custom` config reads: all
 of them or none, never over an existing file unless asked to.
+
+Depth readings and pairs: a pair (i, j) is frame i's depth. Training supervises it with
+frame i's readings (the records' `depth1`; the predictor, `gld.inference.recordings`,
+scales a pair by them), so a pair needs a reading on frame i. It needs one on frame j
+too, for the format: the `demon/custom` reader refuses a view without depth as damage
+(`reader.read_view`, `invalid_depth`); frame j's depth (`depth2`) serves only the
+ground-truth flow's occlusion test. A pair without is left out and counted by the frame
+that lacks a reading (`NO_READING_REASONS`).
 """
 
 from __future__ import annotations
@@ -23,6 +31,10 @@ import lz4.block
 import numpy as np
 
 from data.demon import recordings
+
+# Why a pair is left out: its first frame (whose depth it is) or its second frame (which
+# the reader refuses without depth) has no depth reading.
+NO_READING_REASONS = ("no_reading_on_first_frame", "no_reading_on_second_frame")
 
 
 def demon_camera(camera_matrix: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
@@ -118,7 +130,8 @@ def _write_pairs(
 ) -> int:
     """Writes one scene group per pair into a new HDF5 file; returns how many.
 
-    Pairs whose frames lack a depth reading are left out and counted in `dropped`.
+    A pair without a depth reading on either frame is left out and counted in `dropped`
+    by the first such frame (`NO_READING_REASONS`; module docstring).
     `first_image` [H, W, 3] is frame 0's, the size every image must have.
     """
     written = 0
@@ -126,8 +139,9 @@ def _write_pairs(
         h5_file.create_group(".config").attrs["source"] = np.bytes_(_source(image_paths))
         for i, j in pair_list:
             depths = {index: frame_depth(index) for index in (i, j)}
-            if not all(np.any(depth_map > 0) for depth_map in depths.values()):
-                dropped["no_depth_reading"] += 1
+            unread = [not np.any(depths[frame] > 0) for frame in (i, j)]
+            if any(unread):
+                dropped[NO_READING_REASONS[unread.index(True)]] += 1
                 continue
             group_name = f"{image_paths[i].stem}__{image_paths[j].stem}"
             t0 = h5_file.create_group(f"{group_name}/frames/t0")
@@ -172,6 +186,7 @@ def write_recording(
     recording: str | None = None,
     webp_quality: int = 101,
     max_time_difference: float = 0.02,
+    match_frames: str = "auto",
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Writes a recording as DeMoN-format file(s), pairing its frames and splitting them.
@@ -192,6 +207,9 @@ def write_recording(
     Raises:
       FileExistsError: an output file, or the same recording's file of the other split,
         exists and `overwrite` is False (before any frame is read).
+      ArgumentError: poses, depth images or range readings cannot be matched to the
+        images as `match_frames` says (naming `--match_frames` or
+        `--max_time_difference`); nothing is written then.
       ValueError: an input is malformed (naming the file and line or the argument), or
         a split would get no pair; nothing is written then.
     """
@@ -211,6 +229,7 @@ def write_recording(
         raise ValueError(f"depth_scale must be a finite number > 0, got {depth_scale}")
     if not max_time_difference >= 0:
         raise ValueError(f"max_time_difference must be >= 0, got {max_time_difference}")
+    recordings.check_match_frames(match_frames)
     output_dir = Path(output_dir).expanduser()
     splits = ("train", "test") if test_fraction > 0 else (split,)
     outputs = {name: output_path(output_dir, name, recording) for name in splits}
@@ -247,7 +266,7 @@ def write_recording(
             recordings.read_pose_matrices(poses), pose_direction
         )
     pose_index = recordings.associate_poses(
-        image_paths, timestamps, len(rotations), max_time_difference
+        image_paths, timestamps, len(rotations), max_time_difference, match_frames
     )
     rotations, translations = rotations[pose_index], translations[pose_index]
     first_image = recordings.read_image(image_paths[0])
@@ -261,10 +280,17 @@ def write_recording(
     depth_path = Path(depth).expanduser()
     if depth_path.is_dir():
         depth_maps = None
-        depth_files = recordings.associate_depth_files(depth_path, image_paths, max_time_difference)
+        depth_files = recordings.associate_depth_files(
+            depth_path, image_paths, max_time_difference, match_frames
+        )
     elif depth_path.suffix.lower() == ".csv":
         depth_maps = recordings.read_sparse_depth(
-            depth_path, image_paths, first_image.shape[:2], depth_scale
+            depth_path,
+            image_paths,
+            first_image.shape[:2],
+            depth_scale,
+            match_frames,
+            max_time_difference,
         )
     else:
         raise FileNotFoundError(f"depth {depth_path} is neither a folder nor a .csv file")
@@ -325,8 +351,9 @@ def write_recording(
         empty = [name for name, count in counts.items() if count == 0]
         if empty:
             raise ValueError(
-                f"{images}: no {' or '.join(empty)} pair has a depth reading in both frames "
-                f"(dropped: {dict(dropped)}); nothing written"
+                f"{images}: no {' or '.join(empty)} pair has a depth reading on both its "
+                "frames (the first frame's is the pair's depth; the demon/custom reader refuses "
+                f"a view without depth) (dropped: {dict(dropped)}); nothing written"
             )
         for split_name, path in temporary.items():
             os.replace(path, outputs[split_name])

@@ -42,7 +42,20 @@ class RecordingFiles(Protocol):
         timestamps: np.ndarray | None,
         num_poses: int,
         max_time_difference: float,
+        match_frames: str = "auto",
     ) -> np.ndarray: ...
+
+    def reading_frame_indices(
+        self,
+        frames: Sequence[str],
+        line_numbers: Sequence[int],
+        csv_path: Path,
+        image_paths: Sequence[Path],
+        match_frames: str = "auto",
+        max_time_difference: float = 0.02,
+    ) -> list[int]: ...
+
+    def check_match_frames(self, match_frames: str) -> None: ...
 
 
 def _argument(name: str, error: Exception) -> ArgumentError:
@@ -72,24 +85,34 @@ def open_frames(
         raise _argument("video", error) from None
 
 
+def _frame_paths(image_paths: Sequence[Path] | None, names: Sequence[str]) -> list[Path]:
+    """The frames as paths for the data layer's matching: the images, or a video's names."""
+    return list(image_paths) if image_paths else [Path(name) for name in names]
+
+
 def camera_poses(
     files: RecordingFiles,
     poses: str | Path,
     image_paths: Sequence[Path] | None,
     names: Sequence[str],
     max_time_difference: float,
+    match_frames: str = "auto",
 ) -> np.ndarray:
-    """[F, 4, 4] camera-to-world poses of the frames from the TUM trajectory `poses`:
-    matched by time when the images are named by time stamp, else the i-th pose is the
-    i-th frame."""
+    """[F, 4, 4] camera-to-world poses of the frames from the TUM trajectory `poses`,
+    matched as `match_frames` says (`data.demon.recordings.associate_poses`): `auto` by
+    time when the images are named by time stamp, else the i-th pose is the i-th frame
+    (always for a video's frames, which have no time stamps)."""
     try:
         timestamps, camera_to_world = files.read_tum_trajectory(Path(poses).expanduser())
         indices = files.associate_poses(
-            image_paths or [Path(name) for name in names],
+            _frame_paths(image_paths, names),
             timestamps if image_paths else None,
             len(camera_to_world),
             max_time_difference,
+            match_frames,
         )
+    except ArgumentError:
+        raise
     except (FileNotFoundError, ValueError) as error:
         raise _argument("poses", error) from None
     return camera_to_world[indices]
@@ -114,6 +137,7 @@ def predict_recording_run(
     range_metric: str = "camera_z",
     poses: str | None = None,
     max_time_difference: float = 0.02,
+    match_frames: str = "auto",
     min_baseline: float = 0.0,
     batch_size: int = 8,
     aspect: str = "resize",
@@ -128,6 +152,8 @@ def predict_recording_run(
 
     Args:
       files: the readers of the recording's files (`data.demon.recordings`).
+      match_frames: how poses and range readings find their frame (`auto`, `time`,
+        `order`; `data.demon.recordings.MATCH_FRAMES`), as in the converter.
       overwrite: replace an earlier run in `output_dir` (only its files; without, a
         folder holding one is refused).
       print_fn: told when an earlier run is to be replaced.
@@ -142,6 +168,12 @@ def predict_recording_run(
         from `intrinsics`); all before anything is written. A frame that cannot be read
         or predicted part way (naming it): nothing of the run is left in `output_dir`.
     """
+    files.check_match_frames(match_frames)
+    if match_frames == "time" and video and (ranges or poses):
+        raise ArgumentError(
+            "--match_frames=time: a video's frames have no time stamps; give --images named "
+            "by time stamp, or --match_frames=order"
+        )
     try:
         earlier = prediction_folder.check_output_dir(
             Path(output_dir).expanduser(), overwrite=overwrite
@@ -178,9 +210,23 @@ def predict_recording_run(
     readings = camera_to_world = None
     if ranges:
         try:
+            ranges_path = Path(ranges).expanduser()
             readings = recordings.read_range_readings(
-                Path(ranges).expanduser(), frames.names, image_size, range_scale
+                ranges_path,
+                frames.names,
+                image_size,
+                range_scale,
+                frame_indices=lambda fields, line_numbers: files.reading_frame_indices(
+                    fields,
+                    line_numbers,
+                    ranges_path,
+                    _frame_paths(image_paths, frames.names),
+                    match_frames,
+                    max_time_difference,
+                ),
             )
+        except ArgumentError:
+            raise
         except (FileNotFoundError, ValueError, OSError) as error:
             raise _argument("ranges", error) from None
         if range_metric == "ray_length":
@@ -189,7 +235,9 @@ def predict_recording_run(
                     frame_readings[:, :2], frame_readings[:, 2], camera_matrix
                 )
     if poses:
-        camera_to_world = camera_poses(files, poses, image_paths, frames.names, max_time_difference)
+        camera_to_world = camera_poses(
+            files, poses, image_paths, frames.names, max_time_difference, match_frames
+        )
     # What the model reads besides the images and flow: a given pose, or the cameras.
     model_inputs = tuple(
         getattr(registry.make_model(config.model, **config.model_config), "extra_inputs", ())

@@ -10,10 +10,13 @@ A whole recording (`python -m experiments.predict`):
 
 Frames are read when a batch needs them and kept only while later pairs may use them
 (a bounded cache), so a long recording never sits in memory. A pair (i, j) predicts
-frame i's depth; its scale comes from frame i's range readings or from the distance
-between the two frames' camera positions. Pairs without a measurement (no reading on
-frame i; a baseline not above `min_baseline`) are skipped and counted; with neither
-source, depth stays in baseline units. The output folder holds:
+frame i's depth; its scale comes from frame i's range readings (the rule of the
+converter, `data.demon.convert`, whose records supervise frame i's depth with them;
+frame j's readings are not used here, the converter needs one only because its format
+refuses a view without depth) or from the distance between the two frames' camera
+positions. Pairs without a measurement (no reading on frame i; a baseline not above
+`min_baseline`) are skipped and counted; with neither source, depth stays in baseline
+units. The output folder holds:
 
     depth/<frame1>__<frame2>.png   16-bit millimetres (metric depth only), or .npy float32
     preview/<frame1>__<frame2>.png image 1 beside its colourised inverse depth
@@ -202,13 +205,21 @@ def read_range_readings(
     names: Sequence[str],
     image_size: tuple[int, int],
     depth_scale: float = 1.0,
+    *,
+    frame_indices: Callable[[list[str], list[int]], list[int]] | None = None,
 ) -> dict[int, np.ndarray]:
     """Range readings of the CSV format of `data.demon.convert`: `frame,u,v,depth`.
 
-    `frame` is a frame's name (file stem) or its index in order; u, v are pixels of the
-    image ((0, 0) the top-left pixel's centre); depth times `depth_scale` is camera-z
-    metres. A header line and `#` comments are skipped; readings whose depth is not
-    finite or not positive (a sensor's "no return") are dropped, as the converter does.
+    `frame` is a frame's name (file stem) or its index in order, unless `frame_indices`
+    matches them otherwise; u, v are pixels of the image ((0, 0) the top-left pixel's
+    centre); depth times `depth_scale` is camera-z metres. A header line and `#`
+    comments are skipped; readings whose depth is not finite or not positive (a
+    sensor's "no return") are dropped, as the converter does.
+
+    Args:
+      frame_indices: maps the rows' `frame` fields and line numbers to frame indices
+        (the data layer's `--match_frames`, `data.demon.recordings.reading_frame_indices`),
+        raising ValueError naming the line of one it cannot match.
 
     Returns:
       frame index -> [N, 3] float64 (u, v, metres).
@@ -221,8 +232,9 @@ def read_range_readings(
     if not path.is_file():
         raise FileNotFoundError(f"range readings {path} do not exist")
     height, width = image_size
-    index_of = {name: index for index, name in enumerate(names)}
-    readings: dict[int, list[tuple[float, float, float]]] = collections.defaultdict(list)
+    rows: list[tuple[float, float, float]] = []
+    frames: list[str] = []
+    line_numbers: list[int] = []
     with path.open(newline="") as stream:
         for line_number, row in enumerate(csv.reader(stream), 1):
             if not row or not "".join(row).strip() or row[0].strip().startswith("#"):
@@ -235,19 +247,31 @@ def read_range_readings(
                 if line_number == 1:
                     continue  # header
                 raise ValueError(f"{path}:{line_number}: not numbers: {row}") from None
-            frame = row[0].strip()
-            index = _frame_index(frame, index_of, len(names))
-            if index is None:
-                raise ValueError(f"{path}:{line_number}: frame {frame!r} is not a frame")
             if not (np.isfinite(u) and np.isfinite(v)) or not (
                 -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
             ):
                 raise ValueError(
                     f"{path}:{line_number}: pixel ({u}, {v}) outside the {width}x{height} image"
                 )
-            if np.isfinite(depth) and depth > 0:
-                readings[index].append((u, v, depth * depth_scale))
-    return {index: np.asarray(rows, np.float64) for index, rows in readings.items()}
+            rows.append((u, v, depth))
+            frames.append(row[0].strip())
+            line_numbers.append(line_number)
+    if frame_indices is None:
+        index_of = {name: index for index, name in enumerate(names)}
+        indices = []
+        for frame, line_number in zip(frames, line_numbers, strict=True):
+            index = _frame_index(frame, index_of, len(names))
+            if index is None:
+                raise ValueError(f"{path}:{line_number}: frame {frame!r} is not a frame")
+            indices.append(index)
+    else:
+        # Every row, a "no return" too: `order` counts the frames the file names.
+        indices = frame_indices(frames, line_numbers)
+    readings: dict[int, list[tuple[float, float, float]]] = collections.defaultdict(list)
+    for index, (u, v, depth) in zip(indices, rows, strict=True):
+        if np.isfinite(depth) and depth > 0:
+            readings[index].append((u, v, depth * depth_scale))
+    return {index: np.asarray(values, np.float64) for index, values in readings.items()}
 
 
 @dataclasses.dataclass
@@ -291,8 +315,8 @@ def plan_recording(
 
     Args:
       pairs: (i, j) frame indices; depth is predicted for frame i.
-      ranges: frame index -> [N, 3] readings (`read_range_readings`); a pair uses those
-        of its first frame.
+      ranges: frame index -> [N, 3] readings (`read_range_readings`); a pair is scaled
+        by its first frame's and skipped without (its second frame's are not used).
       positions: [F, 3] camera centres of every frame, metres; a pair's baseline is the
         distance between its frames'.
       camera_to_world: [F, 4, 4] camera poses of every frame (metres), instead of

@@ -30,13 +30,20 @@ def camera_to_world_poses(count):
     return poses
 
 
-def make_recording(folder, count, rng, *, timestamps=True, dense=True, ray_length=False):
-    """Images, TUM trajectory and depth (PNG folder or sparse CSV) of a tiny recording."""
+def make_recording(
+    folder, count, rng, *, timestamps=True, dense=True, ray_length=False, numbered=False
+):
+    """Images, TUM trajectory (stamped 100.003 s, 100.103 s, ...) and depth (PNG folder or
+    sparse CSV) of a tiny recording; images named by time stamp (`timestamps`), by frame
+    number (`numbered`: 000000, 000001, ...) or frame000, frame001, ..."""
     (folder / "rgb").mkdir(parents=True)
     poses = camera_to_world_poses(count)
-    names = [
-        f"{100 + 0.1 * index:.6f}" if timestamps else f"frame{index:03d}" for index in range(count)
-    ]
+    if numbered:
+        names = [f"{index:06d}" for index in range(count)]
+    elif timestamps:
+        names = [f"{100 + 0.1 * index:.6f}" for index in range(count)]
+    else:
+        names = [f"frame{index:03d}" for index in range(count)]
     images, depths = [], []
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for index, name in enumerate(names):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -10,8 +11,10 @@ import pytest
 from recording_files import CX, CY, FX, FY, HEIGHT, WIDTH, make_recording
 
 import data
-from data.demon import reader, writer
+from data.demon import reader, recordings, writer
 from gld import records
+from gld.arguments import ArgumentError
+from gld.inference import recordings as inference_recordings
 
 
 def test_tum_and_dense_depth_round_trip(tmp_path):
@@ -219,3 +222,77 @@ def test_another_recordings_test_file_stays(tmp_path):
     result = _convert(tmp_path, out, overwrite=True)
     assert result["removed"] == [] and result["pairs"] == {"train": 3}
     assert (out / "custom_test.h5").read_bytes() == test_file
+
+
+def test_index_named_images_with_timestamped_poses_convert_by_order(tmp_path):
+    names, images, poses = make_recording(
+        tmp_path / "rec", 3, np.random.default_rng(11), numbered=True
+    )
+    assert names[0] == "000000"
+    # By time (the default tries it: both sides look stamped) frame 0 is 100 s from
+    # every pose: refused in one line that names the file and the way out.
+    with pytest.raises(ArgumentError) as refused:
+        _convert(tmp_path, tmp_path / "out")
+    message = str(refused.value)
+    assert re.fullmatch(
+        r"--match_frames=auto: .*000000\.png is 100\.003 s from the nearest pose's time stamp: "
+        r".* --match_frames=order matches the i-th image to the i-th pose",
+        message,
+    ), message
+    assert not (tmp_path / "out").exists()
+
+    result = _convert(tmp_path, tmp_path / "out", match_frames="order")
+    assert result["pairs"] == {"train": 2}
+    with reader.DemonFile(tmp_path / "out" / "custom_train.h5") as demon_file:
+        assert demon_file.groups() == ["000000__000001", "000001__000002"]
+        for view_index, frame in enumerate((1, 2)):
+            view = demon_file.view("000001__000002", view_index)
+            np.testing.assert_array_equal(view.image, images[frame])
+            # The i-th pose: its camera centre maps to 0.
+            centre = poses[frame, :3, 3]
+            np.testing.assert_allclose(view.rotation @ centre + view.translation, 0, atol=1e-9)
+
+
+def test_a_pair_is_its_first_frames_depth_in_converter_and_predictor(tmp_path):
+    """A pair (i, j) takes frame i's reading, in the converter's records and the
+    predictor's scale, and is left out without one; the converter also needs one on
+    frame j (the reader refuses a view without depth), the predictor does not."""
+    names, _, _ = make_recording(tmp_path / "rec", 4, np.random.default_rng(12), dense=False)
+    readings = {0: (40, 30, 2.5), 2: (128, 96, 4.0), 3: (10, 180, 1.5)}  # none on frame 1
+    ranges = tmp_path / "rec" / "range.csv"
+    ranges.write_text(
+        "frame,u,v,depth\n"
+        + "".join(f"{names[frame]},{u},{v},{r}\n" for frame, (u, v, r) in readings.items())
+    )
+    converted = writer.write_recording(
+        tmp_path / "rec" / "rgb",
+        tmp_path / "rec" / "trajectory.txt",
+        f"{FX},{FY},{CX},{CY}",
+        tmp_path / "out",
+        depth=ranges,
+    )
+    # Pairs (0, 1), (1, 2), (2, 3): frame 1 has no reading.
+    assert converted["pairs"] == {"train": 1}
+    assert converted["dropped"] == {"no_reading_on_second_frame": 1, "no_reading_on_first_frame": 1}
+    with reader.DemonFile(tmp_path / "out" / "custom_train.h5") as demon_file:
+        assert demon_file.groups() == [f"{names[2]}__{names[3]}"]
+        first_view = demon_file.view(demon_file.groups()[0], 0)
+    u, v, depth = readings[2]
+    assert np.count_nonzero(first_view.depth) == 1
+    assert first_view.depth[v, u] == pytest.approx(depth, rel=1e-3)
+
+    image_paths = recordings.list_images(tmp_path / "rec" / "rgb")
+    plan = inference_recordings.plan_recording(
+        inference_recordings.frame_pairs(4),
+        ranges=inference_recordings.read_range_readings(
+            ranges,
+            [path.stem for path in image_paths],
+            (HEIGHT, WIDTH),
+            frame_indices=lambda frames, lines: recordings.reading_frame_indices(
+                frames, lines, ranges, image_paths
+            ),
+        ),
+    )
+    assert plan.skipped == {"no range reading on the first frame": 1}  # (1, 2), as converted
+    assert plan.pairs == [(0, 1), (2, 3)]
+    np.testing.assert_allclose(plan.ranges[1], [readings[2]])  # (2, 3) by frame 2's reading

@@ -11,11 +11,12 @@ import re
 import cv2
 import numpy as np
 import pytest
-from conftest import launch
+from conftest import launch, tiny_train_config
 
 from data.demon import recordings
 from gld.evaluation import stored_predictions
 from gld.inference import depth_io, recording_run
+from gld.runs import workdir as workdir_lib
 
 HEIGHT, WIDTH = 72, 96  # the tiny model's 4:3 at 1.5x its 64x48
 FX, FY, CX, CY = 80.0, 82.0, 47.0, 35.5
@@ -214,4 +215,31 @@ def test_a_run_that_fails_part_way_leaves_the_folder_as_it_was(trained_workdir, 
     assert failed.returncode != 0
     message = _error_line(failed.stderr)
     assert re.fullmatch(r"--images: .*cannot read image .*frame_4\.png.*", message), message
+    assert not out.exists()
+
+
+def test_a_match_frames_refusal_is_one_line(tmp_path):
+    """Frames named frame_<i> cannot be matched by time: one line naming the flag, exit
+    status 2, before the model is loaded (a workdir with only its config)."""
+    frames, _ = _recording(tmp_path)
+    poses = tmp_path / "poses.txt"
+    poses.write_text("".join(f"{1305031102.1 + t} {t} 0 0 0 0 0 1\n" for t in range(4)))
+    workdir = tmp_path / "run"
+    workdir_lib.write_run_config(workdir, tiny_train_config())
+    out = tmp_path / "out"
+    result = _launch(
+        f"--workdir={workdir}",
+        f"--images={frames}",
+        f"--poses={poses}",
+        "--match_frames=time",
+        f"--output_dir={out}",
+    )
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr[-3000:]
+    message = _error_line(result.stderr)
+    assert re.fullmatch(
+        r"--match_frames=time: .*frame_0\.png is not named by a time stamp .*"
+        r"--match_frames=order matches by order",
+        message,
+    ), message
     assert not out.exists()

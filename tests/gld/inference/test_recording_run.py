@@ -2,6 +2,8 @@
 against the files it names and the workdir's model, by its flag's name, before the model
 is loaded or a file is written; the trajectory's poses go to their frames."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -84,5 +86,74 @@ def test_camera_poses_go_to_frames_by_order_or_by_time(tmp_path):
     paths = [tmp_path / f"{stamp}.png" for stamp in ("2.0", "0.01")]
     by_time = recording_run.camera_poses(recordings, poses, paths, ["2.0", "0.01"], 0.02)
     np.testing.assert_allclose(by_time[:, :3, 3], [(3, 0, 0), (0, 0, 0)])
-    with pytest.raises(ArgumentError, match="--poses: .*max_time_difference"):
+    with pytest.raises(ArgumentError, match=r"--max_time_difference=0.02: .*0.5.png is 0.500 s"):
         recording_run.camera_poses(recordings, poses, [tmp_path / "0.5.png"], ["0.5"], 0.02)
+
+
+def test_frames_numbered_beside_stamped_poses_match_by_order(tmp_path):
+    translations = [(0, 0, 0), (1, 0, 0), (3, 0, 0)]
+    poses = tmp_path / "poses.txt"
+    poses.write_text(
+        "".join(
+            f"{1305031102.1 + 0.1 * t} {x} {y} {z} 0 0 0 1\n"
+            for t, (x, y, z) in enumerate(translations)
+        )
+    )
+    names = ["000000", "000001", "000002"]
+    paths = [tmp_path / f"{name}.png" for name in names]
+    with pytest.raises(ArgumentError) as refused:
+        recording_run.camera_poses(recordings, poses, paths, names, 0.02)
+    assert re.fullmatch(
+        r"--match_frames=auto: .*000000\.png is 1305031102\.100 s from the nearest pose's time "
+        r"stamp: .* --match_frames=order matches the i-th image to the i-th pose",
+        str(refused.value),
+    ), refused.value
+    by_order = recording_run.camera_poses(recordings, poses, paths, names, 0.02, "order")
+    np.testing.assert_allclose(by_order[:, :3, 3], translations)
+
+
+def test_match_frames_refusals_are_one_line_naming_the_flag(tmp_path):
+    workdir, frames = _workdir(tmp_path), _frames(tmp_path)
+    poses = _trajectory(tmp_path / "poses.txt", [(0, 0, 0), (1, 0, 0), (2, 0, 0)])
+    ranges = tmp_path / "range.csv"
+    ranges.write_text("frame,u,v,depth\nframe_0,1,1,2.0\nframe_2,1,1,2.0\n")
+    out = tmp_path / "out"
+    cases = [
+        (
+            {"poses": str(poses), "match_frames": "time"},
+            r"--match_frames=time: .*frame_0\.png is not named by a time stamp .*"
+            r"--match_frames=order matches by order",
+        ),
+        (
+            {"ranges": str(ranges), "match_frames": "order"},
+            r"--match_frames=order: 3 images but .*range\.csv has readings of 2 frames; .*",
+        ),
+        (
+            {
+                "video": str(tmp_path / "rec.mp4"),
+                "images": None,
+                "poses": str(poses),
+                "match_frames": "time",
+            },
+            "--match_frames=time: a video's frames have no time stamps; .*",
+        ),
+    ]
+    for arguments, message in cases:
+        with pytest.raises(ArgumentError) as refused:
+            recording_run.predict_recording_run(
+                workdir, out, files=recordings, **{"images": str(frames), **arguments}
+            )
+        assert re.fullmatch(message, str(refused.value)), refused.value
+        assert not out.exists(), arguments
+    # By order the readings' frames (a, b, c: neither names nor indices) are the images:
+    # the run reads them and stops only at what the model needs.
+    ranges.write_text("frame,u,v,depth\na,1,1,2.0\nb,1,1,3.0\nc,2,2,4.0\n")
+    with pytest.raises(ArgumentError, match="--intrinsics: the model takes the camera motion"):
+        recording_run.predict_recording_run(
+            _workdir(tmp_path / "flow_pose", global_source="flow_pose"),
+            out,
+            files=recordings,
+            images=str(frames),
+            ranges=str(ranges),
+            match_frames="order",
+        )
