@@ -49,6 +49,7 @@ def main(argv):
     common.initialise()
     import dataclasses
 
+    from gld.runs import checkpoints
     from gld.training import trainer as train
 
     model_config, kept = recipe.with_stored_architecture(
@@ -62,21 +63,39 @@ def main(argv):
         FLAGS.model, model_config, weights, _given()
     )
     # Every option is checked before the dataset is built or the workdir touched.
-    run_config = common.train_config(model_config=model_config, dataset=FLAGS.dataset, **weights)
+    warmup_steps = recipe.warmup_that_fits(FLAGS.steps, FLAGS.warmup_steps, _given())
+    if warmup_steps != FLAGS.warmup_steps:
+        print(f"--steps={FLAGS.steps}: {warmup_steps} warm-up steps (the recipe's 5%)")
+        FLAGS.warmup_steps = warmup_steps  # flags.txt relaunches the run as it trained
+    run_config = common.train_config(
+        model_config=model_config,
+        dataset=FLAGS.dataset,
+        warmup_steps=warmup_steps,
+        **weights,
+    )
     evaluates = FLAGS.final_eval or run_config.eval_every > 0
     builder, height, width, train_source, test_source = common.training_data(evaluates)
     run_config = dataclasses.replace(run_config, height=height, width=width)
-    train.train_and_evaluate(
+    trained_before = checkpoints.last_checkpointed_step(FLAGS.workdir)
+    state = train.train_and_evaluate(
         run_config,
         FLAGS.workdir,
         train_source,
         test_source,
         records={"flags.txt": common.flags_file_text()},
     )
+    step = int(state.step)
     if FLAGS.final_eval:
         from data.demon import file_truth
         from gld.evaluation import evaluation_run
 
+        done = evaluation_run.final_evaluation_of(FLAGS.workdir, FLAGS.dataset, step)
+        if done is not None and step == trained_before:
+            print(
+                f"{done / 'metrics.json'} already scores step {step}: not evaluated again "
+                f"(python -m experiments.evaluate --workdir={FLAGS.workdir} does it again)"
+            )
+            return
         evaluation_run.evaluate_split(
             FLAGS.workdir,
             prepare_dataset=lambda _: builder,

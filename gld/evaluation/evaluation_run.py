@@ -22,6 +22,7 @@ The dataset and DeMoN's files are opened by the caller's `prepare_dataset` and
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -142,6 +143,21 @@ def open_truth(
             f"(score by it: {rescore_command})"
         )
         return None, note
+
+
+def final_evaluation_of(workdir: str | Path, dataset: str, step: int) -> Path | None:
+    """The folder holding the test split's whole evaluation of the workdir's model at
+    `step`, by the dataset's default protocol or at the records' resolution (what a
+    trainer's final evaluation writes), or None when there is none."""
+    for resolution in dict.fromkeys((default_truth_resolution(dataset), "record")):
+        out_dir = trained_run.evaluation_dir(workdir, truth_resolution=resolution)
+        try:
+            report = json.loads((out_dir / "metrics.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if report.get("step") == step and report.get("split", "test") == "test":
+            return out_dir
+    return None
 
 
 def evaluate_split(

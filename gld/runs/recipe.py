@@ -14,7 +14,9 @@ paper suite's main-job rows and the tests all read it.
 A launch applies two rules (`experiments.train`, the comparison and the paper runner):
 the motion terms and the refinement are dropped where the model has no encoder's pose
 to teach or refine (unless asked for), and a relaunch of a workdir keeps the
-architecture it was trained with for every option the command line does not give.
+architecture it was trained with for every option the command line does not give. And
+the train launcher's warm-up fits any run (`warmup_that_fits`): a run too short for the
+recipe's 100 steps warms up for the same 5% of its steps, unless --warmup_steps is given.
 """
 
 from __future__ import annotations
@@ -42,6 +44,16 @@ TRAINING = {
     "warmup_steps": 100,
     **MOTION_WEIGHTS,
 }
+
+
+def warmup_that_fits(steps: int, warmup_steps: int, given: Collection[str] = ()) -> int:
+    """The warm-up of a run of `steps`: `warmup_steps`, unless that is the recipe's
+    default (not in `given`) and too long for the run (the cosine schedule needs fewer
+    warm-up steps than steps): then the recipe's fraction of the run (100 of 2,000: 5%),
+    rounded down. A value the user gave is kept, and checked as given."""
+    if "warmup_steps" in given or warmup_steps < steps:
+        return warmup_steps
+    return steps * TRAINING["warmup_steps"] // TRAINING["steps"]
 
 
 def motion_where_it_applies(

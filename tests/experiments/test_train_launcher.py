@@ -17,8 +17,8 @@ from gld import input_pipeline
 from gld.evaluation import stored_predictions
 from gld.runs import workdir as workdir_lib
 
-# A few steps: the main job's 100 warm-up steps would not fit.
-TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2", "--warmup_steps=2"]
+# A few steps of a tiny model (the recipe's warm-up shrinks to fit: recipe.warmup_that_fits).
+TINY_FLAGS = ["--encoder_channels=4,8,8,8,8", "--batch_size=4", "--log_every=2"]
 
 
 def _launch(args, data_dir, dataset="gld_scenes/tiny", **kwargs):
@@ -44,7 +44,9 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "parameters hypernet: 30,590" in result.stdout
+    assert "--steps=6: 0 warm-up steps (the recipe's 5%)" in result.stdout
     assert "--steps=6" in (workdir / "flags.txt").read_text()
+    assert "--warmup_steps=0" in (workdir / "flags.txt").read_text()  # as it trained
     records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     train_records = [r for r in records if r["split"] == "train"]
     assert [r["step"] for r in train_records] == [2, 4, 6]
@@ -121,17 +123,23 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     assert subset["methods"]["global_local"]["abs_inv"]["count"] == 2
     assert json.loads((workdir / "eval" / "metrics.json").read_text()) == report
 
-    # flags.txt holds only gld's flags and relaunches the run (nothing left to train)
+    # flags.txt holds only gld's flags and relaunches the run: nothing left to train, and
+    # the final evaluation of step 6 is not done again
     flags_text = (workdir / "flags.txt").read_text()
     assert (
         "--steps=6" in flags_text and "grain" not in flags_text and "--verbosity" not in flags_text
     )
+    written = (workdir / "eval" / "metrics.json").stat().st_mtime_ns
     relaunched = _launch(
-        ["experiments.train", f"--flagfile={workdir / 'flags.txt'}", "--nofinal_eval"],
-        tiny_scenes_dir,
+        ["experiments.train", f"--flagfile={workdir / 'flags.txt'}"], tiny_scenes_dir
     )
     assert relaunched.returncode == 0, relaunched.stderr[-3000:]
     assert "resumed from step 6" in relaunched.stdout
+    assert (
+        f"{workdir / 'eval' / 'metrics.json'} already scores step 6: not evaluated again"
+        in relaunched.stdout
+    )
+    assert (workdir / "eval" / "metrics.json").stat().st_mtime_ns == written
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,20 @@ def test_the_recipe_is_a_valid_run():
     assert run.epipolar_weight > 0 and run.pose_teacher_weight > 0
 
 
+def test_the_warmup_fits_any_run_unless_given():
+    default = recipe.TRAINING["warmup_steps"]
+    assert recipe.warmup_that_fits(recipe.TRAINING["steps"], default) == default
+    assert recipe.warmup_that_fits(94_000, default) == default
+    assert recipe.warmup_that_fits(default + 1, default) == default
+    # Too long for the run: the recipe's 5% of it, a valid cosine schedule at any length.
+    for steps in (1, 19, 20, 50, default):
+        warmup = recipe.warmup_that_fits(steps, default)
+        assert warmup == steps // 20
+        config.TrainConfig(**{**recipe.TRAINING, "steps": steps, "warmup_steps": warmup}).validate()
+    # Given, it is kept (and refused by the schedule's check as given).
+    assert recipe.warmup_that_fits(50, default, given={"warmup_steps"}) == default
+
+
 def _main_job(model: str, given: dict) -> tuple[dict, dict]:
     """A launch's model options and motion weights, as the train launcher makes them:
     the recipe's, with what the command line gives over them."""
