@@ -43,6 +43,7 @@ class WorkdirLock:
     def __init__(self, workdir: str | Path):
         self.path = Path(workdir) / LOCK_FILE
         self._fd: int | None = None
+        self._created_workdir = False
 
     def acquire(self) -> None:
         """Takes the lock, creating the workdir if needed.
@@ -51,17 +52,25 @@ class WorkdirLock:
           WorkdirLockedError: another process holds it (its pid, host, start time and
             command line are in the message).
         """
+        self._created_workdir = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            owner = _describe_owner(os.pread(fd, 1 << 16, 0))
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = _describe_owner(os.pread(fd, 1 << 16, 0))
+                os.close(fd)
+                raise WorkdirLockedError(
+                    f"workdir {self.path.parent} is in use by another training run ({owner}); "
+                    f"wait for it to end or use another --workdir (lock file {self.path})"
+                ) from None
+            if _is_the_file_at(fd, self.path):
+                break
+            # Its holder removed the file (a first launch that wrote nothing) while this
+            # process waited to lock it: lock the file now at the path.
             os.close(fd)
-            raise WorkdirLockedError(
-                f"workdir {self.path.parent} is in use by another training run ({owner}); "
-                f"wait for it to end or use another --workdir (lock file {self.path})"
-            ) from None
+            self.path.parent.mkdir(parents=True, exist_ok=True)
         owner = {
             "pid": os.getpid(),
             "host": socket.gethostname(),
@@ -73,11 +82,19 @@ class WorkdirLock:
         self._fd = fd
 
     def release(self) -> None:
-        """Releases the lock (a no-op when not held); the file stays, emptied."""
+        """Releases the lock (a no-op when not held); the file stays, emptied, unless
+        this lock created the workdir and nothing else was written in it: then the file
+        and the workdir are removed."""
         if self._fd is None:
             return
         # Emptied first, so the file never names a process that no longer holds it.
         os.ftruncate(self._fd, 0)
+        workdir = self.path.parent
+        if self._created_workdir and [p.name for p in workdir.iterdir()] == [LOCK_FILE]:
+            # A first launch that wrote nothing leaves nothing: not even its lock.
+            self.path.unlink()
+            with contextlib.suppress(OSError):
+                workdir.rmdir()
         fcntl.flock(self._fd, fcntl.LOCK_UN)
         os.close(self._fd)
         self._fd = None
@@ -88,6 +105,14 @@ class WorkdirLock:
 
     def __exit__(self, *exc_info) -> None:
         self.release()
+
+
+def _is_the_file_at(fd: int, path: Path) -> bool:
+    """Whether the open file `fd` is the file at `path` (not one removed since)."""
+    try:
+        return os.path.samestat(os.fstat(fd), os.stat(path))
+    except FileNotFoundError:
+        return False
 
 
 def _command_line() -> str:

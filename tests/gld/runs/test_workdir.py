@@ -225,6 +225,56 @@ def test_training_in_a_locked_workdir_is_refused_before_writing_or_building(
     assert sorted(path.name for path in tmp_path.iterdir()) == ["train.lock"]
 
 
+def test_a_first_launch_that_fails_after_taking_the_lock_leaves_no_workdir(
+    tiny_scenes, tmp_path, monkeypatch
+):
+    def fails(*args, **kwargs):
+        raise RuntimeError("the start-up failed")
+
+    monkeypatch.setattr(train, "create_train_state", fails)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="the start-up failed"):
+        train.train_and_evaluate(
+            tiny_train_config(), run_dir, tiny_scenes.as_data_source("train"), progress=False
+        )
+    assert not run_dir.exists()
+    # A workdir that existed before keeps its (emptied) lock file; one written in keeps all.
+    run_dir.mkdir()
+    with lock_lib.WorkdirLock(run_dir):
+        pass
+    assert (run_dir / "train.lock").read_text() == ""
+    other = tmp_path / "other"
+    with lock_lib.WorkdirLock(other):
+        (other / "config.json").write_text("{}")
+    assert sorted(path.name for path in other.iterdir()) == ["config.json", "train.lock"]
+
+
+def test_a_lock_whose_file_its_holder_removed_meanwhile_locks_the_file_at_the_path(
+    tmp_path, monkeypatch
+):
+    workdir_path = tmp_path / "run"
+    first = lock_lib.WorkdirLock(workdir_path)
+    first.acquire()
+    locking = lock_lib.fcntl.flock
+
+    def first_leaves_then_lock(fd, operation):
+        # The first holder, which created the workdir and wrote nothing, releases it
+        # between the second's open and its flock: the file the second opened is gone.
+        monkeypatch.setattr(lock_lib.fcntl, "flock", locking)
+        first.release()
+        assert not workdir_path.exists()
+        return locking(fd, operation)
+
+    second = lock_lib.WorkdirLock(workdir_path)
+    monkeypatch.setattr(lock_lib.fcntl, "flock", first_leaves_then_lock)
+    second.acquire()
+    monkeypatch.undo()
+    assert json.loads((workdir_path / "train.lock").read_text())["pid"] == os.getpid()
+    with pytest.raises(lock_lib.WorkdirLockedError):  # the file at the path is the held one
+        lock_lib.WorkdirLock(workdir_path).acquire()
+    second.release()
+
+
 @pytest.fixture(scope="module")
 def two_checkpoints_once(tiny_scenes, tmp_path_factory):
     """A workdir with checkpoints at steps 2 and 4 (different parameters) and the
