@@ -41,12 +41,12 @@ def load_flow_run(
     stored = json.loads(path.read_text())
     config = FlowTrainConfig(**stored["config"])
     model = config.make_model()
-    template = state_lib.create_flow_state(
-        model,
-        config.optimizer(),
-        config.height,
-        config.width,
-        config.seed,
+    # Shapes and dtypes are all a restore needs: the real initial state would compile
+    # every initialiser (seconds) only to be overwritten.
+    template = jax.eval_shape(
+        lambda: state_lib.create_flow_state(
+            model, config.optimizer(), config.height, config.width, config.seed
+        )
     )
     manager = checkpoint_lib.checkpoint_manager(workdir)
     try:
