@@ -83,6 +83,7 @@ from absl import flags
 
 from data.demon import recordings, writer
 from gld import launch
+from gld.arguments import ArgumentError
 
 flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
 flags.DEFINE_string("poses", None, "Trajectory file (see --pose_format).", required=True)
@@ -131,7 +132,22 @@ flags.DEFINE_bool("overwrite", False, "Replace output files that exist already."
 def main(argv: Sequence[str]) -> None:
     del argv
     values = flags.FLAGS
-    result = writer.write_recording(
+    try:
+        result = _write(values)
+    except (ValueError, FileNotFoundError, FileExistsError) as error:
+        # The recording given cannot be converted as asked (the message names the file,
+        # its line or the flag); nothing was written.
+        raise ArgumentError(str(error)) from error
+    for split_name, path in result["files"].items():
+        print(f"{path}: {result['pairs'][split_name]} pairs ({split_name})")
+    for reason, count in result["dropped"].items():
+        print(f"pairs left out, {reason}: {count}")
+    for path in result["removed"]:
+        print(f"{path}: removed (the same recording's earlier split, whose pairs would overlap)")
+
+
+def _write(values: flags.FlagValues) -> dict:
+    return writer.write_recording(
         values.images,
         values.poses,
         values.intrinsics,
@@ -153,12 +169,6 @@ def main(argv: Sequence[str]) -> None:
         match_frames=values.match_frames,
         overwrite=values.overwrite,
     )
-    for split_name, path in result["files"].items():
-        print(f"{path}: {result['pairs'][split_name]} pairs ({split_name})")
-    for reason, count in result["dropped"].items():
-        print(f"pairs left out, {reason}: {count}")
-    for path in result["removed"]:
-        print(f"{path}: removed (the same recording's earlier split, whose pairs would overlap)")
 
 
 if __name__ == "__main__":

@@ -38,10 +38,13 @@ def test_command_line_writes_the_file_and_keeps_it_from_bad_runs(tmp_path):
         assert len(demon_file.groups()) == 2
     written = path.read_bytes()
 
+    # A recording that cannot be converted as asked: one line, exit status 2.
     refused = _convert(tmp_path, "--recording=lab", "--frame_gap=2")
-    assert refused.returncode != 0 and "--overwrite" in refused.stderr
+    assert refused.returncode == 2 and "--overwrite" in refused.stderr
+    assert len(refused.stderr.splitlines()) == 1, refused.stderr
     no_pairs = _convert(tmp_path, "--recording=lab", "--frame_gap=3", "--overwrite")
-    assert no_pairs.returncode != 0 and "3 frames give no train pairs" in no_pairs.stderr
+    assert no_pairs.returncode == 2 and "3 frames give no train pairs" in no_pairs.stderr
+    assert len(no_pairs.stderr.splitlines()) == 1, no_pairs.stderr
     assert path.read_bytes() == written
     assert [file.name for file in (tmp_path / "out").iterdir()] == [path.name]
 
