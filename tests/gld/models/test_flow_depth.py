@@ -1,6 +1,10 @@
 """Tests of gld/models/flow_depth.py and the learned flow estimator: the flow network inside a
 depth model (frozen or fine-tuned), its pretrained start, the conv-head model, and a
-trained network as the stored flow of a dataset build."""
+trained network as the stored flow of a dataset build.
+
+The flow network inside a depth model is an option no main recipe uses: the tests that
+compile or train it (20-30 s each on the 2-core CPU) are slow; the default run keeps the
+checks of the options and the refusals."""
 
 import jax
 import numpy as np
@@ -76,6 +80,7 @@ def _sparse_gradients(depth_model, params, batch):
     return jax.jit(jax.grad(loss))(params)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("trainable", [False, True])
 def test_the_switch_freezes_or_fine_tunes_the_flow_network(trainable):
     depth_model = flow_depth.GlobalLocalFlowNet(flow_trainable=trainable)
@@ -89,7 +94,7 @@ def test_the_switch_freezes_or_fine_tunes_the_flow_network(trainable):
         assert flow_norm == 0.0
 
 
-@pytest.mark.slow  # compiles both models; the default run keeps a margin under 10 minutes
+@pytest.mark.slow
 def test_the_models_compute_their_own_flow_and_ignore_the_given_one():
     image1, image2, flow_given = _inputs()
     for depth_model in (flow_depth.GlobalLocalFlowNet(), flow_depth.FlowNetHead()):
@@ -123,6 +128,7 @@ def test_the_head_is_three_convolutions_ending_in_one_channel():
         )
 
 
+@pytest.mark.slow
 def test_pretrained_parameters_are_the_flow_runs(flow_run):
     depth_model = flow_depth.GlobalLocalFlowNet(flow_net_workdir=str(flow_run))
     image1, image2, _ = _inputs()
@@ -168,6 +174,7 @@ def test_a_missing_flow_run_is_refused_when_the_config_is_checked(tmp_path):
     registry.check_config("flow_net_head", {"flow_net_workdir": ""})
 
 
+@pytest.mark.slow
 def test_a_trained_network_is_a_flow_estimator(flow_run, eval_batch):
     method = flow.LEARNED_PREFIX + str(flow_run)
     flow.check_estimator(method)
@@ -234,6 +241,7 @@ def test_a_new_run_starts_from_the_flow_run_and_a_frozen_network_stays_there(
     assert not any("flow network initialised from" in note for note in notes)
 
 
+@pytest.mark.slow
 def test_a_dataset_build_stores_the_trained_networks_flow(flow_run, tmp_path):
     import data
 

@@ -113,6 +113,8 @@ def _train(batch, steps, learning_rate=2e-3):
     return state, epes
 
 
+# The learned flow network's learning (~20 s): no main recipe trains it.
+@pytest.mark.slow
 def test_training_steps_lower_the_end_point_error(tiny_pairs):
     state, epes = _train(tiny_pairs, steps=60)
     assert int(state.step) == 60

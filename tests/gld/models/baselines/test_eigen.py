@@ -65,6 +65,8 @@ def test_the_coarse_network_sees_the_whole_image_and_the_output_is_the_fine_map_
     np.testing.assert_array_equal(coarse_change[1], 0.0)
 
 
+# A baseline's learning (~17 s): an option no main recipe uses; the slow run checks it.
+@pytest.mark.slow
 def test_training_learns_depth_from_the_flow():
     losses, outputs, inv_depth, _ = baseline_checks.train_tiny(EigenNet(**NARROW), steps=150)
     baseline_checks.check_learned(losses, outputs, inv_depth)

@@ -1,6 +1,7 @@
 import baseline_checks
 import jax
 import numpy as np
+import pytest
 from global_local_reference import conv_same, inv_depth_of, leaky_relu
 
 from gld.models import baselines
@@ -66,6 +67,8 @@ def test_the_network_is_the_documented_encoder_decoder():
     np.testing.assert_allclose(outputs["depth"], 1.0 / expected, rtol=1e-5)
 
 
+# A baseline's learning (~17 s): an option no main recipe uses; the slow run checks it.
+@pytest.mark.slow
 def test_training_learns_depth_from_the_flow():
     losses, outputs, inv_depth, _ = baseline_checks.train_tiny(SmallEncDec(), steps=100)
     baseline_checks.check_learned(losses, outputs, inv_depth)
