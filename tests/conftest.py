@@ -16,6 +16,22 @@ if str(REPO_ROOT) not in sys.path:
 
 import pytest  # noqa: E402
 
+# The files whose tests take longest start first: the parallel workers (one file each,
+# `--dist=loadfile`) then end together rather than one waiting on a long file taken last.
+LONGEST_FIRST = (
+    "tests/experiments/test_paper_launcher.py",
+    "tests/experiments/test_train_launcher.py",
+    "tests/gld/training/test_trainer.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    def rank(item):
+        path = item.nodeid.split("::")[0]
+        return LONGEST_FIRST.index(path) if path in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=rank)  # stable: the order within and between the other files stays
+
 
 def _interpreter(arguments, *, timeout: int, env=None, **options) -> subprocess.CompletedProcess:
     """A fresh Python interpreter with `arguments`, on the CPU, from the repository root."""
