@@ -51,6 +51,13 @@ flags.DEFINE_string(
 flags.DEFINE_list("only", None, "Run only these tasks (names or prefixes: train/, classical).")
 flags.DEFINE_bool("report_only", False, "Write the report from the finished results only.")
 flags.DEFINE_bool("progress", True, "Progress bars of the training runs.")
+flags.DEFINE_bool(
+    "compile_cache",
+    True,
+    "Keep compiled programs in <workdir>/compile_cache (JAX's persistent cache): the "
+    "suite's runs of one program (a model at several label densities, say) compile it "
+    "once, and a continued suite reuses what the killed one compiled.",
+)
 flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
 flags.DEFINE_string("manual_dir", None, "Unused by gld_scenes; kept for the data flags.")
 common.define_distributed_flags()
@@ -67,6 +74,9 @@ def main(argv):
 
     scale = paper_scales.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")
+    if FLAGS.compile_cache:
+        jax.config.update("jax_compilation_cache_dir", str(workdir / "compile_cache"))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     report_dir = Path(
         FLAGS.report_dir or ("report" if scale.name == "cpu" else f"report/{scale.name}")
     )

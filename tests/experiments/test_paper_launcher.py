@@ -67,6 +67,7 @@ def test_suite_killed_continues_reports_reuses_and_finishes(tiny_scenes_dir, tmp
     process.wait()
     assert first_result.exists()
     assert not (report_dir / "README.md").exists()
+    assert any((workdir / "compile_cache").iterdir())  # what it compiled, for what follows
     stamp = first_result.stat().st_mtime_ns
 
     resumed = _run(tiny_scenes_dir, workdir, report_dir, only)
