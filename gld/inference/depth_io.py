@@ -4,7 +4,8 @@
   millimetres for metric depth; 0 means no prediction (not finite, not positive, or
   beyond 65.535 m). `gld.evaluation.stored_predictions.load_depth` reads it back (and `.npy`).
 * `write_depth_npy`: float32 [H, W], NaN where there is no prediction.
-* `write_preview`: image 1 beside its colourised inverse depth (magma, near = bright).
+* `write_preview`: image 1 beside its colourised inverse depth (magma, near = bright)
+  and a colour bar giving the depth of its ticks in the depth's unit.
 * `write_ply` / `read_ply`: binary little-endian point clouds (x, y, z float32 and
   optional red, green, blue uint8), from `point_cloud` (each pixel's 3-D point).
 """
@@ -53,27 +54,82 @@ def write_depth_npy(path: str | Path, depth: np.ndarray) -> None:
     np.save(path, np.asarray(depth, np.float32))
 
 
-def colourise_inverse_depth(depth: np.ndarray) -> np.ndarray:
+def inverse_depth_top(depth: np.ndarray) -> float:
+    """The top of a preview's colour scale: the 99th percentile of the inverse depth of
+    the pixels with a prediction (1.0 without any). Given several maps, their shared
+    scale."""
+    depth = np.asarray(depth, np.float64)
+    valid = np.isfinite(depth) & (depth > 0)
+    return float(np.percentile(1.0 / depth[valid], 99)) if np.any(valid) else 1.0
+
+
+def colourise_inverse_depth(depth: np.ndarray, top: float | None = None) -> np.ndarray:
     """[H, W] depth -> [H, W, 3] uint8 RGB: inverse depth on the magma scale from 0 to
-    its 99th percentile (the map's own scale), black where there is no prediction."""
+    `top` (default: the map's own, `inverse_depth_top`), black where there is no
+    prediction."""
     depth = np.asarray(depth, np.float64)
     valid = np.isfinite(depth) & (depth > 0)
     inv_depth = np.zeros_like(depth)
     inv_depth[valid] = 1.0 / depth[valid]
-    top = np.percentile(inv_depth[valid], 99) if np.any(valid) else 1.0
+    top = inverse_depth_top(depth) if top is None else top
     levels = np.clip(inv_depth / max(top, 1e-12) * 255.0, 0, 255).astype(np.uint8)
     colour = cv2.applyColorMap(levels, cv2.COLORMAP_MAGMA)
     colour[~valid] = 0
     return cv2.cvtColor(colour, cv2.COLOR_BGR2RGB)
 
 
-def write_preview(path: str | Path, image: np.ndarray, depth: np.ndarray) -> None:
-    """Writes image 1 ([H, W, 3] RGB uint8) beside its colourised inverse depth."""
-    colour = colourise_inverse_depth(depth)
+# The colour bar's ticks, as fractions of the scale's top inverse depth (depth 1, 2 and
+# 4 times the nearest depth shown at full brightness).
+_BAR_TICKS = (1.0, 0.5, 0.25)
+
+
+def colour_bar_ticks(top: float, unit: str) -> list[tuple[float, str]]:
+    """The colour bar's ticks: (height fraction from the top, label), the label the depth
+    at that level of inverse depth in `unit`."""
+    return [
+        (1.0 - fraction, f"{1.0 / (fraction * max(top, 1e-12)):.3g} {unit}")
+        for fraction in _BAR_TICKS
+    ]
+
+
+def colour_bar(height: int, top: float, unit: str) -> np.ndarray:
+    """[height, W, 3] uint8 RGB: the magma scale of `colourise_inverse_depth` (top:
+    inverse depth `top`, bottom: 0, i.e. far), each tick labelled with its depth in
+    `unit` ("m" for metric depth), on a white strip."""
+    bar_width, label_width = 12, 76
+    column = np.linspace(255, 0, height).astype(np.uint8)[:, None]
+    bar = cv2.applyColorMap(np.repeat(column, bar_width, 1), cv2.COLORMAP_MAGMA)
+    strip = np.full((height, bar_width + label_width, 3), 255, np.uint8)
+    strip[:, :bar_width] = cv2.cvtColor(bar, cv2.COLOR_BGR2RGB)
+    scale = min(0.45, max(0.33, height / 400))
+    for position, label in colour_bar_ticks(top, unit):
+        row = int(round(position * (height - 1)))
+        strip[row, bar_width : bar_width + 4] = 0
+        baseline = min(max(row + 4, 10), height - 2)
+        cv2.putText(
+            strip, label, (bar_width + 6, baseline), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0)
+        )
+    return strip
+
+
+def write_preview(
+    path: str | Path,
+    image: np.ndarray,
+    depth: np.ndarray,
+    *,
+    top: float | None = None,
+    unit: str = "m",
+) -> None:
+    """Writes image 1 ([H, W, 3] RGB uint8) beside its colourised inverse depth and the
+    colour bar with the depth of each tick in `unit` ("m" for metric depth; the scale's
+    top: `top`, default the map's own)."""
+    top = inverse_depth_top(depth) if top is None else top
+    colour = colourise_inverse_depth(depth, top)
     image = np.asarray(image, np.uint8)
     if image.shape[:2] != colour.shape[:2]:
         image = cv2.resize(image, colour.shape[1::-1], interpolation=cv2.INTER_AREA)
-    _write_image(Path(path), cv2.cvtColor(np.concatenate([image, colour], 1), cv2.COLOR_RGB2BGR))
+    panel = np.concatenate([image, colour, colour_bar(colour.shape[0], top, unit)], 1)
+    _write_image(Path(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
 
 
 def point_cloud(

@@ -19,7 +19,8 @@ positions. Pairs without a measurement (no reading on frame i; a baseline not ab
 units. The output folder holds:
 
     depth/<frame1>__<frame2>.png   16-bit millimetres (metric depth only), or .npy float32
-    preview/<frame1>__<frame2>.png image 1 beside its colourised inverse depth
+    preview/<frame1>__<frame2>.png image 1 beside its colourised inverse depth and a colour
+                                   bar in metres (or baselines)
     ply/<frame1>__<frame2>.ply     binary PLY point cloud in the depth's units
     pairs.csv                      one row per written pair: frames, scale, source, units
     summary.json                   counts, units, skipped pairs by reason, settings
@@ -467,7 +468,12 @@ def predict_recording(
                     depth_io.write_depth_npy(depth_path, depth)
                 colour_image = _display_image(images1[position])
                 if previews:
-                    depth_io.write_preview(run_dir / "preview" / f"{name}.png", colour_image, depth)
+                    depth_io.write_preview(
+                        run_dir / "preview" / f"{name}.png",
+                        colour_image,
+                        depth,
+                        unit="m" if units == "metres" else "x baseline",
+                    )
                 if ply:
                     points, colours = depth_io.point_cloud(depth, camera_matrix, colour_image)
                     depth_io.write_ply(run_dir / "ply" / f"{name}.ply", points, colours)
