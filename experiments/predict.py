@@ -80,6 +80,13 @@ flags.DEFINE_enum(
     "(default: png when metric, npy otherwise).",
 )
 flags.DEFINE_bool("previews", False, "Also write image 1 beside its colourised inverse depth.")
+flags.DEFINE_enum(
+    "preview_scale",
+    "pair",
+    ("pair", "recording"),
+    "The previews' colour scale: each pair's own, or one for the recording (the median of "
+    "the pairs' own), so that colours compare across frames.",
+)
 flags.DEFINE_bool("ply", False, "Also write a PLY point cloud per pair (needs --intrinsics).")
 flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy in pixels of the frames, or a file.")
 flags.DEFINE_string(
@@ -192,6 +199,7 @@ def main(argv):
         pairs=FLAGS.pairs,
         depth_format=_depth_format(),
         previews=FLAGS.previews,
+        preview_scale=FLAGS.preview_scale,
         ply=FLAGS.ply,
         intrinsics=FLAGS.intrinsics,
         ranges=FLAGS.ranges,

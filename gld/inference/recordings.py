@@ -364,6 +364,10 @@ def pair_name(names: Sequence[str], pair: tuple[int, int]) -> str:
     return f"{names[pair[0]]}__{names[pair[1]]}"
 
 
+# How the previews' colours are scaled: each by its own map, or all by one.
+PREVIEW_SCALES = ("pair", "recording")
+
+
 def predict_recording(
     predictor,
     frames: _CachedFrames,
@@ -373,6 +377,7 @@ def predict_recording(
     batch_size: int = 8,
     depth_format: str = "png",
     previews: bool = False,
+    preview_scale: str = "pair",
     camera_matrix: np.ndarray | None = None,
     ply: bool = False,
     overwrite: bool = False,
@@ -391,6 +396,10 @@ def predict_recording(
       batch_size: pairs per model call.
       depth_format: "png" (16-bit millimetres; needs metric depth) or "npy".
       previews: also write colour previews.
+      preview_scale: "pair" (each preview's colours span its own map's inverse depth)
+        or "recording" (one scale for all: the median of the pairs' own scales, so that
+        colours compare across the recording; the previews are drawn once every depth
+        map is written).
       camera_matrix: [3, 3] K of the frames (pixels), for point clouds.
       ply: write a PLY point cloud per pair (needs camera_matrix).
       overwrite: replace an earlier run's files in `out_dir` (else it is refused).
@@ -414,10 +423,14 @@ def predict_recording(
         raise ValueError("point clouds need the camera's intrinsics")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if preview_scale not in PREVIEW_SCALES:
+        raise ValueError(f"preview scale must be one of {PREVIEW_SCALES}, got {preview_scale!r}")
     first = plan.pairs[0][0]
     check_image(frames.read(first), f"frame {frames.names[first]}")
     units = "baseline" if plan.scale_source == "none" else "metres"
+    unit = "m" if units == "metres" else "x baseline"
     unstored_pixels = 0
+    pair_tops: list[float] = []
     with (
         prediction_folder.staged_run(out_dir, overwrite=overwrite) as run_dir,
         (run_dir / prediction_folder.PAIRS_CSV).open("w", newline="") as stream,
@@ -467,13 +480,11 @@ def predict_recording(
                 else:
                     depth_io.write_depth_npy(depth_path, depth)
                 colour_image = _display_image(images1[position])
-                if previews:
+                if previews and preview_scale == "pair":
                     depth_io.write_preview(
-                        run_dir / "preview" / f"{name}.png",
-                        colour_image,
-                        depth,
-                        unit="m" if units == "metres" else "x baseline",
+                        run_dir / "preview" / f"{name}.png", colour_image, depth, unit=unit
                     )
+                pair_tops.append(depth_io.inverse_depth_top(depth))
                 if ply:
                     points, colours = depth_io.point_cloud(depth, camera_matrix, colour_image)
                     depth_io.write_ply(run_dir / "ply" / f"{name}.ply", points, colours)
@@ -492,6 +503,15 @@ def predict_recording(
             stream.flush()
             if progress is not None:
                 progress(len(indices))
+        if previews and preview_scale == "recording":
+            top = float(np.median(pair_tops))
+            for first_frame, second_frame in plan.pairs:
+                name = pair_name(frames.names, (first_frame, second_frame))
+                depth = _written_depth(run_dir / "depth" / f"{name}.{depth_format}")
+                image = _display_image(frames.read(first_frame))
+                depth_io.write_preview(
+                    run_dir / "preview" / f"{name}.png", image, depth, top=top, unit=unit
+                )
         summary = {
             "pairs_written": len(plan.pairs),
             "pairs_skipped": plan.skipped,
@@ -501,6 +521,7 @@ def predict_recording(
             "png_depth_scale": depth_io.PNG_DEPTH_SCALE if depth_format == "png" else None,
             "png_unstored_pixels": unstored_pixels if depth_format == "png" else None,
             "previews": previews,
+            "preview_scale": preview_scale if previews else None,
             "ply": ply,
             "camera_matrix": None if camera_matrix is None else np.asarray(camera_matrix).tolist(),
             "model_resolution": [predictor.height, predictor.width],
@@ -508,6 +529,14 @@ def predict_recording(
         }
         (run_dir / prediction_folder.SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _written_depth(path: Path) -> np.ndarray:
+    """A depth map this module wrote, as [H, W] float32 depth, NaN where there is none."""
+    if path.suffix == ".npy":
+        return np.load(path)
+    values = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
+    return np.where(values > 0, values * depth_io.PNG_DEPTH_SCALE, np.nan).astype(np.float32)
 
 
 def _display_image(image: np.ndarray) -> np.ndarray:

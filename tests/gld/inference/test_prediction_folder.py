@@ -156,3 +156,42 @@ def test_a_folder_of_other_files_takes_a_run_beside_them(tmp_path):
         "range.csv",
         "summary.json",
     ]
+
+
+class _GrowingPredictor(_ConstantPredictor):
+    """Pair k's depth is k + 1 everywhere (calls count the pairs)."""
+
+    def __init__(self):
+        self.done = 0
+
+    def predict(self, images1, images2, **options):
+        count = len(images1)
+        depth = np.stack([np.full((HEIGHT, WIDTH), self.done + k + 1.0) for k in range(count)])
+        self.done += count
+        return {"depth": depth.astype(np.float32), "scale": np.ones(count)}
+
+
+@pytest.mark.parametrize("preview_scale", ["pair", "recording"])
+def test_previews_share_one_scale_when_asked(tmp_path, preview_scale):
+    frames = _frames(tmp_path / "frames")
+    plan = recordings.plan_recording(recordings.frame_pairs(len(frames)))
+    out = tmp_path / "out"
+    options = dict(depth_format="npy", batch_size=1, previews=True, preview_scale=preview_scale)
+    summary = recordings.predict_recording(_GrowingPredictor(), frames, plan, out, **options)
+    assert summary["preview_scale"] == preview_scale
+    maps = sorted((out / "preview").iterdir())
+    colours = [cv2.imread(str(path))[:, WIDTH : 2 * WIDTH] for path in maps]
+    if preview_scale == "pair":  # each map at the top of its own scale: all alike
+        assert all(np.array_equal(colour, colours[0]) for colour in colours)
+    else:  # depths 1, 2, 3 on one scale (the median top, 1/2): 1 and 2 at its top, 3 darker
+        brightness = [float(colour.mean()) for colour in colours]
+        assert brightness[0] == brightness[1] > brightness[2]
+        np.testing.assert_array_equal(
+            colours[1], cv2.cvtColor(depth_io_colours(2.0, top=0.5), cv2.COLOR_RGB2BGR)
+        )
+
+
+def depth_io_colours(depth: float, top: float) -> np.ndarray:
+    from gld.inference import depth_io
+
+    return depth_io.colourise_inverse_depth(np.full((HEIGHT, WIDTH), depth), top)
