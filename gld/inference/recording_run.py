@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gld.arguments import ArgumentError
+from gld.inference import frames as frames_lib
 from gld.inference import prediction_folder, recordings, scale
 from gld.inference.inputs import check_image
 from gld.inference.predict import DepthPredictor
@@ -68,7 +69,7 @@ def open_frames(
     images: str | None,
     video: str | None,
     cache_size: int,
-) -> tuple[recordings.ImageFolderFrames | recordings.VideoFrames, list[Path] | None]:
+) -> tuple[frames_lib.ImageFolderFrames | frames_lib.VideoFrames, list[Path] | None]:
     """The frame source of exactly one of `images` (a folder, name order) or `video`, and
     the image paths (None for a video)."""
     if bool(images) == bool(video):
@@ -78,9 +79,9 @@ def open_frames(
             paths = files.list_images(Path(images).expanduser())
         except FileNotFoundError as error:
             raise _argument("images", error) from None
-        return recordings.ImageFolderFrames(paths, cache_size=cache_size), paths
+        return frames_lib.ImageFolderFrames(paths, cache_size=cache_size), paths
     try:
-        return recordings.VideoFrames(Path(video).expanduser(), cache_size=cache_size), None
+        return frames_lib.VideoFrames(Path(video).expanduser(), cache_size=cache_size), None
     except (FileNotFoundError, ValueError) as error:
         raise _argument("video", error) from None
 

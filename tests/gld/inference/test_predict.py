@@ -12,6 +12,7 @@ from conftest import TINY_MODEL
 
 from gld import flow as flow_lib
 from gld.inference import depth_io, inputs, recordings
+from gld.inference import frames as frames_lib
 from gld.inference.predict import DepthPredictor
 from gld.models import global_local as model_lib
 from gld.models import registry
@@ -347,7 +348,7 @@ def test_video_frames_stream_in_order_and_seek_back(tmp_path):
     for index in range(7):
         writer.write(np.full((24, 32, 3), 30 * index, np.uint8))
     writer.release()
-    frames = recordings.VideoFrames(path, cache_size=2)
+    frames = frames_lib.VideoFrames(path, cache_size=2)
     assert len(frames) == 7 and frames.names[3] == "000003"
     for index in [0, 3, 1, 6, 2]:  # forward, back out of the cache, forward again
         assert abs(frames.read(index).mean() - 30 * index) < 3
@@ -362,7 +363,7 @@ def test_predict_recording_writes_every_pair_in_batches(tiny_predictor, tmp_path
         paths.append(frames_dir / f"f{index}.png")
         frames_dir.mkdir(exist_ok=True)
         cv2.imwrite(str(paths[-1]), np.roll(image, 2 * index, axis=1))
-    frames = recordings.ImageFolderFrames(paths)
+    frames = frames_lib.ImageFolderFrames(paths)
     positions = np.array([[0.0, 0, 0], [0.5, 0, 0], [1.5, 0, 0], [1.5, 0, 0]])
     plan = recordings.plan_recording(recordings.frame_pairs(4), positions=positions)
     with pytest.raises(ValueError, match="needs metric depth"):
@@ -398,7 +399,7 @@ def test_predict_recording_refuses_frames_outside_the_rules_before_writing(
     with pytest.raises(ValueError, match="frame 0 has dtype uint16"):
         recordings.predict_recording(
             tiny_predictor,
-            recordings.ImageFolderFrames(paths),
+            frames_lib.ImageFolderFrames(paths),
             plan,
             tmp_path / "out",
             depth_format="npy",
@@ -510,7 +511,7 @@ def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_
     with pytest.raises(ValueError, match="with camera poses"):
         recordings.predict_recording(
             predictor,
-            recordings.ImageFolderFrames(paths),
+            frames_lib.ImageFolderFrames(paths),
             recordings.plan_recording(
                 recordings.frame_pairs(3), positions=camera_to_world[:, :3, 3]
             ),
@@ -519,7 +520,7 @@ def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_
         )
     out = tmp_path / "out"
     recordings.predict_recording(
-        predictor, recordings.ImageFolderFrames(paths), plan, out, depth_format="npy"
+        predictor, frames_lib.ImageFolderFrames(paths), plan, out, depth_format="npy"
     )
     read = lambda path: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)  # noqa: E731
     expected = predictor(

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from gld.inference import frames as frames_lib
 from gld.inference import prediction_folder, recordings
 
 HEIGHT, WIDTH = 6, 8
@@ -33,7 +34,7 @@ def _frames(folder, count=4, unreadable=()):
             path.write_bytes(b"not an image")
         else:
             cv2.imwrite(str(path), np.full((HEIGHT, WIDTH, 3), 40 * index, np.uint8))
-    return recordings.ImageFolderFrames(paths)
+    return frames_lib.ImageFolderFrames(paths)
 
 
 def _predict(frames, out, *, plan=None, **options):

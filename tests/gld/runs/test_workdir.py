@@ -102,7 +102,7 @@ def test_a_run_stores_every_architecture_value_and_old_runs_keep_theirs(tmp_path
     loaded = workdir.load_run_config(old)
     assert loaded.model_config["flow_scale"] == 1.0
     assert registry.make_model(loaded.model, **loaded.model_config).flow_scale == 1.0
-    with pytest.raises(ValueError, match="flow_scale: 1.0 in the workdir vs 10.0 now"):
+    with pytest.raises(ValueError, match="--flow_scale=1.0 there, 10.0 now"):
         workdir.write_run_config(old, config)
 
 
