@@ -8,7 +8,7 @@ import sys
 import textwrap
 
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, launch
 
 # A launcher as every one is written: flags at import, `common.run(main)` at the end.
 LAUNCHER = textwrap.dedent(
@@ -157,16 +157,8 @@ def test_the_dataset_launchers_say_a_users_mistake_in_one_line(tmp_path):
         ),
         (["data.demon.convert", "--images=x"], "flag --poses=None: Flag --poses must have"),
     ]
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT))
     for (module, *args), start in cases:
-        result = subprocess.run(
-            [sys.executable, "-m", module, *args],
-            capture_output=True,
-            text=True,
-            env=env,
-            cwd=REPO_ROOT,
-            timeout=120,
-        )
+        result = launch(module, *args, timeout=120)
         lines = result.stderr.splitlines()
         assert (result.returncode, len(lines)) == (2, 1), (args, result.stderr)
         assert lines[0].startswith(start), (args, lines[0])
