@@ -147,17 +147,17 @@ def open_truth(
 
 def final_evaluation_of(workdir: str | Path, dataset: str, step: int) -> Path | None:
     """The folder holding the test split's whole evaluation of the workdir's model at
-    `step`, by the dataset's default protocol or at the records' resolution (what a
-    trainer's final evaluation writes), or None when there is none."""
-    for resolution in dict.fromkeys((default_truth_resolution(dataset), "record")):
-        out_dir = trained_run.evaluation_dir(workdir, truth_resolution=resolution)
-        try:
-            report = json.loads((out_dir / "metrics.json").read_text())
-        except (OSError, ValueError):
-            continue
-        if report.get("step") == step and report.get("split", "test") == "test":
-            return out_dir
-    return None
+    `step` by the dataset's default protocol (what a trainer's final evaluation writes
+    when it can), or None when there is none. (A DeMoN run evaluated at the records'
+    resolution for want of its files is not it: a relaunch with the files evaluates.)"""
+    out_dir = trained_run.evaluation_dir(
+        workdir, truth_resolution=default_truth_resolution(dataset)
+    )
+    try:
+        report = json.loads((out_dir / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return out_dir if report.get("step") == step and report.get("split") == "test" else None
 
 
 def evaluate_split(

@@ -268,3 +268,20 @@ def test_a_workdir_that_cannot_be_written_is_refused_before_anything_is_evaluate
         "the evaluation would be written to /proc/self/run/eval_flow-gt: cannot write in "
         "/proc/self ("
     )
+
+
+def test_the_final_evaluation_found_is_the_default_protocols_of_that_step(tmp_path):
+    def report(folder: str, step: int) -> None:
+        (tmp_path / folder).mkdir(exist_ok=True)
+        (tmp_path / folder / "metrics.json").write_text(json.dumps({"split": "test", "step": step}))
+
+    report("eval", 6)
+    assert evaluation_run.final_evaluation_of(tmp_path, "gld_scenes/tiny", 6) == tmp_path / "eval"
+    assert evaluation_run.final_evaluation_of(tmp_path, "gld_scenes/tiny", 8) is None
+    # A DeMoN run scored at the records' resolution for want of its files is not DeMoN's
+    # protocol: a relaunch with the files evaluates again.
+    assert evaluation_run.final_evaluation_of(tmp_path, "demon/sun3d", 6) is None
+    report("eval_truth-file", 6)
+    assert evaluation_run.final_evaluation_of(tmp_path, "demon/sun3d", 6) == (
+        tmp_path / "eval_truth-file"
+    )
