@@ -423,10 +423,16 @@ def test_the_final_evaluation_of_a_demon_dataset_is_demons_protocol_or_says_why_
     assert "not DeMoN's protocol" not in report["protocol"]
     assert not (workdir / "eval").exists()
 
-    # The files gone at the end of a run: scored at the records' resolution rather than
-    # lost, saying so in one line and in the stamp, with the command to score it later.
+    # Relaunched finished, it does not evaluate again.
+    again = _launch(train, data_dir, dataset="demon/custom")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "already scores step 3: not evaluated again" in again.stdout
+
+    # The files gone at the end of a run (one more step): scored at the records'
+    # resolution rather than lost, saying so in one line and in the stamp, with the
+    # command to score it later.
     manual_dir.rename(tmp_path / "elsewhere")
-    resumed = _launch(train, data_dir, dataset="demon/custom")
+    resumed = _launch([*train, "--steps=4"], data_dir, dataset="demon/custom")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     command = (
         f"python -m experiments.evaluate --workdir={workdir} --data_dir={data_dir} "
@@ -436,7 +442,7 @@ def test_the_final_evaluation_of_a_demon_dataset_is_demons_protocol_or_says_why_
     assert line.startswith("demon/custom/2.0.0 test split: scored at the records' 256x192, not")
     assert line.endswith(f"to score it by DeMoN's protocol: {command}")
     fallback = json.loads((workdir / "eval" / "metrics.json").read_text())
-    assert fallback["truth_resolution"] == "record" and fallback["step"] == 3
+    assert fallback["truth_resolution"] == "record" and fallback["step"] == 4
     assert (
         "not DeMoN's protocol: the DeMoN files of the test split were not at hand (score by "
         f"it: {command})" in fallback["protocol"]
