@@ -22,8 +22,8 @@ from __future__ import annotations
 from absl import flags
 
 import data
+from data import command_line
 from data.demon import images, pairs
-from gld import launch
 
 FLAGS = flags.FLAGS
 
@@ -84,4 +84,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    launch.run(main)
+    command_line.run(main)

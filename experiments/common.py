@@ -4,7 +4,7 @@ The flags of a run's options are made by `define_option_flags` from the options'
 fields (`TrainConfig`, `GlobalLocal`, `FlowTrainConfig`, `FlowNet`); this module chooses
 which a launcher has.
 
-A launcher ends with `common.run(main)` (`gld.launch.run`): a user's mistake ends it
+A launcher ends with `common.run(main)` (`data.command_line.run`): a user's mistake ends it
 with one line on stderr, no traceback and no help text.
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 
 from absl import flags
 
-from gld.launch import parse_flags, run  # noqa: F401  (every launcher's ending)
+from data.command_line import parse_flags, run  # noqa: F401  (every launcher's ending)
 
 FLAGS = flags.FLAGS
 

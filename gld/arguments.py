@@ -1,4 +1,4 @@
-"""The two errors a launcher says in one line (`gld.launch`), with no traceback:
+"""The two errors a launcher says in one line (`data.command_line`), with no traceback:
 
 - `ArgumentError`: an argument a caller gave is wrong. A library function that checks
   what it was given before it reads or writes anything raises it, its message naming the

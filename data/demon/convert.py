@@ -81,8 +81,8 @@ from collections.abc import Sequence
 
 from absl import flags
 
+from data import command_line
 from data.demon import recordings, writer
-from gld import launch
 from gld.arguments import ArgumentError
 
 flags.DEFINE_string("images", None, "Folder of images, in name order.", required=True)
@@ -172,4 +172,4 @@ def _write(values: flags.FlagValues) -> dict:
 
 
 if __name__ == "__main__":
-    launch.run(main)
+    command_line.run(main)

@@ -25,10 +25,11 @@ import numpy as np
 from absl import flags
 
 import data
+from data import command_line
 from data.demon import pairs, reader, writer
 from data.gld_scenes import renderer, scenes
 from experiments.benchmarks import format_table
-from gld import geometry, launch, records
+from gld import geometry, records
 
 FLAGS = flags.FLAGS
 
@@ -161,4 +162,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    launch.run(main)
+    command_line.run(main)

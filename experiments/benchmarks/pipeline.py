@@ -18,8 +18,9 @@ from typing import Any
 from absl import flags
 
 import data
+from data import command_line
 from experiments.benchmarks import format_table
-from gld import input_pipeline, launch
+from gld import input_pipeline
 
 FLAGS = flags.FLAGS
 
@@ -172,4 +173,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    launch.run(main)
+    command_line.run(main)

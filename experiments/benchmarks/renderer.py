@@ -19,9 +19,10 @@ from typing import Any
 from absl import flags
 
 import data
+from data import command_line
 from data.gld_scenes import example_records, renderer, scene_configs, scenes
 from experiments.benchmarks import format_table
-from gld import flow, launch
+from gld import flow
 
 FLAGS = flags.FLAGS
 
@@ -138,4 +139,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    launch.run(main)
+    command_line.run(main)

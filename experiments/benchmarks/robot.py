@@ -28,7 +28,7 @@ from typing import Any
 
 from absl import app, flags
 
-from gld import launch
+from data import command_line
 
 FLAGS = flags.FLAGS
 
@@ -301,4 +301,4 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     _define_flags()
-    launch.run(main)
+    command_line.run(main)

@@ -1,5 +1,5 @@
 """A launcher's bad command line, and an error that says what went wrong, end it with one
-line on stderr (`gld.launch.run`): exit status 2 for a user's mistake, 1 for a run that
+line on stderr (`data.command_line.run`): exit status 2 for a user's mistake, 1 for a run that
 could not go on; a bug keeps its traceback."""
 
 import os

@@ -1,5 +1,7 @@
-"""How a command-line program of gld starts and ends (every launcher in `experiments`
-and `data`, the benchmarks included).
+"""How a command-line program of gld starts and ends: every launcher, `data`'s
+(`data.build`, `data.demon.convert`) and `experiments`' (through `experiments.common`),
+the benchmarks included. It lives on the data floor, the lowest that reads flags (`gld`
+reads none), so that both can import it.
 
 `run(main)` runs `main(argv)` under absl with the flags parsed by `parse_flags`. A user's
 mistake ends it with one line on stderr naming the flag or the file and what is wrong,
@@ -25,10 +27,10 @@ from absl import flags
 from gld.arguments import ArgumentError, RunStoppedError
 from gld.files import no_space_error
 
-FLAGS = flags.FLAGS
-
 USAGE_STATUS = 2  # the command line, or an argument, is wrong
 STOPPED_STATUS = 1  # the run could not go on (held, disk full, damaged, NaN)
+
+FLAGS = flags.FLAGS
 
 
 def run(main: Callable[[list[str]], Any]) -> None:
@@ -58,9 +60,9 @@ def parse_flags(argv: list[str]) -> list[str]:
         reason = error.__context__  # the OSError absl's message was made from
         if isinstance(reason, OSError) and reason.filename:
             _stop(f"--flagfile={reason.filename}: {reason.strerror}", USAGE_STATUS)
-        _stop(_one_line(str(error).removeprefix("ERROR:: ")), USAGE_STATUS)
+        _stop(one_line(str(error).removeprefix("ERROR:: ")), USAGE_STATUS)
     except flags.Error as error:
-        _stop(_one_line(str(error)), USAGE_STATUS)
+        _stop(one_line(str(error)), USAGE_STATUS)
     except UnicodeDecodeError as error:
         _stop(_undecodable_flagfile(error), USAGE_STATUS)
 
@@ -94,16 +96,17 @@ def _line_of(error: Exception) -> tuple[str, int] | None:
     from absl import app
 
     if isinstance(error, app.UsageError | ArgumentError):
-        return _one_line(str(error)), USAGE_STATUS
+        return one_line(str(error)), USAGE_STATUS
     if isinstance(error, RunStoppedError):
-        return _one_line(str(error)), STOPPED_STATUS
+        return one_line(str(error)), STOPPED_STATUS
     no_space = no_space_error(error)
     if no_space is not None:
-        return _one_line(f"disk full: {no_space}"), STOPPED_STATUS
+        return one_line(f"disk full: {no_space}"), STOPPED_STATUS
     return None
 
 
-def _one_line(text: str) -> str:
+def one_line(text: str) -> str:
+    """`text` with its whitespace runs, newlines included, made single spaces."""
     return " ".join(text.split())
 
 
