@@ -11,6 +11,7 @@ with one line on stderr, no traceback and no help text.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -357,6 +358,18 @@ def training_data(evaluates: bool):
     train_source = data_source(builder, "train")
     test_source = data_source(builder, "test") if evaluates else None
     return builder, height, width, train_source, test_source
+
+
+def dataset_flow_record(builder) -> str:
+    """The flow a built dataset stores (its card's "flow_estimator_source": the estimator,
+    and a flow network's workdir, step and parameter digest), as JSON: the record an
+    export reads to compute the same flow on the robot."""
+    from gld import flow as flow_lib
+
+    source = dict(builder.info.metadata.get("flow_estimator_source") or {})
+    if "estimator" not in source:
+        source["estimator"] = getattr(builder, "flow_estimator", flow_lib.DEFAULT_ESTIMATOR)
+    return json.dumps(source, indent=1, sort_keys=True) + "\n"
 
 
 def flags_file_text() -> str:

@@ -46,6 +46,12 @@ flags.DEFINE_integer(
     "batch_size", None, "Fixed batch size (default: any, symbolic).", lower_bound=1
 )
 flags.DEFINE_string("onnx_output", None, "Also write an ONNX model here (needs jax2onnx).")
+flags.DEFINE_string(
+    "flow",
+    None,
+    "The flow the runtime computes: dis, dis_fast, farneback or flow_net:<workdir> (default: "
+    "the flow the run's dataset was built with, recorded in <workdir>/dataset_flow.json).",
+)
 flags.mark_flags_as_required(["workdir", "output"])
 
 
@@ -72,6 +78,7 @@ def main(argv: list[str]) -> None:
         batch_size=FLAGS.batch_size,
         formulation=FLAGS.formulation,
         onnx_output=FLAGS.onnx_output,
+        flow=FLAGS.flow,
     )
     batch = metadata["batch_size"] or "any"
     print(
@@ -84,6 +91,16 @@ def main(argv: list[str]) -> None:
     for entry in metadata["outputs"]:
         print(f"  output {entry['name']}: {entry['shape']} {entry['dtype']}")
     print(f"  depth units: {metadata['depth_units']}")
+    flow = metadata["flow"]
+    print(f"  flow: {', '.join(f'{key} {value}' for key, value in flow.items())}")
+    print(
+        f"  frames to metric depth: gld.inference.runtime.DepthRuntime.load({FLAGS.output!r})"
+        + (
+            "; needs opencv-python-headless"
+            if flow["estimator"] not in ("flow_net", "model")
+            else ""
+        )
+    )
     if "onnx" in metadata:
         onnx = metadata["onnx"]
         print(

@@ -49,6 +49,7 @@ def main(argv):
     common.initialise()
     import dataclasses
 
+    from gld.inference import workdir_export
     from gld.runs import checkpoints
     from gld.training import trainer as train
 
@@ -82,7 +83,10 @@ def main(argv):
         FLAGS.workdir,
         train_source,
         test_source,
-        records={"flags.txt": common.flags_file_text()},
+        records={
+            "flags.txt": common.flags_file_text(),
+            workdir_export.FLOW_RECORD: common.dataset_flow_record(builder),
+        },
     )
     step = int(state.step)
     if FLAGS.final_eval:

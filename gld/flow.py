@@ -14,12 +14,24 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from gld import geometry
 
 DEFAULT_ESTIMATOR = "dis"
+
+
+def opencv() -> Any:
+    """The `cv2` module, imported on first use: the exported runtime imports this module
+    where OpenCV may be absent (a model on a flow network's flow needs none)."""
+    try:
+        import cv2
+    except ImportError as error:
+        raise ImportError(
+            f"OpenCV is needed for classical flow and the essential matrix ({error}): "
+            "pip install opencv-python-headless"
+        ) from error
+    return cv2
 
 
 def _as_gray_uint8(image: np.ndarray, name: str) -> np.ndarray:
@@ -35,6 +47,7 @@ def _as_gray_uint8(image: np.ndarray, name: str) -> np.ndarray:
         offset = 0.5 if image.min() < 0 else 0.0
         image = np.clip((image + offset) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if image.ndim == 3 and image.shape[-1] == 3:
+        cv2 = opencv()
         return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return image.reshape(image.shape[:2])
 
@@ -61,6 +74,7 @@ def dis_flow(image1: np.ndarray, image2: np.ndarray, preset: str = "medium") -> 
       [H, W, 2] float32 flow in pixels, I1 -> I2.
     """
     gray1, gray2 = _check_pair(image1, image2)
+    cv2 = opencv()
     presets = {
         "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
         "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
@@ -75,6 +89,7 @@ def dis_flow(image1: np.ndarray, image2: np.ndarray, preset: str = "medium") -> 
 def farneback_flow(image1: np.ndarray, image2: np.ndarray) -> np.ndarray:
     """OpenCV Farneback dense optical flow; same signature as `dis_flow`."""
     gray1, gray2 = _check_pair(image1, image2)
+    cv2 = opencv()
     flow = cv2.calcOpticalFlowFarneback(
         gray1,
         gray2,
@@ -121,6 +136,28 @@ LEARNED_PREFIX = "flow_net:"
 # The file a flow network's run stores its config in, which marks its workdir
 # (written by `gld.training.flow_trainer`, read by `gld.runs.flow_config`).
 FLOW_CONFIG_FILE = "flow_config.json"
+
+
+# How each classical estimator sees the frames and calls OpenCV, recorded in an exported
+# model's metadata ("flow") and checked by its runtime (`gld.inference.runtime`), which
+# runs the same `estimate` on the frames resized to the model's resolution.
+_GREYSCALE = "uint8 greyscale: cv2.cvtColor(RGB2GRAY) of round(255 x image), image in [0, 1]"
+RUNTIME_SETTINGS: dict[str, dict[str, Any]] = {
+    "dis": {"opencv": "DISOpticalFlow", "preset": "medium", "input": _GREYSCALE},
+    "dis_fast": {"opencv": "DISOpticalFlow", "preset": "fast", "input": _GREYSCALE},
+    "farneback": {
+        "opencv": "calcOpticalFlowFarneback",
+        "parameters": "pyr_scale=0.5 levels=5 winsize=15 iterations=5 poly_n=7 "
+        "poly_sigma=1.5 flags=OPTFLOW_FARNEBACK_GAUSSIAN",
+        "input": _GREYSCALE,
+    },
+}
+
+
+def runtime_settings(method: str) -> dict[str, Any]:
+    """{"estimator": method, ...} of a classical estimator: what a runtime must run."""
+    _check_classical(method)
+    return {"estimator": method, **RUNTIME_SETTINGS[method]}
 
 
 def is_learned(method: str) -> bool:

@@ -27,10 +27,10 @@ import dataclasses
 import hashlib
 import math
 
-import cv2
 import numpy as np
 
 from gld import geometry
+from gld.flow import opencv
 
 # The example-contract keys of the pose estimated from the input flow.
 FLOW_POSE_KEYS = ("flow_rotation", "flow_translation")
@@ -99,6 +99,7 @@ def estimate_pose(
         camera_matrix1[0, 0] + camera_matrix1[1, 1] + camera_matrix2[0, 0] + camera_matrix2[1, 1]
     )
     identity = np.eye(3)
+    cv2 = opencv()
     essential, ransac_mask = cv2.findEssentialMat(
         points1,
         points2,

@@ -117,7 +117,10 @@ def tiny_scenes(tiny_scenes_dir):
 
 @pytest.fixture(scope="session")
 def trained_workdir(tiny_scenes, tmp_path_factory):
-    """A tiny global-local run trained for 2 steps."""
+    """A tiny global-local run trained for 2 steps, with the train launcher's record of
+    its dataset's flow."""
+    from experiments import common
+    from gld.inference import workdir_export
     from gld.training import trainer as train
 
     workdir = tmp_path_factory.mktemp("trained")
@@ -126,6 +129,7 @@ def trained_workdir(tiny_scenes, tmp_path_factory):
         config,
         workdir,
         tiny_scenes.as_data_source("train"),
+        records={workdir_export.FLOW_RECORD: common.dataset_flow_record(tiny_scenes)},
         progress=False,
         print_fn=lambda _: None,
     )

@@ -3,15 +3,20 @@
     python -m experiments.benchmark --suite=robot            # 256x192 and 128x96
     python -m experiments.benchmark --suite=robot --quick    # tiny images, one pair
     python -m experiments.benchmarks.robot --repeats=100     # this suite's own flags
+    python -m experiments.benchmarks.robot --artifact=runs/robot/model.gldx   # your file
 
 What a robot does for every new pair: estimate the flow (OpenCV DIS, `gld.flow`), run
 the depth network, and turn its depth (in baselines) into metres with one range
-reading (`gld.inference.scale.scale_from_ranges`). Each stage and the whole loop are timed per
-pair (median and p90), at the paper's resolution (256x192) and at the embedded
+reading (`gld.inference.metric_scale.scale_from_ranges`). Each stage and the whole loop
+are timed per pair (median and p90), at the paper's resolution (256x192) and at the embedded
 benchmark's (128x96, `gld_scenes/small`), with the network run two ways: jit-compiled
 from the live Flax model, and as the file `python -m experiments.export` writes, loaded
-by `gld.inference.deploy`. The network is untrained (latency does not depend on the weights) and
-the pair is rendered by the embedded benchmark's renderer. The paper's figures (an
+by `gld.inference.deploy`. The "runtime" row times that file end to end as a robot runs
+it, `gld.inference.runtime.DepthRuntime.predict` from the two frames to metric depth
+(input checks, resizing, the flow the file records, the network, scale, all inside);
+`--artifact` times a given file so, at its resolution. The network is untrained (latency
+does not depend on the weights) and the pair is rendered by the embedded benchmark's
+renderer. The paper's figures (an
 NVIDIA GeForce 940MX: 4 ms for the network, 45 ms for PWC-Net flow) are printed as the
 reference row; they were measured on a GPU with another flow network.
 """
@@ -138,6 +143,44 @@ def _networks(height: int, width: int, seed: int, scratch: Path, pair: dict) -> 
     }
 
 
+def _measurements(runtime, pair: dict) -> dict[str, Any]:
+    """What the runtime is given besides the frames: one range reading, and the odometry
+    or the camera where the model reads them."""
+    import numpy as np
+
+    pixel, distance = _range_reading(pair["depth1"])
+    given: dict[str, Any] = {"ranges": [[*pixel, distance]]}
+    if runtime.reads == "odometry":
+        given.update(rotation=pair["rotation"], translation=pair["translation"])
+    height, width = pair["depth1"].shape
+    fx, fy, cx, cy = np.asarray(pair["intrinsics1"], np.float64) * [width, height, width, height]
+    given["intrinsics"] = (fx, fy, cx - 0.5, cy - 0.5)
+    return given
+
+
+def _time_runtime(path: Path, pair: dict, repeats: int) -> dict[str, Any]:
+    """The end-to-end row of an exported file run by `DepthRuntime`."""
+    import numpy as np
+
+    from gld.inference.runtime import DepthRuntime
+
+    start = time.perf_counter()
+    runtime = DepthRuntime.load(path)
+    given = _measurements(runtime, pair)
+    runtime.predict(pair["image1"], pair["image2"], **given)
+    load_s = time.perf_counter() - start
+    totals = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        depth = runtime.predict(pair["image1"], pair["image2"], **given)["depth"]
+        totals.append(time.perf_counter() - start)
+        if not np.all(np.isfinite(depth)):
+            raise ValueError(f"{path} gave a non-finite metric depth map")
+    row = {"network": "runtime", "flow_estimator": runtime.flow["estimator"]}
+    row.update({stage: None for stage in STAGES[:-1]})
+    return {**row, "total": _summary(totals), "load_s": load_s}
+
+
 def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str, list[float]]]:
     """Seconds of every stage of `repeats` robot loops per network, after a warm-up loop.
 
@@ -147,7 +190,7 @@ def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str,
     import numpy as np
 
     from gld import flow as flow_lib
-    from gld.inference import scale as scale_lib
+    from gld.inference import metric_scale
 
     image1, image2 = pair["image1"], pair["image2"]
     pixel, distance = _range_reading(pair["depth1"])
@@ -159,7 +202,7 @@ def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str,
             after_flow = time.perf_counter()
             depth = forward(image1, image2, flow)
             after_model = time.perf_counter()
-            metres = scale_lib.scale_from_ranges(depth, [pixel], [distance]) * depth
+            metres = metric_scale.scale_from_ranges(depth, [pixel], [distance]) * depth
             end = time.perf_counter()
             if not np.all(np.isfinite(metres)):
                 raise ValueError(f"{name} gave a non-finite metric depth map")
@@ -178,9 +221,11 @@ def run(
     repeats: int = 50,
     quick: bool | None = None,
     seed: int = 0,
+    artifact: str | Path | None = None,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Times flow + network + scale recovery per pair, the network live and exported.
+    """Times flow + network + scale recovery per pair, the network live and exported,
+    and the exported file end to end (`DepthRuntime`).
 
     Args:
       sizes: (height, width) image sizes.
@@ -188,6 +233,8 @@ def run(
       quick: tiny images and one pair (checks that everything runs; times nothing);
         None follows `python -m experiments.benchmark --quick`.
       seed: seeds the rendered pair and the untrained weights.
+      artifact: an exported file to time end to end alone, at its resolution (`sizes`
+        is then ignored).
       log: progress lines and the table go here.
 
     Returns:
@@ -208,8 +255,18 @@ def run(
     from gld import flow as flow_lib
 
     rows = []
+    if artifact is not None:
+        from gld.inference.deploy import DeployedModel
+
+        model = DeployedModel.load(artifact)
+        sizes = [(model.height, model.width)]
+        settings = scenes.SceneSettings(height=model.height, width=model.width)
+        pair = renderer.render_pair(renderer.example_rng(seed, "robot", 0), settings)
+        log(f"{artifact}: {model.metadata['model']} at {model.width}x{model.height}")
+        row = _time_runtime(Path(artifact), pair, repeats)
+        rows.append({"height": model.height, "width": model.width, **row})
     with tempfile.TemporaryDirectory(prefix="gld_robot_benchmark") as scratch:
-        for height, width in sizes:
+        for height, width in sizes if artifact is None else ():
             log(f"{width}x{height}: rendering a pair, compiling and exporting the network ...")
             settings = scenes.SceneSettings(height=height, width=width)
             pair = renderer.render_pair(renderer.example_rng(seed, "robot", 0), settings)
@@ -221,6 +278,8 @@ def run(
                 row.update({stage: _summary(times[name][stage]) for stage in STAGES})
                 row.update(setup)
                 rows.append(row)
+            runtime = _time_runtime(Path(scratch) / f"robot_{height}x{width}.gldx", pair, repeats)
+            rows.append({"height": height, "width": width, "formulation": formulation, **runtime})
 
     result = {
         "rows": rows,
@@ -231,6 +290,7 @@ def run(
             "quick": quick,
             "batch_size": 1,
             "flow_method": f"{flow_lib.DEFAULT_ESTIMATOR} (OpenCV)",
+            "artifact": None if artifact is None else str(artifact),
             "scale_method": "scale_from_ranges, one reading at the pixel nearest the centre",
             "backend": jax.default_backend(),
             "cpu_count": os.cpu_count(),
@@ -245,7 +305,12 @@ def format_row(row: dict[str, Any]) -> str:
     """One line: size, network, then median / p90 [ms] of every stage."""
     size = f"{row['width']}x{row['height']}"
     cells = [f"{size:8s}", f"{row['network']:12s}"]
-    cells += [f"{row[stage]['median_ms']:7.1f} /{row[stage]['p90_ms']:6.1f}" for stage in STAGES]
+    cells += [
+        f"{'-':>7s}{'':8s}"
+        if row[stage] is None
+        else f"{row[stage]['median_ms']:7.1f} /{row[stage]['p90_ms']:6.1f}"
+        for stage in STAGES
+    ]
     return " ".join(cells)
 
 
@@ -268,10 +333,17 @@ def format_table(result: dict[str, Any]) -> str:
     for row in result["rows"]:
         if "compile_s" in row:
             setup = f"compile {row['compile_s']:.1f} s"
-        else:
+        elif "export_s" in row:
             setup = f"export {row['export_s']:.1f} s, load + first call {row['load_s']:.1f} s"
+        else:
+            setup = (
+                f"frames to metric depth, {row['flow_estimator']} flow inside; load + first "
+                f"call {row['load_s']:.1f} s"
+            )
         size = f"{row['width']}x{row['height']}"
-        lines.append(f"{size} {row['network']} (formulation {row['formulation']}): {setup}")
+        formulation = row.get("formulation")
+        described = "" if formulation is None else f" (formulation {formulation})"
+        lines.append(f"{size} {row['network']}{described}: {setup}")
     return "\n".join(lines)
 
 
@@ -281,6 +353,9 @@ def _define_flags() -> None:
     flags.DEFINE_list("sizes", ["192x256", "96x128"], "Image sizes, HEIGHTxWIDTH.")
     flags.DEFINE_bool("quick", False, "Tiny images and one pair: checks that everything runs.")
     flags.DEFINE_string("output", None, "Also write the result as JSON here.")
+    flags.DEFINE_string(
+        "artifact", None, "Time this file of experiments.export end to end, at its resolution."
+    )
 
 
 def main(argv: list[str]) -> None:
@@ -294,7 +369,9 @@ def main(argv: list[str]) -> None:
         if not (height.isdigit() and width.isdigit() and int(height) > 0 and int(width) > 0):
             raise app.UsageError(f"--sizes: {size!r} is not HEIGHTxWIDTH, e.g. 192x256")
         sizes.append((int(height), int(width)))
-    result = run(sizes=sizes, repeats=FLAGS.repeats, quick=FLAGS.quick)
+    if FLAGS.artifact is not None and not Path(FLAGS.artifact).is_file():
+        raise app.UsageError(f"--artifact={FLAGS.artifact}: no such file")
+    result = run(sizes=sizes, repeats=FLAGS.repeats, quick=FLAGS.quick, artifact=FLAGS.artifact)
     if FLAGS.output:
         Path(FLAGS.output).write_text(json.dumps(result, indent=1))
 

@@ -1,4 +1,4 @@
-"""Runs a model exported by `python -m experiments.export` with only JAX and numpy.
+"""The network of a model exported by `python -m experiments.export`, with only JAX and numpy.
 
     from gld.inference.deploy import DeployedModel
     model = DeployedModel.load("runs/demo/model.gldx")
@@ -6,20 +6,21 @@
     outputs = model.predict(image1, image2, flow)   # + inv_depth, global_params
     depth = model(image1, image2, flow, intrinsics1=k, intrinsics2=k)  # model.extra_inputs
 
+This is the network alone, at its resolution, given the flow; from two frames of any
+size to metric depth, the flow computed inside, is `gld.inference.runtime.DepthRuntime`.
 This module imports nothing but JAX, numpy and the standard library (not flax, optax,
-orbax, TFDS, grain, OpenCV, nor any gld module that does), so a robot can run a model
-without the training stack: copy this file and the exported file, `pip install jax`
-(whose `jax.export` deserialisation also needs the small `flatbuffers` package).
+orbax, TFDS, grain, OpenCV, nor any gld module that does); `jax.export`'s
+deserialisation also needs the small `flatbuffers` package.
 
 Inputs are at the exported resolution (`model.height` x `model.width`, the training
-resolution; nothing is resized here): images uint8 [0, 255] or float32 in [-0.5, 0.5]
-(uint8 / 255 - 0.5), [B, H, W, 3] or one pair [H, W, 3]; flow float32 pixels, image1 ->
-image2, [B, H, W, 2] or [H, W, 2]. A model trained to read more (`extra_inputs`: the
-odometry's relative pose, the flow's essential-matrix pose, or the cameras, normalised at
-the exported resolution, for a model that refines its pose on the flow) takes them by
-keyword, float32, with or without the batch axis as the images; the metadata's "inputs"
-say what each is. Depth is in units of the pair's baseline (the
-distance between the camera centres): metric depth = depth * baseline.
+resolution; nothing is resized here): images uint8 [0, 255] or float32 in [0, 1]
+(uint8 / 255; a float outside [0, 1] is refused), [B, H, W, 3] or one pair [H, W, 3];
+flow float32 pixels, image1 -> image2, [B, H, W, 2] or [H, W, 2]. A model trained to
+read more (`extra_inputs`: the odometry's relative pose, the flow's essential-matrix
+pose, or the cameras, normalised at the exported resolution, for a model that refines
+its pose on the flow) takes them by keyword, float32, with or without the batch axis as
+the images; the metadata's "inputs" say what each is. Depth is in units of the pair's
+baseline (the distance between the camera centres): metric depth = depth * baseline.
 """
 
 from __future__ import annotations
@@ -36,11 +37,14 @@ import numpy as np
 # The file layout written by gld.inference.export (kept in step with it; this module may
 # not import it).
 FORMAT = "gld-exported-model"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)  # version 1: no extra inputs
+FORMAT_VERSION = 3
+# version 1: no extra inputs; 1 and 2: the exported function takes images in [-0.5, 0.5]
+READABLE_VERSIONS = (1, 2, 3)
 METADATA_MEMBER = "metadata.json"
 EXPORTED_MEMBER = "model.jaxexport"
 WEIGHTS_MEMBER = "weights.npz"
+FLOW_EXPORTED_MEMBER = "flow_net.jaxexport"
+FLOW_WEIGHTS_MEMBER = "flow_net_weights.npz"
 
 
 def current_platform() -> str:
@@ -52,7 +56,7 @@ def current_platform() -> str:
     return "rocm" if "rocm" in version else "cuda"
 
 
-def _read_archive(path: Path) -> tuple[dict[str, Any], bytes, bytes]:
+def _read_archive(path: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
     if not path.is_file():
         raise FileNotFoundError(f"exported model {path} not found")
     if not zipfile.is_zipfile(path):
@@ -64,8 +68,7 @@ def _read_archive(path: Path) -> tuple[dict[str, Any], bytes, bytes]:
         if missing:
             raise ValueError(f"{path} is not an exported gld model: it lacks {missing}")
         metadata = json.loads(archive.read(METADATA_MEMBER))
-        serialized = archive.read(EXPORTED_MEMBER)
-        weights = archive.read(WEIGHTS_MEMBER)
+        members = {name: archive.read(name) for name in archive.namelist()}
     if metadata.get("format") != FORMAT:
         raise ValueError(f"{path}: format {metadata.get('format')!r} is not {FORMAT!r}")
     if metadata.get("format_version") not in READABLE_VERSIONS:
@@ -74,7 +77,59 @@ def _read_archive(path: Path) -> tuple[dict[str, Any], bytes, bytes]:
             "gld.inference.deploy "
             f"reads versions {list(READABLE_VERSIONS)}: export the model again with this gld"
         )
-    return metadata, serialized, weights
+    if metadata.get("flow", {}).get("estimator") == "flow_net":
+        missing = sorted({FLOW_EXPORTED_MEMBER, FLOW_WEIGHTS_MEMBER} - set(members))
+        if missing:
+            raise ValueError(f"{path} records a flow network's flow but lacks {missing}")
+    return metadata, members
+
+
+def _deserialised(path: Path, serialized: bytes) -> jax.export.Exported:
+    """The exported function, checked to run on this platform."""
+    exported = jax.export.deserialize(bytearray(serialized))
+    platform = current_platform()
+    if platform not in exported.platforms:
+        raise ValueError(
+            f"{path} was exported for {list(exported.platforms)}, but JAX runs on "
+            f"{platform!r} here: export it again with --platforms including {platform}"
+        )
+    return exported
+
+
+def _weights(stored_bytes: bytes) -> list[np.ndarray]:
+    with np.load(io.BytesIO(stored_bytes), allow_pickle=False) as stored:
+        return [stored[f"{index:05d}"] for index in range(len(stored.files))]
+
+
+def _as_unit_image(image: np.ndarray, name: str) -> np.ndarray:
+    """uint8 or float32 [B, H, W, 3] -> float32 in [0, 1]; a float outside it is refused."""
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / np.float32(255.0)
+    if image.dtype != np.float32:
+        raise ValueError(f"{name} must be uint8 or float32, got dtype {image.dtype}")
+    if not np.all(np.isfinite(image)):
+        raise ValueError(f"{name} contains NaN or inf")
+    low, high = float(image.min()), float(image.max())
+    if low < 0.0 or high > 1.0:
+        raise ValueError(
+            f"float32 {name} must lie in [0, 1] (uint8 / 255), got [{low:.3g}, {high:.3g}]"
+        )
+    return image
+
+
+class DeployedFlowNetwork:
+    """The flow network exported beside a model trained on its flow: two image batches
+    [B, H, W, 3] (uint8 or float32 in [0, 1]) at the exported resolution -> flow
+    [B, H, W, 2] float32 pixels, image1 -> image2."""
+
+    def __init__(self, exported: jax.export.Exported, weights: list[np.ndarray]):
+        self._weights = jax.device_put(weights)
+        self._call = jax.jit(exported.call)
+
+    def __call__(self, image1: np.ndarray, image2: np.ndarray) -> np.ndarray:
+        first = _as_unit_image(np.asarray(image1), "image1")
+        second = _as_unit_image(np.asarray(image2), "image2")
+        return np.asarray(jax.device_get(self._call(self._weights, first, second)))
 
 
 class DeployedModel:
@@ -87,14 +142,28 @@ class DeployedModel:
       platforms: the platforms the file was lowered for.
       extra_inputs: what the model reads by keyword besides the images and flow, in the
         exported order (empty for most models).
+      flow: how its input flow is computed from the frames (metadata "flow": {"estimator":
+        "dis" and OpenCV's settings, "flow_net", or "model" for a model that estimates
+        its own}); files of version 1 and 2 do not record it.
+      flow_network: the exported flow network of a "flow_net" flow, else None.
     """
 
-    def __init__(self, metadata: dict[str, Any], exported: jax.export.Exported, weights: list):
+    def __init__(
+        self,
+        metadata: dict[str, Any],
+        exported: jax.export.Exported,
+        weights: list,
+        flow_network: DeployedFlowNetwork | None = None,
+    ):
         self.metadata = metadata
         self.height, self.width = int(metadata["height"]), int(metadata["width"])
         self.batch_size = metadata["batch_size"]
         self.platforms = tuple(exported.platforms)
         self.extra_inputs = tuple(metadata.get("extra_inputs", ()))
+        self.flow = metadata.get("flow")
+        self.flow_network = flow_network
+        # Before version 3 the exported function took images in [-0.5, 0.5].
+        self._image_offset = np.float32(0.5 if metadata["format_version"] < 3 else 0.0)
         # Each extra input's metadata entry (shape with its batch axis, help), checked by load.
         described = {entry["name"]: entry for entry in metadata.get("inputs", ())}
         self._extra_entries = {key: described[key] for key in self.extra_inputs}
@@ -107,16 +176,9 @@ class DeployedModel:
     def load(cls, path: str | Path) -> DeployedModel:
         """Reads a file written by `gld.inference.export` and checks that it runs here."""
         path = Path(path)
-        metadata, serialized, weights_bytes = _read_archive(path)
-        exported = jax.export.deserialize(bytearray(serialized))
-        platform = current_platform()
-        if platform not in exported.platforms:
-            raise ValueError(
-                f"{path} was exported for {list(exported.platforms)}, but JAX runs on "
-                f"{platform!r} here: export it again with --platforms including {platform}"
-            )
-        with np.load(io.BytesIO(weights_bytes), allow_pickle=False) as stored:
-            weights = [stored[f"{index:05d}"] for index in range(len(stored.files))]
+        metadata, members = _read_archive(path)
+        exported = _deserialised(path, members[EXPORTED_MEMBER])
+        weights = _weights(members[WEIGHTS_MEMBER])
         expected = metadata["weights"]
         avals = exported.in_avals[: len(expected)]
         inputs = 3 + len(metadata.get("extra_inputs", ()))
@@ -140,7 +202,13 @@ class DeployedModel:
                     f"{path}: weight {entry['name']} has dtype {weight.dtype}, the model "
                     f"takes {aval.dtype}"
                 )
-        return cls(metadata, exported, weights)
+        flow_network = None
+        if FLOW_EXPORTED_MEMBER in members:
+            flow_network = DeployedFlowNetwork(
+                _deserialised(path, members[FLOW_EXPORTED_MEMBER]),
+                _weights(members[FLOW_WEIGHTS_MEMBER]),
+            )
+        return cls(metadata, exported, weights, flow_network)
 
     def _check_batch(self, array: np.ndarray, name: str, channels: int) -> np.ndarray:
         size = f"{self.height}, {self.width}, {channels}"
@@ -153,19 +221,7 @@ class DeployedModel:
 
     def _as_model_image(self, image: np.ndarray, name: str) -> np.ndarray:
         image = self._check_batch(np.asarray(image), name, 3)
-        if image.dtype == np.uint8:
-            return image.astype(np.float32) / np.float32(255.0) - np.float32(0.5)
-        if image.dtype != np.float32:
-            raise ValueError(f"{name} must be uint8 or float32, got dtype {image.dtype}")
-        if not np.all(np.isfinite(image)):
-            raise ValueError(f"{name} contains NaN or inf")
-        low, high = float(image.min()), float(image.max())
-        if low < -0.5 or high > 0.5:
-            raise ValueError(
-                f"float32 {name} must lie in [-0.5, 0.5] (uint8 / 255 - 0.5), "
-                f"got [{low:.3g}, {high:.3g}]"
-            )
-        return image
+        return _as_unit_image(image, name) - self._image_offset
 
     def _extra(self, given: dict[str, Any], batch_size: int, single: bool) -> list[np.ndarray]:
         """The extra inputs in the exported order, checked, with a batch axis."""
@@ -204,7 +260,7 @@ class DeployedModel:
         """Every output of the exported model, as numpy.
 
         Args:
-          image1, image2: [B, H, W, 3] or [H, W, 3], uint8 or float32 in [-0.5, 0.5].
+          image1, image2: [B, H, W, 3] or [H, W, 3], uint8 or float32 in [0, 1].
           flow: [B, H, W, 2] or [H, W, 2] float32, pixels, image1 -> image2.
           **extra: the inputs `extra_inputs` names (rotation [3, 3], translation [3],
             intrinsics1 [4], ...; [B, ...] with a batch), float32.

@@ -11,10 +11,15 @@ The file is a zip archive of three members:
                     after the flow, "extra_inputs": the odometry pose, the flow's
                     essential-matrix pose or the normalised cameras for models that
                     read them), outputs, the training resolution, depth units, the model and its
-                    configuration, the gld and JAX versions, the source workdir and step
+                    configuration, the gld and JAX versions, the source workdir and step,
+                    and "flow": how the model's input flow is computed from the frames
     model.jaxexport the forward pass serialised by `jax.export` (StableHLO), batch size
                     symbolic unless fixed, image size fixed at the training resolution
     weights.npz     the variables, one array per leaf, in the order metadata "weights" lists
+
+and, for a model trained on a flow network's flow ("flow": {"estimator": "flow_net", ...}),
+that network the same way: flow_net.jaxexport and flow_net_weights.npz. Images are RGB in
+[0, 1] (uint8 / 255), as every gld predictor takes them.
 
 The variables are arguments of the exported function rather than constants baked into
 it: the serialised module stays small whatever the model's size (DispNet's and FCRN's
@@ -44,12 +49,15 @@ from gld import files as files_lib
 from gld.inference import export_interface
 
 FORMAT = "gld-exported-model"
-# 2: inputs after the flow for models that read a given pose or the cameras
-# ("extra_inputs"); version 1 files (images and flow only) read the same way.
-FORMAT_VERSION = 2
+# 3: images in [0, 1] (before: [-0.5, 0.5]), "flow" in the metadata, and the flow
+# network's members; 2: inputs after the flow for models that read a given pose or the
+# cameras ("extra_inputs"); version 1 files (images and flow only) read as version 2.
+FORMAT_VERSION = 3
 METADATA_MEMBER = "metadata.json"
 EXPORTED_MEMBER = "model.jaxexport"
 WEIGHTS_MEMBER = "weights.npz"
+FLOW_EXPORTED_MEMBER = "flow_net.jaxexport"
+FLOW_WEIGHTS_MEMBER = "flow_net_weights.npz"
 
 
 def _weight_names(variables: dict) -> tuple[list[str], list[jax.Array], Any]:
@@ -57,6 +65,33 @@ def _weight_names(variables: dict) -> tuple[list[str], list[jax.Array], Any]:
     with_paths, tree = jax.tree_util.tree_flatten_with_path(variables)
     names = ["/".join(str(getattr(key, "key", key)) for key in path) for path, _ in with_paths]
     return names, [leaf for _, leaf in with_paths], tree
+
+
+def _serialised(forward, weights: list[np.ndarray], platforms, *inputs) -> Any:
+    """`jax.export` of `forward(weights, *inputs)`, the weights an argument."""
+    weight_specs = [jax.ShapeDtypeStruct(weight.shape, weight.dtype) for weight in weights]
+    return jax.export.export(jax.jit(forward), platforms=platforms)(weight_specs, *inputs)
+
+
+def _npz(weights: list[np.ndarray]) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **{f"{i:05d}": weight for i, weight in enumerate(weights)})
+    return buffer.getvalue()
+
+
+def _flow_network_members(flow_network, batch, height, width, platforms) -> dict[str, bytes]:
+    """The flow network's members: `flow_network` = (FlowNet, its variables)."""
+    network, variables = flow_network
+    _, weights, tree = _weight_names(variables)
+    weights = [np.asarray(jax.device_get(weight)) for weight in weights]
+
+    def forward(weights, image1, image2):
+        variables = jax.tree_util.tree_unflatten(tree, weights)
+        return network.apply(variables, image1 - 0.5, image2 - 0.5)["flow"]
+
+    image_spec = jax.ShapeDtypeStruct((batch, height, width, 3), jnp.float32)
+    exported = _serialised(forward, weights, platforms, image_spec, image_spec)
+    return {FLOW_EXPORTED_MEMBER: bytes(exported.serialize()), FLOW_WEIGHTS_MEMBER: _npz(weights)}
 
 
 def export_model(
@@ -70,6 +105,8 @@ def export_model(
     batch_size: int | None = None,
     formulation: str | None = None,
     source: dict[str, Any] | None = None,
+    flow: dict[str, Any] | None = None,
+    flow_network: tuple[nn.Module, dict] | None = None,
 ) -> dict[str, Any]:
     """Serialises `model.apply(variables, ...)` with `jax.export` into one file.
 
@@ -86,6 +123,10 @@ def export_model(
         `export_interface.choose_formulation`. Models without per-example filters refuse a
         formulation.
       source: where the variables come from ({"workdir": ..., "step": ...}), recorded.
+      flow: how the runtime computes the model's input flow from the frames
+        (`gld.runs.trained_flow.runtime_flow`); None: OpenCV DIS, every dataset's default.
+        A model that estimates its own flow records {"estimator": "model"} whatever given.
+      flow_network: (FlowNet, variables) of a "flow_net" flow, exported beside the model.
 
     Returns:
       The metadata written to the file.
@@ -99,11 +140,13 @@ def export_model(
 
     extra_inputs = export_interface.model_extra_inputs(model)
 
+    flow, members = export_interface.check_flow(model, flow, flow_network), {}
+
     def forward(weights, image1, image2, flow, *extra):
         variables = jax.tree_util.tree_unflatten(tree, weights)
         given = dict(zip(extra_inputs, extra, strict=True))
         return export_interface.inference_outputs(
-            model.apply(variables, image1, image2, flow, **given)
+            model.apply(variables, image1 - 0.5, image2 - 0.5, flow, **given)
         )
 
     (batch,) = jax.export.symbolic_shape("batch") if batch_size is None else (int(batch_size),)
@@ -113,16 +156,18 @@ def export_model(
         jax.ShapeDtypeStruct((batch, *export_interface.EXTRA_INPUTS[key][0]), jnp.float32)
         for key in extra_inputs
     ]
-    weight_specs = [jax.ShapeDtypeStruct(weight.shape, weight.dtype) for weight in weights]
-    exported = jax.export.export(jax.jit(forward), platforms=platforms)(
-        weight_specs, image_spec, image_spec, flow_spec, *extra_specs
+    exported = _serialised(
+        forward, weights, platforms, image_spec, image_spec, flow_spec, *extra_specs
     )
+    if flow_network is not None:
+        members = _flow_network_members(flow_network, batch, height, width, platforms)
     outputs = jax.tree_util.tree_unflatten(exported.out_tree, exported.out_avals)
     metadata = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         **export_interface.describe(model, name, height, width, batch_size, outputs, source),
         "platforms": list(platforms),
+        "flow": flow,
         "weights": [
             {"name": weight_name, "shape": list(weight.shape), "dtype": str(weight.dtype)}
             for weight_name, weight in zip(weight_names, weights, strict=True)
@@ -131,14 +176,17 @@ def export_model(
         "is the list of weights.npz arrays in the order of 'weights', extra the arrays "
         "'extra_inputs' names, in its order; returns a dict of 'outputs'",
     }
-    weights_buffer = io.BytesIO()
-    np.savez(weights_buffer, **{f"{i:05d}": weight for i, weight in enumerate(weights)})
+    members = {
+        METADATA_MEMBER: (json.dumps(metadata, indent=1) + "\n").encode(),
+        EXPORTED_MEMBER: bytes(exported.serialize()),
+        WEIGHTS_MEMBER: _npz(weights),
+        **members,
+    }
 
     def write(path: Path) -> None:
         with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:
-            archive.writestr(METADATA_MEMBER, json.dumps(metadata, indent=1) + "\n")
-            archive.writestr(EXPORTED_MEMBER, bytes(exported.serialize()))
-            archive.writestr(WEIGHTS_MEMBER, weights_buffer.getvalue())
+            for name, content in members.items():
+                archive.writestr(name, content)
 
     files_lib.write_atomically(output, write)
     return metadata

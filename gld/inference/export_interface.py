@@ -22,6 +22,7 @@ import jax
 import numpy as np
 
 import gld
+from gld import flow as flow_lib
 from gld.models import filter_banks, registry
 
 # Platforms `jax.export` lowers for; a file may hold several (multi-platform lowering).
@@ -117,6 +118,41 @@ def model_extra_inputs(model: nn.Module) -> tuple[str, ...]:
     return tuple(getattr(model, "extra_inputs", ()))
 
 
+def estimates_own_flow(model: nn.Module) -> bool:
+    """Whether `model` computes its flow from the images (its flow input only sets the shape)."""
+    return callable(getattr(model, "estimate_flow", None))
+
+
+def check_flow(model: nn.Module, flow: dict[str, Any] | None, flow_network: Any) -> dict[str, Any]:
+    """The metadata's "flow": how a runtime computes the model's input flow.
+
+    {"estimator": "model"} for a model that estimates its own; otherwise `flow`, by
+    default OpenCV DIS (`gld.flow.runtime_settings`), whose classical settings must be
+    this gld's; {"estimator": "flow_net", ...} needs the network (`flow_network`).
+    """
+    if estimates_own_flow(model):
+        if flow_network is not None:
+            raise ValueError(f"model {model_name(model)!r} estimates its own flow: no flow network")
+        return {"estimator": "model", "help": "the model's own flow network, in model.jaxexport"}
+    flow = dict(flow or flow_lib.runtime_settings(flow_lib.DEFAULT_ESTIMATOR))
+    estimator = flow.get("estimator")
+    if estimator == "flow_net":
+        if flow_network is None:
+            raise ValueError("a 'flow_net' flow is exported with its network (flow_network=)")
+        return flow
+    if flow_network is not None:
+        raise ValueError(f"flow {estimator!r} is not a flow network's: no flow_network")
+    if estimator not in flow_lib.RUNTIME_SETTINGS:
+        raise ValueError(
+            f"flow estimator {estimator!r} cannot run in an exported model; valid: "
+            f"{sorted(flow_lib.RUNTIME_SETTINGS)} or 'flow_net'"
+        )
+    expected = flow_lib.runtime_settings(estimator)
+    if flow != expected:
+        raise ValueError(f"flow {flow} is not how this gld runs {estimator!r}: {expected}")
+    return flow
+
+
 def check_arguments(
     model: nn.Module,
     output: str | Path,
@@ -176,10 +212,8 @@ def describe(
     """The metadata both formats share: model, resolution, inputs, outputs, units."""
     batch_dim = "batch" if batch_size is None else int(batch_size)
     extra_inputs = model_extra_inputs(model)
-    image_help = (
-        "RGB, float32 in [-0.5, 0.5] = uint8 / 255 - 0.5 (gld.inference.deploy also takes uint8)"
-    )
-    image = {"dtype": "float32", "range": [-0.5, 0.5], "help": image_help}
+    image_help = "RGB, float32 in [0, 1] = uint8 / 255 (gld.inference.deploy also takes uint8)"
+    image = {"dtype": "float32", "range": [0.0, 1.0], "help": image_help}
     return {
         "model": name,
         "model_config": model_config(model),

@@ -23,6 +23,7 @@ Inputs, by rule:
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -164,3 +165,57 @@ def _readings(ranges: Any, where: str) -> np.ndarray:
             f"{readings.shape}"
         )
     return readings
+
+
+def odometry(
+    rotation: Any, translation: Any, batch_size: int, single: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A pair's (or batch's) relative pose from odometry, checked: X2 = R X1 + t.
+
+    Args:
+      rotation, translation: [3, 3] and [3] for one pair (`single`), [B, 3, 3] and [B, 3]
+        for a batch of `batch_size`.
+
+    Returns:
+      ([B, 3, 3] rotation, [B, 3] unit translation (the model's ||t|| = 1), [B] ||t||),
+      float32.
+    """
+    rotation = np.asarray(rotation, np.float32)
+    translation = np.asarray(translation, np.float32)
+    if single:
+        rotation, translation = rotation[None], translation[None]
+    if rotation.shape != (batch_size, 3, 3) or translation.shape != (batch_size, 3):
+        raise ValueError(
+            f"rotation and translation must be [{'' if single else 'B, '}3, 3] and "
+            f"[{'' if single else 'B, '}3] for {batch_size} pair(s), got shapes "
+            f"{np.shape(rotation)[1 if single else 0 :]} and "
+            f"{np.shape(translation)[1 if single else 0 :]}"
+        )
+    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+        raise ValueError("rotation or translation contains NaN or inf")
+    orthonormality = np.abs(rotation @ np.swapaxes(rotation, 1, 2) - np.eye(3)).max()
+    if orthonormality > 1e-3:
+        raise ValueError(
+            f"rotation is not a rotation matrix (R R^T is off by {orthonormality:.3g})"
+        )
+    norms = np.linalg.norm(translation, axis=-1)
+    if np.any(norms <= 0):
+        raise ValueError("translation is zero: a pair without motion has no depth")
+    return rotation, translation / norms[:, None], norms
+
+
+def warn_if_stretched(
+    box: tuple[int, int, int, int], height: int, width: int, aspect: str, stacklevel: int
+) -> None:
+    """A `UserWarning` when aspect "resize" stretches the input's `box` (`crop_box`) of
+    another aspect ratio to the model's height x width."""
+    crop_height, crop_width = box[2], box[3]
+    stretch = (width / crop_width) / (height / crop_height)
+    if aspect == "resize" and abs(stretch - 1.0) > _ASPECT_TOLERANCE:
+        warnings.warn(
+            f"input {crop_width}x{crop_height} has another aspect ratio than the model's "
+            f"{width}x{height}: it is stretched (x by {stretch:.3f} relative to y), which "
+            "distorts the flow the model sees; use aspect='crop' to crop instead",
+            UserWarning,
+            stacklevel=stacklevel + 1,
+        )

@@ -78,7 +78,10 @@ def export_onnx(
     names = list(outputs)
 
     def forward(image1, image2, flow):
-        results = export_interface.inference_outputs(model.apply(variables, image1, image2, flow))
+        # Images in [0, 1], as every gld predictor takes them; the model reads [-0.5, 0.5].
+        results = export_interface.inference_outputs(
+            model.apply(variables, image1 - 0.5, image2 - 0.5, flow)
+        )
         return tuple(results[key] for key in names)
 
     batch = "batch" if batch_size is None else int(batch_size)
@@ -92,15 +95,17 @@ def export_onnx(
     check_batch = 2 if batch_size is None else int(batch_size)
     rng = np.random.default_rng(seed)
     inputs = {
-        "image1": rng.uniform(-0.5, 0.5, (check_batch, height, width, 3)).astype(np.float32),
-        "image2": rng.uniform(-0.5, 0.5, (check_batch, height, width, 3)).astype(np.float32),
+        "image1": rng.uniform(0.0, 1.0, (check_batch, height, width, 3)).astype(np.float32),
+        "image2": rng.uniform(0.0, 1.0, (check_batch, height, width, 3)).astype(np.float32),
         "flow": rng.normal(0.0, 2.0, (check_batch, height, width, 2)).astype(np.float32),
     }
     session = onnxruntime.InferenceSession(
         proto.SerializeToString(), providers=["CPUExecutionProvider"]
     )
     converted = dict(zip(names, session.run(names, inputs), strict=True))
-    expected = export_interface.inference_outputs(model.apply(variables, *inputs.values()))
+    expected = export_interface.inference_outputs(
+        model.apply(variables, inputs["image1"] - 0.5, inputs["image2"] - 0.5, inputs["flow"])
+    )
     described = f"{name} (formulation {getattr(model, 'filter_formulation', None)!r})"
     for key in names:
         difference = float(np.max(np.abs(converted[key] - np.asarray(expected[key]))))

@@ -27,27 +27,25 @@ A whole recording, frame by frame, is `gld.inference.recordings`'s.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import cv2
 import jax
 import numpy as np
 
 from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.flow_pose import FLOW_POSE_KEYS
-from gld.inference import scale as scale_lib
+from gld.inference import metric_scale, resampling
 from gld.inference.inputs import (
-    _ASPECT_TOLERANCE,
     ASPECT_MODES,
     _as_rgb_float,
-    _readings,
     camera_matrix_from,
     crop_box,
+    odometry,
     resize_camera_matrix,
+    warn_if_stretched,
 )
 from gld.models.global_local import CAMERA_INPUTS, GIVEN_POSE_INPUTS
 from gld.runs import trained_flow
@@ -97,71 +95,6 @@ class DepthPredictor:
         model, variables, config = workdir_lib.load_trained(workdir, step=step)
         return cls(model, variables, config.height, config.width, **options)
 
-    def _prepare(self, images: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
-        top, left, crop_height, crop_width = box
-        return np.stack(
-            [
-                cv2.resize(
-                    np.ascontiguousarray(image[top : top + crop_height, left : left + crop_width]),
-                    (self.width, self.height),
-                    interpolation=cv2.INTER_AREA,
-                )
-                for image in images
-            ]
-        )
-
-    def _check_aspect(self, in_height: int, in_width: int) -> None:
-        stretch = (self.width / in_width) / (self.height / in_height)
-        if self.aspect == "resize" and abs(stretch - 1.0) > _ASPECT_TOLERANCE:
-            warnings.warn(
-                f"input {in_width}x{in_height} has another aspect ratio than the model's "
-                f"{self.width}x{self.height}: it is stretched (x by {stretch:.3f} relative to "
-                f"y), which distorts the flow the model sees; use aspect='crop' to crop instead",
-                UserWarning,
-                stacklevel=3,
-            )
-
-    def _scales(
-        self,
-        depth: np.ndarray,
-        baseline: Any,
-        ranges: Any,
-        single: bool,
-    ) -> tuple[np.ndarray, str]:
-        """Metres per unit [B] and the scale's source."""
-        batch_size = len(depth)
-        if baseline is not None and ranges is not None:
-            raise ValueError("give baseline= or ranges=, not both")
-        if baseline is not None:
-            scales = scale_lib.scale_from_baseline(baseline)
-            if scales.ndim == 0:
-                scales = np.full(batch_size, scales, np.float32)
-            if scales.shape != (batch_size,):
-                raise ValueError(
-                    f"baseline must be one number or one per pair ([{batch_size}]), got "
-                    f"shape {np.shape(baseline)}"
-                )
-            return scales, "baseline"
-        if ranges is not None:
-            per_pair = [ranges] if single else list(ranges)
-            if len(per_pair) != batch_size:
-                raise ValueError(
-                    f"ranges must hold one [N, 3] array of readings per pair ({batch_size}), "
-                    f"got {len(per_pair)}"
-                )
-            scales = []
-            for index, (pair_depth, pair_ranges) in enumerate(zip(depth, per_pair, strict=True)):
-                where = "" if single else f"[{index}]"
-                readings = _readings(pair_ranges, where)
-                try:
-                    scales.append(
-                        scale_lib.scale_from_ranges(pair_depth, readings[:, :2], readings[:, 2])
-                    )
-                except ValueError as error:
-                    raise ValueError(f"ranges{where}: {error}") from None
-            return np.asarray(scales, np.float32), "ranges"
-        return np.ones(batch_size, np.float32), "none"
-
     def _given_pose(
         self,
         rotation: Any,
@@ -207,29 +140,10 @@ class DepthPredictor:
                 "the model was trained given the relative pose (global_source pose): give "
                 "the pair's odometry as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
             )
-        rotation = np.asarray(rotation, np.float32)
-        translation = np.asarray(translation, np.float32)
-        if single:
-            rotation, translation = rotation[None], translation[None]
-        if rotation.shape != (batch_size, 3, 3) or translation.shape != (batch_size, 3):
-            raise ValueError(
-                f"rotation and translation must be [{'' if single else 'B, '}3, 3] and "
-                f"[{'' if single else 'B, '}3] for {batch_size} pair(s), got shapes "
-                f"{np.shape(rotation)} and {np.shape(translation)}"
-            )
-        if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
-            raise ValueError("rotation or translation contains NaN or inf")
-        orthonormality = np.abs(rotation @ np.swapaxes(rotation, 1, 2) - np.eye(3)).max()
-        if orthonormality > 1e-3:
-            raise ValueError(
-                f"rotation is not a rotation matrix (R R^T is off by {orthonormality:.3g})"
-            )
-        norms = np.linalg.norm(translation, axis=-1)
-        if np.any(norms <= 0):
-            raise ValueError("translation is zero: a pair without motion has no depth")
+        rotation, translation, norms = odometry(rotation, translation, batch_size, single)
         if baseline is None and ranges is None:
             baseline = norms if not single else float(norms[0])
-        return {"rotation": rotation, "translation": translation / norms[:, None]}, baseline
+        return {"rotation": rotation, "translation": translation}, baseline
 
     def predict(
         self,
@@ -303,8 +217,9 @@ class DepthPredictor:
                     f"before prediction (or omit flow= to estimate it)"
                 )
         box = crop_box(in_height, in_width, self.height, self.width, self.aspect)
-        self._check_aspect(box[2], box[3])
-        resized1, resized2 = self._prepare(first, box), self._prepare(second, box)
+        warn_if_stretched(box, self.height, self.width, self.aspect, stacklevel=3)
+        resized1 = resampling.model_frames(first, box, self.height, self.width)
+        resized2 = resampling.model_frames(second, box, self.height, self.width)
         if flow is None:
             model_flow = np.stack(
                 [
@@ -314,7 +229,7 @@ class DepthPredictor:
             )
         else:
             flow_scale = np.array([self.width / box[3], self.height / box[2]], np.float32)
-            model_flow = self._prepare(flow, box) * flow_scale
+            model_flow = resampling.model_images(flow, box, self.height, self.width) * flow_scale
         extra, baseline = self._given_pose(
             rotation, translation, model_flow, camera_matrix, box, single, baseline, ranges
         )
@@ -322,14 +237,8 @@ class DepthPredictor:
         # Per-pair arrays only: filter banks and the pose g stands for are training aids.
         outputs = jax.device_get({k: v for k, v in outputs.items() if isinstance(v, jax.Array)})
         outputs = {k: np.asarray(v) for k, v in outputs.items()}
-        top, left, crop_height, crop_width = box
-        depth = np.full((batch_size, in_height, in_width), np.nan, np.float32)
-        for index, inv_depth in enumerate(outputs["inv_depth"]):
-            resized = cv2.resize(
-                inv_depth, (crop_width, crop_height), interpolation=cv2.INTER_LINEAR
-            )
-            depth[index, top : top + crop_height, left : left + crop_width] = 1.0 / resized
-        scales, source = self._scales(depth, baseline, ranges, single)
+        depth = resampling.depth_at_input(outputs["inv_depth"], box, in_height, in_width)
+        scales, source = metric_scale.pair_scales(depth, baseline, ranges, single)
         outputs["depth_baseline_units"] = depth
         outputs["depth"] = depth * scales[:, None, None]
         outputs["scale"] = scales

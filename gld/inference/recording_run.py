@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from gld.arguments import ArgumentError
 from gld.inference import frames as frames_lib
-from gld.inference import prediction_folder, recordings, scale
+from gld.inference import metric_scale, prediction_folder, recordings
 from gld.inference.inputs import check_image
 from gld.inference.predict import DepthPredictor
 from gld.models import registry
@@ -233,7 +233,7 @@ def predict_recording_run(
             raise _argument("ranges", error) from None
         if range_metric == "ray_length":
             for frame_readings in readings.values():
-                frame_readings[:, 2] = scale.ray_length_to_depth(
+                frame_readings[:, 2] = metric_scale.ray_length_to_depth(
                     frame_readings[:, :2], frame_readings[:, 2], camera_matrix
                 )
     if poses:

@@ -12,7 +12,7 @@ from conftest import REPO_ROOT
 from experiments.benchmarks import robot
 
 
-def test_quick_run_times_every_stage_of_both_networks(tmp_path):
+def test_quick_run_times_every_stage_of_both_networks_and_the_runtime(tmp_path):
     output = tmp_path / "robot.json"
     completed = subprocess.run(
         [sys.executable, "-m", "experiments.benchmark", "--suite=robot", "--quick"]
@@ -30,7 +30,11 @@ def test_quick_run_times_every_stage_of_both_networks(tmp_path):
     assert record["suite"] == "robot"
     result = record["result"]
     assert result["settings"]["quick"] and result["settings"]["repeats"] == 1
-    assert [row["network"] for row in result["rows"]] == ["jit (live)", "exported"]
+    assert [row["network"] for row in result["rows"]] == ["jit (live)", "exported", "runtime"]
+    runtime = result["rows"].pop()
+    # The runtime is timed end to end, frames to metric depth with DIS inside.
+    assert runtime["flow_estimator"] == "dis" and runtime["load_s"] > 0
+    assert 0 < runtime["total"]["median_ms"] and runtime["flow"] is None
     for row in result["rows"]:
         assert (row["height"], row["width"]) == robot.QUICK_SIZES[0]
         for stage in robot.STAGES:
@@ -57,3 +61,20 @@ def test_the_range_reading_is_the_valid_pixel_nearest_the_centre():
 def test_at_least_one_repeat():
     with pytest.raises(ValueError, match="repeats must be >= 1, got 0"):
         robot.run(repeats=0, quick=False)
+
+
+def test_times_a_given_exported_file_end_to_end(tmp_path):
+    from conftest import TINY_MODEL, random_variables
+
+    from gld.inference import export
+    from gld.models import registry
+
+    model = registry.make_model("global_local", **TINY_MODEL)
+    path = tmp_path / "model.gldx"
+    variables = random_variables(model, 24, 32, seed=0)
+    export.export_model(model, variables, path, height=24, width=32)
+    result = robot.run(repeats=2, quick=False, artifact=path, log=lambda _: None)
+    (row,) = result["rows"]
+    assert (row["network"], row["height"], row["width"]) == ("runtime", 24, 32)
+    assert 0 < row["total"]["median_ms"] <= row["total"]["p90_ms"]
+    assert result["settings"]["artifact"] == str(path)

@@ -1,6 +1,7 @@
 """The export launcher (python -m experiments.export) on a tiny trained workdir."""
 
 import json
+import shutil
 import subprocess
 import zipfile
 
@@ -40,6 +41,9 @@ def test_exports_the_latest_checkpoint_at_the_training_resolution(trained_workdi
         model, variables, image1 / 255.0 - 0.5, image2 / 255.0 - 0.5, flow
     )
     np.testing.assert_allclose(deployed(image1, image2, flow), expected["depth"], rtol=1e-4)
+    # The flow the runtime computes is the one the run's dataset was built with, DIS.
+    assert metadata["flow"]["estimator"] == "dis" and metadata["flow"]["preset"] == "medium"
+    assert "flow: estimator dis" in completed.stdout
 
 
 def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_path):
@@ -61,3 +65,20 @@ def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_p
     assert metadata["batch_size"] == 1 and metadata["formulation"] == "vmap"
     with zipfile.ZipFile(output) as archive:
         assert json.loads(archive.read("metadata.json"))["source"]["step"] == 2
+
+
+def test_the_runtime_flow_comes_from_the_record_or_the_flag(trained_workdir, tmp_path):
+    output = tmp_path / "model.gldx"
+    given = workdir_export.export_workdir(trained_workdir, output, flow="farneback")
+    assert given["flow"]["estimator"] == "farneback"
+    # A run without the record (trained before it was written) needs the flag.
+    old = tmp_path / "old_run"
+    shutil.copytree(trained_workdir, old)
+    (old / workdir_export.FLOW_RECORD).unlink()
+    completed = _launch(f"--workdir={old}", f"--output={tmp_path / 'old.gldx'}")
+    assert completed.returncode == 2
+    assert "does not record which flow its dataset was built with" in completed.stderr
+    assert "--flow=dis" in completed.stderr and "Traceback" not in completed.stderr
+    completed = _launch(f"--workdir={old}", f"--output={output}", "--flow=dis_slow")
+    assert completed.returncode == 2 and "unknown flow estimator 'dis_slow'" in completed.stderr
+    assert not (tmp_path / "old.gldx").exists()

@@ -47,6 +47,8 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     assert "--steps=6: 0 warm-up steps (the recipe's 5%)" in result.stdout
     assert "--steps=6" in (workdir / "flags.txt").read_text()
     assert "--warmup_steps=0" in (workdir / "flags.txt").read_text()  # as it trained
+    # The flow the dataset was built with, for an export's runtime to compute the same.
+    assert json.loads((workdir / "dataset_flow.json").read_text())["estimator"] == "dis"
     records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     train_records = [r for r in records if r["split"] == "train"]
     assert [r["step"] for r in train_records] == [2, 4, 6]

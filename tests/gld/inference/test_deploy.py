@@ -136,7 +136,7 @@ def test_one_pair_uint8_and_float_inputs_agree(exported):
     assert deployed.metadata["model"] == "global_local"
     image1, image2, flow = _pairs(2, seed=5)
     batch = deployed.predict(image1, image2, flow)
-    floats = deployed.predict(image1 / np.float32(255) - 0.5, image2 / np.float32(255) - 0.5, flow)
+    floats = deployed.predict(image1 / np.float32(255), image2 / np.float32(255), flow)
     np.testing.assert_allclose(floats["depth"], batch["depth"], rtol=1e-6)
     single = deployed(image1[1], image2[1], flow[1])
     assert single.shape == (HEIGHT, WIDTH)
@@ -153,9 +153,12 @@ def test_bad_inputs_are_named(exported):
     with pytest.raises(ValueError, match=r"flow must be \[B, 24, 32, 2\]"):
         deployed(image1, image2, flow[..., :1])
     with pytest.raises(ValueError, match="image2 must be uint8 or float32, got dtype float64"):
-        deployed(image1, image2 / 255.0 - 0.5, flow)
-    with pytest.raises(ValueError, match=r"float32 image1 must lie in \[-0.5, 0.5\]"):
+        deployed(image1, image2 / 255.0, flow)
+    with pytest.raises(ValueError, match=r"float32 image1 must lie in \[0, 1\]"):
         deployed(image1.astype(np.float32), image2, flow)
+    # The former convention, [-0.5, 0.5], is refused rather than misread.
+    with pytest.raises(ValueError, match=r"float32 image1 must lie in \[0, 1\]"):
+        deployed(image1 / np.float32(255) - np.float32(0.5), image2, flow)
     with pytest.raises(ValueError, match="flow must be float32"):
         deployed(image1, image2, flow.astype(np.float64))
     with pytest.raises(ValueError, match="flow contains NaN"):
@@ -204,14 +207,18 @@ def test_a_file_of_another_format_or_a_later_version_is_refused(exported, tmp_pa
 
     with pytest.raises(ValueError, match="format 'other' is not"):
         DeployedModel.load(with_metadata("other.gldx", format="other"))
-    with pytest.raises(ValueError, match="has format version 3"):
-        DeployedModel.load(with_metadata("later.gldx", format_version=3))
-    # The first version (images and flow only) reads as today's.
+    with pytest.raises(ValueError, match="has format version 4"):
+        DeployedModel.load(with_metadata("later.gldx", format_version=4))
+    # Versions 1 and 2 read alike, their function given images in [-0.5, 0.5]: this
+    # file's function (which subtracts 0.5 itself) so labelled sees image - 1.
+    model, variables, _ = exported
     image1, image2, flow = _pairs(1, seed=4)
-    first = DeployedModel.load(with_metadata("first.gldx", format_version=1))
-    np.testing.assert_array_equal(
-        first(image1, image2, flow), DeployedModel.load(path)(image1, image2, flow)
-    )
+    for version in (1, 2):
+        older = DeployedModel.load(with_metadata(f"v{version}.gldx", format_version=version))
+        expected = reference.global_local(
+            model, variables, image1 / 255.0 - 1.0, image2 / 255.0 - 1.0, flow
+        )
+        np.testing.assert_allclose(older(image1, image2, flow), expected["depth"], rtol=1e-4)
 
 
 def _camera(batch_size: int, focal: float) -> np.ndarray:

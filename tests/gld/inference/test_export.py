@@ -65,7 +65,7 @@ def test_the_file_describes_the_model_and_runs_any_batch(tiny_model, tmp_path):
     for batch_size in (1, 3):
         image1, image2, flow = export_checks.model_inputs(batch_size)
         got = exported.call(weights, image1, image2, flow)
-        want = reference.global_local(model, variables, image1, image2, flow)
+        want = reference.global_local(model, variables, image1 - 0.5, image2 - 0.5, flow)
         assert set(got) == set(outputs)
         for key in got:
             np.testing.assert_allclose(got[key], want[key], rtol=1e-4, atol=1e-6)
@@ -92,7 +92,7 @@ def test_a_fixed_batch_and_several_platforms(tiny_model, tmp_path):
     # The CPU lowering of the two-platform module runs here and gives the model's depth.
     np.testing.assert_allclose(
         exported.call(weights, image1, image2, flow)["inv_depth"],
-        reference.global_local(model, variables, image1, image2, flow)["inv_depth"],
+        reference.global_local(model, variables, image1 - 0.5, image2 - 0.5, flow)["inv_depth"],
         rtol=1e-4,
     )
     with pytest.raises(ValueError, match="shape"):

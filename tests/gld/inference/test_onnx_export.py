@@ -54,6 +54,6 @@ def test_onnx_matches_the_live_model_for_any_batch(tiny_model, tmp_path):
     for batch_size in (1, 3):
         image1, image2, flow = export_checks.model_inputs(batch_size, seed=batch_size)
         got = session.run(names, {"image1": image1, "image2": image2, "flow": flow})
-        want = reference.global_local(model, variables, image1, image2, flow)
+        want = reference.global_local(model, variables, image1 - 0.5, image2 - 0.5, flow)
         for key, value in zip(names, got, strict=True):
             np.testing.assert_allclose(value, want[key], rtol=1e-4, atol=1e-5)

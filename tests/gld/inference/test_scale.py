@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gld import contract, records
-from gld.inference import scale
+from gld.inference import metric_scale, scale
 
 
 def _depth_map(height=12, width=16):
@@ -14,13 +14,13 @@ def _depth_map(height=12, width=16):
 
 
 def test_scale_from_baseline_is_the_baseline_and_refuses_zero():
-    np.testing.assert_allclose(scale.scale_from_baseline(0.25), 0.25)
-    np.testing.assert_allclose(scale.scale_from_baseline([0.1, 2.0]), [0.1, 2.0])
-    assert scale.scale_from_baseline(0.25).dtype == np.float32
+    np.testing.assert_allclose(metric_scale.scale_from_baseline(0.25), 0.25)
+    np.testing.assert_allclose(metric_scale.scale_from_baseline([0.1, 2.0]), [0.1, 2.0])
+    assert metric_scale.scale_from_baseline(0.25).dtype == np.float32
     with pytest.raises(ValueError, match="baseline.*got 0.0"):
-        scale.scale_from_baseline(0.0)
+        metric_scale.scale_from_baseline(0.0)
     with pytest.raises(ValueError, match="at index 1"):
-        scale.scale_from_baseline([0.3, np.nan])
+        metric_scale.scale_from_baseline([0.3, np.nan])
 
 
 def test_scale_from_ranges_is_exact_for_a_noiseless_map():
@@ -29,13 +29,15 @@ def test_scale_from_ranges_is_exact_for_a_noiseless_map():
     # Sub-pixel readings: the plane is linear in (u, v), so bilinear lookup is exact.
     pixels = np.array([[0.0, 0.0], [3.25, 7.5], [15.0, 11.0], [8.6, 2.1]])
     distances = true_scale * (1.0 + 0.1 * pixels[:, 0] + 0.05 * pixels[:, 1])
-    np.testing.assert_allclose(scale.scale_from_ranges(depth, pixels, distances), true_scale, 1e-6)
+    np.testing.assert_allclose(
+        metric_scale.scale_from_ranges(depth, pixels, distances), true_scale, 1e-6
+    )
     # One reading is enough, and so is one reading at the image's very edge.
     np.testing.assert_allclose(
-        scale.scale_from_ranges(depth, pixels[1:2], distances[1:2]), true_scale, 1e-6
+        metric_scale.scale_from_ranges(depth, pixels[1:2], distances[1:2]), true_scale, 1e-6
     )
     np.testing.assert_allclose(
-        scale.scale_from_ranges(depth, [[15.5, 11.5]], [true_scale * depth[11, 15]]),
+        metric_scale.scale_from_ranges(depth, [[15.5, 11.5]], [true_scale * depth[11, 15]]),
         true_scale,
         1e-6,
     )
@@ -51,11 +53,11 @@ def test_scale_from_ranges_with_noise_stays_within_bound_and_ignores_outliers():
     # 2% multiplicative noise: the median of 201 ratios is within 0.5% of the truth
     # (its standard error is ~0.2%).
     noisy = truth * (1.0 + 0.02 * rng.standard_normal(count))
-    assert abs(scale.scale_from_ranges(depth, pixels, noisy) / true_scale - 1.0) < 0.005
+    assert abs(metric_scale.scale_from_ranges(depth, pixels, noisy) / true_scale - 1.0) < 0.005
     # A fifth of the readings wild (10x too far) moves the median to the inliers' 62.5th
     # percentile, ~0.3 noise sigma = 0.6% here: bound 1.5%.
     noisy[: count // 5] *= 10.0
-    assert abs(scale.scale_from_ranges(depth, pixels, noisy) / true_scale - 1.0) < 0.015
+    assert abs(metric_scale.scale_from_ranges(depth, pixels, noisy) / true_scale - 1.0) < 0.015
     # The mean ratio would be ruined by them.
     assert np.mean(noisy / (truth / true_scale)) > 2.0 * true_scale
 
@@ -64,11 +66,12 @@ def test_scale_from_ranges_batched_matches_one_by_one():
     depth = np.stack([_depth_map(), 3.0 * _depth_map()])
     pixels = np.array([[[1.0, 2.0], [5.0, 5.0]], [[0.0, 0.0], [9.5, 3.5]]])
     distances = np.array([[4.0, 5.0], [2.0, 3.0]])
-    batched = scale.scale_from_ranges(depth, pixels, distances)
+    batched = metric_scale.scale_from_ranges(depth, pixels, distances)
     assert batched.shape == (2,)
     for index in range(2):
         np.testing.assert_allclose(
-            batched[index], scale.scale_from_ranges(depth[index], pixels[index], distances[index])
+            batched[index],
+            metric_scale.scale_from_ranges(depth[index], pixels[index], distances[index]),
         )
 
 
@@ -87,14 +90,14 @@ def test_scale_from_ranges_batched_matches_one_by_one():
 )
 def test_scale_from_ranges_names_the_bad_reading(pixels, distances, message):
     with pytest.raises(ValueError, match=message):
-        scale.scale_from_ranges(_depth_map(), pixels, distances)
+        metric_scale.scale_from_ranges(_depth_map(), pixels, distances)
 
 
 def test_scale_from_ranges_refuses_a_reading_where_depth_is_not_positive():
     depth = _depth_map()
     depth[4, 5] = np.nan
     with pytest.raises(ValueError, match=r"reading 0 \(u=5.0, v=4.0\).*not a positive depth"):
-        scale.scale_from_ranges(depth, [[5.0, 4.0]], [1.0])
+        metric_scale.scale_from_ranges(depth, [[5.0, 4.0]], [1.0])
 
 
 def _stored_pair(rng, index, baseline):
@@ -169,7 +172,9 @@ def test_ray_length_becomes_camera_z():
     camera = np.array([[100.0, 0, 40.0], [0, 120.0, 30.0], [0, 0, 1]])
     point = np.array([0.6, -0.2, 3.0])
     pixel = (camera @ point)[:2] / point[2]
-    depth = scale.ray_length_to_depth([pixel], [np.linalg.norm(point)], camera)
+    depth = metric_scale.ray_length_to_depth([pixel], [np.linalg.norm(point)], camera)
     np.testing.assert_allclose(depth, [3.0], rtol=1e-12)
     # At the principal point the ray is the optical axis.
-    np.testing.assert_allclose(scale.ray_length_to_depth([[40.0, 30.0]], [2.0], camera), [2.0])
+    np.testing.assert_allclose(
+        metric_scale.ray_length_to_depth([[40.0, 30.0]], [2.0], camera), [2.0]
+    )

@@ -1,0 +1,249 @@
+"""From two camera frames to metric depth: the runtime of a model exported by
+`python -m experiments.export`.
+
+    from gld.inference.runtime import DepthRuntime
+    runtime = DepthRuntime.load("runs/robot/model.gldx")
+    result = runtime.predict(frame1, frame2, intrinsics=(fx, fy, cx, cy), baseline=0.12)
+    result["depth"]        # [H, W] metres at the frames' size
+    result["points"]       # [H, W, 3] metres in camera 1's frame (with intrinsics)
+    runtime(frame1, frame2, ranges=[(u, v, 1.73)])           # depth, scaled by a range reading
+    runtime(frame1, frame2, rotation=R, translation=t)       # odometry: ||t|| is the baseline
+
+Everything between the frames and the depth happens here, as `DepthPredictor` does it
+with the training stack (the same `gld.inference.inputs` rules and the same numpy
+resizing, `gld.inference.resampling`):
+* frames: RGB (or greyscale, or RGBA) at any resolution, uint8 or float in [0, 1], one
+  pair [H, W, C] or a batch [B, H, W, C]; any other dtype or range is refused;
+* resized by area to the model's training resolution (aspect "resize" stretches a frame
+  of another aspect ratio, with a warning; "crop" takes the centred crop and leaves NaN
+  depth outside it);
+* flow computed at that resolution as the model's training data computed it, recorded
+  in the file's metadata ("flow"): OpenCV DIS with its preset (`gld.flow`), the flow
+  network exported in the same file (JAX only), or the model's own flow network;
+* the network (`gld.inference.deploy.DeployedModel`); a model trained given the pose
+  takes the odometry (`rotation`, `translation`), one on its flow's essential matrix or
+  refining its pose on the flow takes the camera (`intrinsics`);
+* depth resized back to the frames' size, and scaled to metres by the baseline
+  (`baseline=`, or ||translation|| of the odometry) or range readings (`ranges=`, (u, v,
+  camera-z metres) in the frames' pixels; `gld.inference.metric_scale`). Without either
+  it stays in baselines (`result["units"]`).
+
+Requirements: jax, numpy and flatbuffers (`jax.export`'s deserialisation), plus
+opencv-python-headless when the file's flow is OpenCV's or the model takes the pose of
+its flow's essential matrix (`DepthRuntime.needs_opencv`). None of flax, optax, orbax,
+TFDS or grain is imported; the README lists the exact set and a test runs this module
+with nothing else importable.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gld import flow as flow_lib
+from gld import flow_pose, geometry
+from gld.inference import metric_scale, resampling
+from gld.inference.deploy import DeployedModel
+from gld.inference.inputs import (
+    ASPECT_MODES,
+    _as_rgb_float,
+    camera_matrix_from,
+    crop_box,
+    odometry,
+    resize_camera_matrix,
+    warn_if_stretched,
+)
+
+_POSE = ("rotation", "translation")
+_FLOW_POSE = ("flow_rotation", "flow_translation")
+_CAMERAS = ("intrinsics1", "intrinsics2")
+
+
+class DepthRuntime:
+    """An exported model with everything from the frames to metric depth.
+
+    Attributes:
+      model: the exported network (`DeployedModel`).
+      height, width: the resolution the network runs at (its training resolution).
+      flow: how the flow is computed (the metadata's "flow": "estimator" is a
+        `gld.flow` name, "flow_net" or "model").
+      needs_opencv: whether a call needs OpenCV (classical flow or the essential matrix).
+      reads: what the model needs besides the frames: "odometry" (rotation, translation),
+        "camera" (intrinsics) or nothing.
+    """
+
+    def __init__(self, model: DeployedModel, aspect: str = "resize"):
+        if aspect not in ASPECT_MODES:
+            raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
+        if model.flow is None:
+            raise ValueError(
+                f"the file has format version {model.metadata.get('format_version')}, which "
+                "does not record how its flow is computed: export it again with this gld"
+            )
+        self.model, self.aspect = model, aspect
+        self.height, self.width = model.height, model.width
+        self.flow = model.flow
+        estimator = self.flow.get("estimator")
+        if estimator in flow_lib.RUNTIME_SETTINGS:
+            expected = flow_lib.runtime_settings(estimator)
+            if self.flow != expected:
+                raise ValueError(
+                    f"the file computes flow as {self.flow}, this gld's {estimator!r} as "
+                    f"{expected}: use the gld the file was exported with, or export it again"
+                )
+        elif estimator == "flow_net" and model.flow_network is None:
+            raise ValueError("the file records a flow network's flow but holds no network")
+        elif estimator not in ("flow_net", "model"):
+            raise ValueError(f"the file's flow estimator {estimator!r} is unknown to this gld")
+        extra = model.extra_inputs
+        if extra not in ((), _POSE, _FLOW_POSE, _CAMERAS):
+            raise ValueError(f"the model reads {list(extra)}, which this runtime cannot give")
+        self.reads = {(): None, _POSE: "odometry", _FLOW_POSE: "camera", _CAMERAS: "camera"}[extra]
+        self.needs_opencv = estimator in flow_lib.RUNTIME_SETTINGS or extra == _FLOW_POSE
+        if self.needs_opencv and importlib.util.find_spec("cv2") is None:
+            raise ImportError(
+                "this model's flow (or its essential-matrix pose) is computed with OpenCV: "
+                "pip install opencv-python-headless"
+            )
+
+    @classmethod
+    def load(cls, path: str | Path, aspect: str = "resize") -> DepthRuntime:
+        """Reads a file of `experiments.export` (`DeployedModel.load`)."""
+        return cls(DeployedModel.load(path), aspect)
+
+    def model_flow(self, image1: np.ndarray, image2: np.ndarray) -> np.ndarray:
+        """Flow [B, h, w, 2] (pixels, image1 -> image2) of frames already at the model's
+        resolution, [B, h, w, 3] float32 in [0, 1], as the model's training data had it."""
+        estimator = self.flow["estimator"]
+        if estimator == "flow_net":
+            return self.model.flow_network(image1, image2)
+        if estimator == "model":  # only the shape is read
+            return np.zeros((*image1.shape[:3], 2), np.float32)
+        return np.stack(
+            [flow_lib.estimate(a, b, estimator) for a, b in zip(image1, image2, strict=True)]
+        )
+
+    def _extra(
+        self,
+        flow: np.ndarray,
+        camera: np.ndarray | None,
+        rotation: Any,
+        translation: Any,
+        single: bool,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """The model's inputs besides images and flow, and ||t|| of given odometry."""
+        batch_size = len(flow)
+        if self.reads != "odometry" and (rotation is not None or translation is not None):
+            raise ValueError(
+                "rotation= and translation= are for models trained given the relative pose; "
+                "this one takes the motion from the images"
+            )
+        if self.reads == "odometry":
+            if rotation is None or translation is None:
+                raise ValueError(
+                    "the model was trained given the relative pose: give the pair's odometry "
+                    "as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
+                )
+            rotation, unit, norms = odometry(rotation, translation, batch_size, single)
+            return {"rotation": rotation, "translation": unit}, norms
+        if self.reads is None:
+            return {}, None
+        if camera is None:
+            raise ValueError(
+                "the model takes the camera motion from its flow's geometry, which needs the "
+                "camera: give intrinsics="
+            )
+        normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
+        normalised = np.asarray(normalised, np.float32)
+        if self.model.extra_inputs == _CAMERAS:
+            cameras = np.tile(normalised, (batch_size, 1))
+            return {"intrinsics1": cameras, "intrinsics2": cameras}, None
+        poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
+        return {
+            "flow_rotation": np.stack([pose[0] for pose in poses]).astype(np.float32),
+            "flow_translation": np.stack([pose[1] for pose in poses]).astype(np.float32),
+        }, None
+
+    def predict(
+        self,
+        image1: Any,
+        image2: Any,
+        *,
+        intrinsics: Any = None,
+        baseline: Any = None,
+        ranges: Any = None,
+        rotation: Any = None,
+        translation: Any = None,
+    ) -> dict[str, Any]:
+        """Depth of frame 1 from a pair of frames (or a batch of pairs).
+
+        Args:
+          image1, image2: [H, W, C] or [B, H, W, C] (C = 1, 3 or 4; or [H, W]), uint8 or
+            float in [0, 1], any size, both alike.
+          intrinsics: the frames' camera (fx, fy, cx, cy) in pixels ((0, 0) the centre of
+            the top-left pixel) or a 3x3 K: gives "points", and is needed by models that
+            take the motion from the flow's geometry (`reads == "camera"`).
+          baseline: metres between the camera centres, one number or [B].
+          ranges: range readings (u, v, camera-z metres) in the frames' pixels, [N, 3] for
+            one pair, a sequence of B such arrays for a batch.
+          rotation, translation: the odometry's relative pose ([3, 3], [3], or batched),
+            X2 = R X1 + t, for a model trained given the pose (`reads == "odometry"`);
+            without baseline= or ranges=, ||t|| in metres scales the depth.
+
+        Returns:
+          "depth" [H, W] at the frames' size (metres when scaled), "units" ("metres" or
+          "baseline"), "scale" (metres per baseline), "scale_source" ("baseline",
+          "ranges" or "none"), "flow" [h, w, 2] and "inv_depth" [h, w] at the model's
+          resolution (in baselines), "global_params" where the model has them; with
+          intrinsics, "points" [H, W, 3] in the depth's units. Batched inputs keep B.
+        """
+        first, single, channels1 = _as_rgb_float(image1, "image1")
+        second, _, channels2 = _as_rgb_float(image2, "image2")
+        if first.shape != second.shape or np.ndim(image1) != np.ndim(image2):
+            raise ValueError(
+                f"image1 and image2 must have the same shape, got {np.shape(image1)} and "
+                f"{np.shape(image2)}"
+            )
+        if channels1 != channels2:
+            raise ValueError(
+                f"image1 has {channels1} channel(s) and image2 {channels2}: give both "
+                "frames of a pair in the same format"
+            )
+        _, in_height, in_width, _ = first.shape
+        camera = None if intrinsics is None else camera_matrix_from(intrinsics)
+        box = crop_box(in_height, in_width, self.height, self.width, self.aspect)
+        warn_if_stretched(box, self.height, self.width, self.aspect, stacklevel=3)
+        resized1 = resampling.model_frames(first, box, self.height, self.width)
+        resized2 = resampling.model_frames(second, box, self.height, self.width)
+        flow = self.model_flow(resized1, resized2)
+        model_camera = (
+            None if camera is None else resize_camera_matrix(camera, box, self.height, self.width)
+        )
+        extra, norms = self._extra(flow, model_camera, rotation, translation, single)
+        if norms is not None and baseline is None and ranges is None:
+            baseline = float(norms[0]) if single else norms
+        outputs = self.model.predict(resized1, resized2, flow, **extra)
+        depth = resampling.depth_at_input(outputs["inv_depth"], box, in_height, in_width)
+        scales, source = metric_scale.pair_scales(depth, baseline, ranges, single)
+        result = {
+            "inv_depth": outputs["inv_depth"],
+            "flow": flow,
+            "depth": depth * scales[:, None, None],
+            "scale": scales,
+        }
+        if "global_params" in outputs:
+            result["global_params"] = outputs["global_params"]
+        if camera is not None:
+            result["points"] = geometry.backproject(result["depth"], camera).astype(np.float32)
+        if single:
+            result = {key: value[0] for key, value in result.items()}
+        result["units"] = "baseline" if source == "none" else "metres"
+        result["scale_source"] = source
+        return result
+
+    def __call__(self, image1: Any, image2: Any, **measurements: Any) -> np.ndarray:
+        """Depth of frame 1 at the frames' size: `predict(...)["depth"]`."""
+        return self.predict(image1, image2, **measurements)["depth"]
