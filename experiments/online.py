@@ -1,0 +1,198 @@
+r"""Learns depth online, on a robot's stream of frames, odometry and range readings.
+
+    python -m experiments.online --workdir=runs/online --frames=5000
+    python -m experiments.online --workdir=runs/shifted --world=shifted \
+        --pretrained=runs/demo --frames=1000               # adapt a trained model
+    python -m experiments.online --workdir=runs/frozen --pretrained=runs/demo --nolearn
+    python -m experiments.online --workdir=runs/photometric --model=self_supervised
+    python -m experiments.online --workdir=runs/rec --images=rec/rgb --poses=rec/poses.txt \
+        --ranges=rec/range.csv --intrinsics=517.3,516.5,318.6,255.3 --size=96x128
+
+The stream: a simulated robot in a `gld_scenes` world (`data.gld_scenes.robot_stream`:
+`--world=training` like the training worlds, or `shifted`; `--seed`), or a recording in
+the formats of `experiments.predict` (`--images` or `--video`, `--poses` as a TUM
+trajectory, `--ranges` as `frame,u,v,depth`, `--intrinsics`), its frames resized to
+`--size`. The learner (`gld.online.learner`): each frame's depth is predicted with the
+model as it is and scored against the truth where there is one (prequential: before the
+learner trains on the frame), then the pair with its range reading joins a bounded
+replay buffer and `--updates_per_frame` Adam steps run on batches of the newest and
+replayed pairs, beside the next frames' predictions. The model: `--pretrained` (a
+training workdir: its model and weights), or a new one (`--model`: the main job's
+global-local model and loss, or `self_supervised`, the photometric route, which reads no
+range). `--nolearn` keeps it frozen.
+
+Writes to `--workdir` (`gld.online.run`): prequential.jsonl, checkpoints/, summary.json
+(speed and the curve), curve.png and, with `--view_every=N`, view/ (the frame, the
+prediction, its error, the labelled pixel). A run launched again on its workdir resumes
+from its newest checkpoint with the same result as an uninterrupted one; one with more
+`--frames` continues.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from absl import app, flags
+
+from data import command_line
+
+FLAGS = flags.FLAGS
+
+flags.DEFINE_string("workdir", None, "Where the run is written (and resumed from).")
+flags.DEFINE_integer("frames", 5000, "Frames of the stream to learn from.", lower_bound=1)
+flags.DEFINE_enum("world", "training", ["training", "shifted"], "The simulated robot's world.")
+flags.DEFINE_integer("seed", 0, "The simulated world and trajectory, and the learner's sampling.")
+flags.DEFINE_string("size", "96x128", "HEIGHTxWIDTH of the frames (a new model's resolution).")
+flags.DEFINE_string("pretrained", None, "A training workdir to start from (its model).")
+flags.DEFINE_enum(
+    "model", "global_local", ["global_local", "self_supervised"], "A new model's kind."
+)
+flags.DEFINE_bool("learn", True, "Learn online (--nolearn: the frozen reference).")
+flags.DEFINE_integer("updates_per_frame", 1, "Adam steps after each frame.", lower_bound=0)
+flags.DEFINE_integer("batch_size", 4, "Pairs per update.", lower_bound=1)
+flags.DEFINE_integer("capacity", 256, "Pairs the replay buffer holds.", lower_bound=1)
+flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
+flags.DEFINE_float("min_baseline", 0.05, "Metres of odometry between a frame and its partner.")
+flags.DEFINE_integer("max_partner_gap", 20, "Frames back a partner may be.", lower_bound=1)
+flags.DEFINE_bool("asynchronous", True, "Updates in a worker thread beside prediction.")
+flags.DEFINE_integer("checkpoint_every", 250, "Frames between checkpoints.", lower_bound=1)
+flags.DEFINE_integer("window", 250, "Frames per point of the curve.", lower_bound=1)
+flags.DEFINE_integer(
+    "view_every", 0, "Write the view of every N-th frame (0: none).", lower_bound=0
+)
+flags.DEFINE_bool("progress", True, "Show a progress bar.")
+# A recording instead of the simulated robot.
+flags.DEFINE_string("images", None, "A recording's frames: a folder of images.")
+flags.DEFINE_string("video", None, "A recording's frames: a video file.")
+flags.DEFINE_string("poses", None, "The recording's TUM trajectory (its odometry).")
+flags.DEFINE_string("ranges", None, "The recording's range CSV (frame,u,v,depth).")
+flags.DEFINE_float("range_scale", 1.0, "Range CSV depth x this = metres.")
+flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy of the recording's frames (pixels).")
+flags.DEFINE_float("frame_rate", 10.0, "The recording's frames per second.", lower_bound=0)
+flags.mark_flag_as_required("workdir")
+
+
+def _size() -> tuple[int, int]:
+    height, _, width = FLAGS.size.partition("x")
+    if not (height.isdigit() and width.isdigit() and int(height) >= 8 and int(width) >= 8):
+        raise app.UsageError(
+            f"--size: {FLAGS.size!r} is not HEIGHTxWIDTH of 8 or more, e.g. 96x128"
+        )
+    return int(height), int(width)
+
+
+def _stream(height: int, width: int):
+    """The simulated robot, or the recording the flags name."""
+    if FLAGS.images or FLAGS.video:
+        from data.demon import recordings as recording_files
+        from gld.online import recording_stream
+
+        return recording_stream.open_recording(
+            recording_files,
+            images=FLAGS.images,
+            video=FLAGS.video,
+            poses=FLAGS.poses,
+            ranges=FLAGS.ranges,
+            range_scale=FLAGS.range_scale,
+            intrinsics=FLAGS.intrinsics,
+            frame_rate=FLAGS.frame_rate,
+            height=height,
+            width=width,
+        )
+    from data.gld_scenes import robot_stream
+
+    settings = robot_stream.RobotSettings(height=height, width=width, world=FLAGS.world)
+    return robot_stream.SimulatedRobot(FLAGS.seed, settings)
+
+
+def _model(height: int, width: int):
+    """(model, variables, loss weights, what it is) of --pretrained or a new model."""
+    from gld.losses.supervised import LossWeights
+    from gld.models import registry
+    from gld.runs import recipe, state
+    from gld.runs import workdir as workdir_lib
+
+    if FLAGS.pretrained:
+        model, variables, config = workdir_lib.load_trained(FLAGS.pretrained)
+        if (config.height, config.width) != (height, width):
+            raise app.UsageError(
+                f"--pretrained={FLAGS.pretrained} runs at {config.height}x{config.width}, the "
+                f"stream is {height}x{width}: give --size={config.height}x{config.width}"
+            )
+        return model, variables, config.loss_weights(), f"{config.model} from {FLAGS.pretrained}"
+    if FLAGS.model == "self_supervised":
+        from gld.losses.photometric import SelfSupervisedWeights
+
+        model = registry.make_model("self_supervised")
+        weights = SelfSupervisedWeights()
+    else:
+        model = registry.make_model("global_local", **recipe.ARCHITECTURE)
+        weights = LossWeights(
+            epipolar=recipe.MOTION_WEIGHTS["epipolar_weight"],
+            pose_teacher=recipe.MOTION_WEIGHTS["pose_teacher_weight"],
+        )
+    variables = state.init_variables(model, height, width, FLAGS.seed)
+    return model, variables, weights, f"{FLAGS.model} from scratch"
+
+
+def main(argv: list[str]) -> None:
+    if len(argv) > 1:
+        raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    if FLAGS.images and FLAGS.video:
+        raise app.UsageError("give --images or --video, not both")
+    height, width = _size()
+    from absl import logging
+
+    if not FLAGS["verbosity"].present:
+        logging.set_verbosity(logging.WARNING)  # orbax's progress lines
+    from gld.online import learner as learner_lib
+    from gld.online import run
+
+    try:
+        settings = learner_lib.OnlineSettings(
+            min_baseline=FLAGS.min_baseline,
+            max_partner_gap=FLAGS.max_partner_gap,
+            batch_size=FLAGS.batch_size,
+            updates_per_frame=FLAGS.updates_per_frame,
+            capacity=FLAGS.capacity,
+            learning_rate=FLAGS.learning_rate,
+            learn=FLAGS.learn,
+            asynchronous=FLAGS.asynchronous,
+            seed=FLAGS.seed,
+        )
+    except ValueError as error:
+        raise app.UsageError(str(error)) from None
+    stream = _stream(height, width)
+    model, variables, weights, described = _model(height, width)
+    learner = learner_lib.OnlineLearner(model, variables, settings, height, width, weights)
+    meta = {
+        "name": Path(FLAGS.workdir).name,
+        "model": described,
+        "learn": FLAGS.learn,
+        "stream": stream.describe(),
+        "settings": {key: getattr(settings, key) for key in settings.__dataclass_fields__},
+    }
+    summary = run.run_online(
+        stream,
+        learner,
+        FLAGS.workdir,
+        frames=FLAGS.frames,
+        meta=meta,
+        checkpoint_every=FLAGS.checkpoint_every,
+        window=FLAGS.window,
+        view_every=FLAGS.view_every,
+        progress=FLAGS.progress,
+    )
+    speed = {key: summary[key] for key in ("frames_per_second", "latency_ms", "update_wait_ms")}
+    print(json.dumps(speed))
+    for point in summary["curve"]:
+        print(
+            f"frames {point['frames']:6d}: Abs-Inv {point['abs_inv']:.4f} "
+            f"(running mean {point['abs_inv_mean']:.4f}, {point['x_mean']:.2f}x mean)"
+        )
+    print(f"wrote {Path(FLAGS.workdir) / run.SUMMARY_FILE}")
+
+
+if __name__ == "__main__":
+    command_line.run(main)

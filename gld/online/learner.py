@@ -1,0 +1,332 @@
+"""The online learner: depth for every new frame now, learning from its range reading next.
+
+    learner = OnlineLearner(model, variables, OnlineSettings(), height=96, width=128)
+    for frame in stream.frames():
+        result = learner.observe(frame)    # the published depth, its score, timings
+    learner.finish()                       # waits for the update in flight
+
+For each frame the learner picks its partner, the newest earlier frame (within
+`max_partner_gap`) whose odometry puts the camera at least `min_baseline` metres away,
+computes the flow from the frame to the partner (OpenCV DIS, as the datasets), predicts
+the frame's depth with the model as it is and publishes it (in baselines; times the
+odometry's baseline, metres). In simulation the prediction is then scored against the
+truth, before anything is learned from the frame (prequential). The pair, with its range
+reading as the one labelled pixel (camera-z metres over the odometry's baseline: the
+model's units), goes into a bounded replay buffer (`gld.online.replay`), and
+`updates_per_frame` optimiser steps run on batches of the newest pair and replayed ones.
+
+The updates run in a worker thread beside the next frames: a prediction never waits for
+one. The update launched at frame t runs while frame t + 1 is predicted and is joined
+(its parameters swapped in whole) after that prediction is published, so frame t's depth
+comes from the parameters of the updates up to frame t - 2. The order of operations is
+fixed, so a run is deterministic for a stream and a seed, with the worker or without
+(`asynchronous=False` runs each update at once, for the same results).
+
+`state()` and `restore()` hold everything a resumed run needs besides the stream (the
+model and optimiser state, the buffer, the running reference, counters); the stream is
+replayed from the recorded position (`next_frame`), after the `max_partner_gap` frames
+before it refill the partner window (`resume_from`).
+"""
+
+from __future__ import annotations
+
+import collections
+import concurrent.futures
+import dataclasses
+import time
+from typing import Any
+
+import flax.linen as nn
+import jax
+import numpy as np
+
+from gld import flow as flow_lib
+from gld import flow_pose, geometry
+from gld.losses import supervised as losses
+from gld.models import layers
+from gld.online.replay import LabelledPair, ReplayBuffer
+from gld.online.stream import Frame
+from gld.runs import optimizer as optimizer_lib
+from gld.runs.state import TrainState
+from gld.training import trainer
+
+
+@dataclasses.dataclass(frozen=True)
+class OnlineSettings:
+    """How the learner pairs frames and learns.
+
+    Attributes:
+      min_baseline: metres of odometry between a frame and its partner.
+      max_partner_gap: how many frames back a partner may be.
+      batch_size: pairs per update (the newest and replayed ones).
+      updates_per_frame: optimiser steps after each labelled frame.
+      capacity: the replay buffer's pairs.
+      learning_rate: Adam's, constant.
+      learn: False keeps the model as given (the frozen reference).
+      asynchronous: run updates in a worker thread beside the next frames.
+      seed: the buffer's sampling and the train steps' randomness.
+    """
+
+    min_baseline: float = 0.05
+    max_partner_gap: int = 20
+    batch_size: int = 4
+    updates_per_frame: int = 1
+    capacity: int = 256
+    learning_rate: float = 5e-4
+    learn: bool = True
+    asynchronous: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("max_partner_gap", "batch_size", "capacity"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.updates_per_frame < 0:
+            raise ValueError(f"updates_per_frame must be >= 0, got {self.updates_per_frame}")
+        if not self.min_baseline > 0:
+            raise ValueError(f"min_baseline must be > 0 metres, got {self.min_baseline}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+
+
+class OnlineLearner:
+    """Predicts each frame's depth and learns from its range reading (module docstring)."""
+
+    def __init__(
+        self,
+        model: nn.Module,
+        variables: dict[str, Any],
+        settings: OnlineSettings,
+        height: int,
+        width: int,
+        loss_weights: Any = None,
+    ):
+        self.model, self.settings = model, settings
+        self.height, self.width = height, width
+        if loss_weights is None:
+            loss_weights = losses.LossWeights()
+        self.self_supervised = trainer.loss_name(model) == "self_supervised"
+        self.keys = trainer.batch_keys(model, loss_weights)
+        optimizer = optimizer_lib.make_optimizer(settings.learning_rate, "constant")
+        params = variables["params"]
+        self._state = TrainState(
+            step=np.zeros((), np.int32),
+            params=params,
+            batch_stats=variables.get("batch_stats", {}),
+            opt_state=optimizer.init(params),
+            rng=jax.random.key_data(jax.random.key(settings.seed + 1)),
+        )
+        step = trainer.make_train_step(model=model, optimizer=optimizer, loss_weights=loss_weights)
+        self._train_step = jax.jit(step)
+        self._predict = jax.jit(
+            lambda variables, batch: layers.apply_model(model, variables, batch, train=False)[
+                "inv_depth"
+            ]
+        )
+        self.published = self._state.variables()
+        self.buffer = ReplayBuffer(settings.capacity, height, width, settings.seed)
+        self._window: collections.deque[Frame] = collections.deque(maxlen=settings.max_partner_gap)
+        self._worker = concurrent.futures.ThreadPoolExecutor(1) if settings.asynchronous else None
+        self._pending: concurrent.futures.Future | None = None
+        self.next_frame = 0  # the stream position of the next frame to observe
+        self.updates = 0
+        self._reference_sum, self._reference_count = 0.0, 0
+
+    # ------------------------------------------------------------------ pairs
+
+    def _partner(self, frame: Frame) -> tuple[Frame, float] | None:
+        """The newest frame of the window at least `min_baseline` away, and the distance."""
+        for candidate in reversed(self._window):
+            distance = float(np.linalg.norm(frame.center - candidate.center))
+            if distance >= self.settings.min_baseline:
+                return candidate, distance
+        return None
+
+    def _pair(self, frame: Frame, partner: Frame) -> tuple[dict[str, np.ndarray], float]:
+        """The example contract's fields of (frame, partner) for the model, with the
+        odometry's relative pose at ||t|| = 1, and the odometry's baseline."""
+        flow = flow_lib.estimate(frame.image, partner.image)
+        rotation, translation = geometry.relative_pose(
+            frame.rotation, frame.translation, partner.rotation, partner.translation
+        )
+        baseline = float(np.linalg.norm(translation))
+        example = {
+            "image1": frame.image.astype(np.float32) / 255.0 - 0.5,
+            "image2": partner.image.astype(np.float32) / 255.0 - 0.5,
+            "flow": flow,
+            "intrinsics1": np.asarray(frame.intrinsics, np.float32),
+            "intrinsics2": np.asarray(partner.intrinsics, np.float32),
+            "rotation": np.asarray(rotation, np.float32),
+            "translation": np.asarray(translation / baseline, np.float32),
+        }
+        if "flow_rotation" in self.keys:
+            flow_rotation, flow_translation, _ = flow_pose.pose_of_example(
+                flow, example["intrinsics1"], example["intrinsics2"]
+            )
+            example["flow_rotation"] = np.asarray(flow_rotation, np.float32)
+            example["flow_translation"] = np.asarray(flow_translation, np.float32)
+        else:
+            example["flow_rotation"] = np.eye(3, dtype=np.float32)
+            example["flow_translation"] = np.zeros(3, np.float32)
+        return example, baseline
+
+    def _labels(self, frame: Frame, baseline: float) -> np.ndarray:
+        """[N, 3] (row, column, depth in baselines) of the frame's range reading."""
+        if frame.reading is None:
+            return np.zeros((0, 3), np.float32)
+        u, v, distance = frame.reading
+        row, column = int(round(v)), int(round(u))
+        if not (0 <= row < self.height and 0 <= column < self.width and distance > 0):
+            raise ValueError(f"frame {frame.index}: reading {frame.reading} is not in the image")
+        return np.array([[row, column, distance / baseline]], np.float32)
+
+    # ----------------------------------------------------------------- scoring
+
+    def _score(self, frame: Frame, inv_depth: np.ndarray, partner: Frame) -> dict[str, float]:
+        """Abs-Inv of the prediction against the truth in the true baseline's units, and
+        of the running reference: the mean true inverse depth of the frames so far."""
+        _, true_translation = geometry.relative_pose(
+            frame.true_rotation,
+            frame.true_translation,
+            partner.true_rotation,
+            partner.true_translation,
+        )
+        true_baseline = float(np.linalg.norm(true_translation))
+        valid = np.isfinite(frame.depth) & (frame.depth > 0)
+        truth = true_baseline / frame.depth[valid]
+        self._reference_sum += float(truth.mean())
+        self._reference_count += 1
+        reference = self._reference_sum / self._reference_count
+        return {
+            "abs_inv": float(np.mean(np.abs(truth - inv_depth[valid]))),
+            "abs_inv_mean": float(np.mean(np.abs(truth - reference))),
+            "true_baseline": true_baseline,
+        }
+
+    # ----------------------------------------------------------------- updates
+
+    def _run_updates(self, state: TrainState, batches: list[dict]) -> TrainState:
+        for index, batch in enumerate(batches):
+            rng = jax.random.fold_in(jax.random.key(self.settings.seed), self.updates + index)
+            state, _ = self._train_step(state, batch, rng)
+        return jax.block_until_ready(state)
+
+    def _join(self) -> None:
+        """Swaps in the parameters of the update in flight, once it is done."""
+        if self._pending is not None:
+            self._state = self._pending.result()
+            self._pending = None
+            self.published = self._state.variables()
+
+    def _update(self) -> None:
+        count = self.settings.updates_per_frame
+        if not self.settings.learn or count == 0 or len(self.buffer) == 0:
+            return
+        keys = [key for key in self.keys if key not in ("depth_valid",)]
+        batches = [
+            {
+                key: value
+                for key, value in self.buffer.batch(self.settings.batch_size).items()
+                if key in keys
+            }
+            for _ in range(count)
+        ]
+        state = self._state
+        if self._worker is None:
+            self._state = self._run_updates(state, batches)
+            self.published = self._state.variables()
+        else:
+            self._pending = self._worker.submit(self._run_updates, state, batches)
+        self.updates += count
+
+    # -------------------------------------------------------------------- API
+
+    def observe(self, frame: Frame) -> dict[str, Any]:
+        """Predicts `frame`'s depth, scores it (in simulation), then learns from it.
+
+        Returns:
+          {"frame", "partner" (its index, or None: no partner yet, nothing predicted),
+          "baseline" (odometry, metres), "inv_depth" [H, W] (baselines), "latency_ms"
+          (the frame in, the depth published: flow and network), "abs_inv",
+          "abs_inv_mean" and "true_baseline" in simulation, "labelled", "updates" (so
+          far), "update_wait_ms" (joining the update in flight)}.
+        """
+        if frame.index != self.next_frame:
+            raise ValueError(f"frame {frame.index} arrived, the learner expects {self.next_frame}")
+        start = time.perf_counter()
+        result: dict[str, Any] = {"frame": frame.index, "partner": None}
+        found = self._partner(frame)
+        if found is not None:
+            partner, _ = found
+            example, baseline = self._pair(frame, partner)
+            batch = {key: value[None] for key, value in example.items() if key in self.keys}
+            inv_depth = np.asarray(self._predict(self.published, batch)[0])
+            result.update(partner=partner.index, baseline=baseline, inv_depth=inv_depth)
+            result["latency_ms"] = 1e3 * (time.perf_counter() - start)
+            if frame.depth is not None:
+                result.update(self._score(frame, inv_depth, partner))
+            labels = self._labels(frame, baseline)
+            result["labelled"] = bool(len(labels))
+            if len(labels) or self.self_supervised:
+                vectors = {key: example[key] for key in self._vector_keys()}
+                self.buffer.add(
+                    LabelledPair(frame.image, partner.image, example["flow"], labels, vectors)
+                )
+        joined = time.perf_counter()
+        self._join()
+        result["update_wait_ms"] = 1e3 * (time.perf_counter() - joined)
+        if found is not None:
+            self._update()
+        result["updates"] = self.updates
+        self._window.append(frame)
+        self.next_frame = frame.index + 1
+        return result
+
+    @staticmethod
+    def _vector_keys() -> tuple[str, ...]:
+        return (
+            "intrinsics1",
+            "intrinsics2",
+            "rotation",
+            "translation",
+            "flow_rotation",
+            "flow_translation",
+        )
+
+    def resume_from(self, frame: Frame) -> None:
+        """Puts a frame before `next_frame` back in the partner window (a resumed run
+        replays the `max_partner_gap` frames before its position so)."""
+        if frame.index >= self.next_frame:
+            raise ValueError(f"frame {frame.index} is not before the position {self.next_frame}")
+        self._window.append(frame)
+
+    def finish(self) -> None:
+        """Waits for the update in flight and swaps it in."""
+        self._join()
+
+    def state(self) -> dict[str, Any]:
+        """Model and optimiser state, buffer, counters: what `restore` takes (the update
+        in flight is joined first)."""
+        self._join()
+        return {
+            "train_state": self._state,
+            "buffer": self.buffer.state(),
+            "counters": {
+                "next_frame": self.next_frame,
+                "updates": self.updates,
+                "reference_sum": self._reference_sum,
+                "reference_count": self._reference_count,
+            },
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continues from `state()` (the partner window refilled by `resume_from`)."""
+        self._join()
+        self._state = state["train_state"]
+        self.published = self._state.variables()
+        self.buffer = ReplayBuffer.from_state(state["buffer"])
+        counters = state["counters"]
+        self.next_frame, self.updates = int(counters["next_frame"]), int(counters["updates"])
+        self._reference_sum = float(counters["reference_sum"])
+        self._reference_count = int(counters["reference_count"])
+        self._window.clear()

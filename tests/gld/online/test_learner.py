@@ -1,0 +1,159 @@
+"""The online learner and its run (gld/online/learner.py, run.py, checkpoint.py) on a
+small simulated robot: prequential scores, determinism, updates beside prediction, resume."""
+
+import itertools
+import json
+import shutil
+import threading
+import time
+
+import jax
+import numpy as np
+import pytest
+from conftest import TINY_MODEL, random_variables
+
+from data.gld_scenes import robot_stream
+from gld.losses.supervised import LossWeights
+from gld.models import registry
+from gld.online import run
+from gld.online.learner import OnlineLearner, OnlineSettings
+
+HEIGHT, WIDTH = 24, 32
+# A short partner window and baseline: the robot moves about 3 cm a frame.
+SETTINGS = dict(min_baseline=0.04, max_partner_gap=6, batch_size=2, capacity=16, seed=0)
+
+
+@pytest.fixture(scope="module")
+def stream():
+    return robot_stream.SimulatedRobot(3, robot_stream.RobotSettings(height=HEIGHT, width=WIDTH))
+
+
+@pytest.fixture(scope="module")
+def frames(stream):
+    return list(itertools.islice(stream.frames(), 24))
+
+
+@pytest.fixture(scope="module")
+def model_and_variables():
+    model = registry.make_model("global_local", **TINY_MODEL)
+    return model, random_variables(model, HEIGHT, WIDTH, seed=0)
+
+
+def _learner(model_and_variables, **changes):
+    model, variables = model_and_variables
+    settings = OnlineSettings(**{**SETTINGS, **changes})
+    return OnlineLearner(model, variables, settings, HEIGHT, WIDTH, LossWeights())
+
+
+def _observe_all(learner, frames):
+    rows = [learner.observe(frame) for frame in frames]
+    learner.finish()
+    return rows
+
+
+def test_each_frame_is_predicted_and_scored_before_it_is_learned_from(model_and_variables, frames):
+    learner = _learner(model_and_variables)
+    rows = _observe_all(learner, frames)
+    assert rows[0]["partner"] is None and "inv_depth" not in rows[0]  # no partner yet
+    predicted = [row for row in rows if row["partner"] is not None]
+    assert len(predicted) >= len(frames) - 3
+    for row in predicted:
+        assert row["baseline"] >= SETTINGS["min_baseline"]
+        assert 0 < row["frame"] - row["partner"] <= SETTINGS["max_partner_gap"]
+        assert np.isfinite(row["abs_inv"]) and np.isfinite(row["abs_inv_mean"])
+    # The reading (not dropped) of each labelled frame joined the buffer, and each
+    # labelled frame took one update: the first frame's prediction saw none.
+    labelled = sum(row["labelled"] for row in predicted)
+    assert learner.buffer.seen == labelled > 0
+    assert learner.updates == len(predicted)
+    # Scoring is prequential: frame t's score comes from the parameters before the
+    # update it launched, so re-scoring it with the final model differs.
+    frozen = _observe_all(_learner(model_and_variables, learn=False), frames)
+    first = predicted[0]["frame"]
+    assert frozen[first]["abs_inv"] == pytest.approx(rows[first]["abs_inv"], rel=1e-6)
+    assert any(
+        abs(a["abs_inv"] - b["abs_inv"]) > 1e-6
+        for a, b in zip(frozen[first + 3 :], rows[first + 3 :], strict=True)
+    )
+
+
+def test_the_worker_gives_the_same_run_as_updating_in_turn(model_and_variables, frames):
+    together = _learner(model_and_variables, asynchronous=True)
+    in_turn = _learner(model_and_variables, asynchronous=False)
+    rows_together = _observe_all(together, frames[:12])
+    rows_in_turn = [in_turn.observe(frame) for frame in frames[:12]]
+    # In turn, frame t sees the updates up to t - 1; with the worker, up to t - 2.
+    # Both see none at first, and their final parameters are the same updates.
+    first = next(row["frame"] for row in rows_in_turn if row["partner"] is not None)
+    assert rows_together[first]["abs_inv"] == pytest.approx(rows_in_turn[first]["abs_inv"])
+    assert together.updates == in_turn.updates > 0
+    for a, b in zip(
+        jax.tree.leaves(together.published), jax.tree.leaves(in_turn.published), strict=True
+    ):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_a_prediction_is_served_while_an_update_runs(model_and_variables, frames):
+    learner = _learner(model_and_variables)
+    spans, predictions = [], []
+    run_updates, predict = learner._run_updates, learner._predict
+
+    def slow_updates(state, batches):
+        start = time.perf_counter()
+        time.sleep(0.5)
+        result = run_updates(state, batches)
+        spans.append((start, time.perf_counter(), threading.current_thread()))
+        return result
+
+    def timed_predict(variables, batch):
+        result = predict(variables, batch)
+        predictions.append((time.perf_counter(), threading.current_thread()))
+        return result
+
+    learner._run_updates, learner._predict = slow_updates, timed_predict
+    _observe_all(learner, frames[:6])
+    assert spans and all(thread is not threading.current_thread() for *_, thread in spans)
+    served_during = [
+        when for when, _ in predictions if any(start < when < end for start, end, _ in spans)
+    ]
+    assert served_during  # predictions ran while an update slept in the worker
+
+
+def _summaryless(rows):
+    return [{k: v for k, v in row.items() if not k.endswith("_ms")} for row in rows]
+
+
+def test_a_run_stopped_after_a_checkpoint_resumes_to_the_same_result(
+    model_and_variables, stream, tmp_path
+):
+    arguments = dict(frames=16, checkpoint_every=8, window=8, meta={}, progress=False)
+    whole = tmp_path / "whole"
+    run.run_online(stream, _learner(model_and_variables), whole, **arguments)
+    # A run killed after its checkpoint at 8 and before the one at 12: its log runs on.
+    stopped = tmp_path / "stopped"
+    run.run_online(stream, _learner(model_and_variables), stopped, **{**arguments, "frames": 12})
+    shutil.rmtree(stopped / "checkpoints" / "12")
+    assert len((stopped / run.LOG_FILE).read_text().splitlines()) == 12
+    lines = []
+    resumed = run.run_online(
+        stream, _learner(model_and_variables), stopped, **arguments, print_fn=lines.append
+    )
+
+    def rows(workdir):
+        return [json.loads(line) for line in (workdir / run.LOG_FILE).read_text().splitlines()]
+
+    updates = rows(whole)[7]["updates"]
+    assert updates > 0 and lines == [f"resumed {stopped} at frame 8 ({updates} updates)"]
+
+    assert [row["frame"] for row in rows(stopped)] == list(range(16))
+    assert _summaryless(rows(stopped)) == _summaryless(rows(whole))
+    summary = json.loads((whole / run.SUMMARY_FILE).read_text())
+    assert resumed["curve"] == summary["curve"] and resumed["labelled"] == summary["labelled"]
+    assert (stopped / run.CURVE_FILE).is_file()
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError, match="min_baseline must be > 0 metres"):
+        OnlineSettings(min_baseline=0)
+    with pytest.raises(ValueError, match="batch_size must be >= 1"):
+        OnlineSettings(batch_size=0)
