@@ -52,6 +52,9 @@ flags.DEFINE_bool("learn", True, "Learn online (--nolearn: the frozen reference)
 flags.DEFINE_integer("updates_per_frame", 1, "Adam steps after each frame.", lower_bound=0)
 flags.DEFINE_integer("batch_size", 4, "Pairs per update.", lower_bound=1)
 flags.DEFINE_integer("capacity", 256, "Pairs the replay buffer holds.", lower_bound=1)
+flags.DEFINE_float(
+    "zoom", 0.5, "Replayed pairs are random crops of at least this much of each side (1: none)."
+)
 flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
 flags.DEFINE_float("min_baseline", 0.05, "Metres of odometry between a frame and its partner.")
 flags.DEFINE_integer("max_partner_gap", 20, "Frames back a partner may be.", lower_bound=1)
@@ -70,6 +73,12 @@ flags.DEFINE_string("ranges", None, "The recording's range CSV (frame,u,v,depth)
 flags.DEFINE_float("range_scale", 1.0, "Range CSV depth x this = metres.")
 flags.DEFINE_string("intrinsics", None, "fx,fy,cx,cy of the recording's frames (pixels).")
 flags.DEFINE_float("frame_rate", 10.0, "The recording's frames per second.", lower_bound=0)
+flags.DEFINE_enum(
+    "match_frames",
+    "auto",
+    ["auto", "time", "order"],
+    "How poses and readings find their frame, as experiments.predict's --match_frames.",
+)
 flags.mark_flag_as_required("workdir")
 
 
@@ -99,6 +108,7 @@ def _stream(height: int, width: int):
             frame_rate=FLAGS.frame_rate,
             height=height,
             width=width,
+            match_frames=FLAGS.match_frames,
         )
     from data.gld_scenes import robot_stream
 
@@ -156,6 +166,7 @@ def main(argv: list[str]) -> None:
             batch_size=FLAGS.batch_size,
             updates_per_frame=FLAGS.updates_per_frame,
             capacity=FLAGS.capacity,
+            zoom=FLAGS.zoom,
             learning_rate=FLAGS.learning_rate,
             learn=FLAGS.learn,
             asynchronous=FLAGS.asynchronous,

@@ -61,6 +61,9 @@ class OnlineSettings:
       batch_size: pairs per update (the newest and replayed ones).
       updates_per_frame: optimiser steps after each labelled frame.
       capacity: the replay buffer's pairs.
+      zoom: each replayed pair is a random crop of at least this fraction of each side
+        holding its labelled pixel, resized back (`ReplayBuffer.batch`): a sensor that
+        reads one fixed pixel then labels the whole image; 1 = no crop.
       learning_rate: Adam's, constant.
       learn: False keeps the model as given (the frozen reference).
       asynchronous: run updates in a worker thread beside the next frames.
@@ -72,6 +75,7 @@ class OnlineSettings:
     batch_size: int = 4
     updates_per_frame: int = 1
     capacity: int = 256
+    zoom: float = 0.5
     learning_rate: float = 5e-4
     learn: bool = True
     asynchronous: bool = True
@@ -85,6 +89,8 @@ class OnlineSettings:
             raise ValueError(f"updates_per_frame must be >= 0, got {self.updates_per_frame}")
         if not self.min_baseline > 0:
             raise ValueError(f"min_baseline must be > 0 metres, got {self.min_baseline}")
+        if not 0 < self.zoom <= 1:
+            raise ValueError(f"zoom must be in (0, 1], got {self.zoom}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
 
@@ -226,7 +232,9 @@ class OnlineLearner:
         batches = [
             {
                 key: value
-                for key, value in self.buffer.batch(self.settings.batch_size).items()
+                for key, value in self.buffer.batch(
+                    self.settings.batch_size, zoom=self.settings.zoom
+                ).items()
                 if key in keys
             }
             for _ in range(count)

@@ -116,9 +116,12 @@ def open_recording(
     frame_rate: float,
     height: int,
     width: int,
+    match_frames: str = "auto",
+    max_time_difference: float = 0.02,
 ) -> RecordingStream:
     """The stream of a recording's files (`files`: the data layer's readers); a bad or
-    missing file is refused by the flag that names it."""
+    missing file is refused by the flag that names it. `match_frames` finds the frame of
+    a pose and a reading as `experiments.predict` does (auto, time or order)."""
     for name, value in (("poses", poses), ("ranges", ranges), ("intrinsics", intrinsics)):
         if not value:
             raise ArgumentError(f"--{name} is needed: the learner takes a recording's {name}")
@@ -128,11 +131,24 @@ def open_recording(
         camera_matrix = files.read_intrinsics(intrinsics)
     except ValueError as error:
         raise ArgumentError(f"--intrinsics: {error}") from None
-    camera_to_world = recording_run.camera_poses(files, poses, image_paths, frames.names, 0.02)
+    files.check_match_frames(match_frames)
+    camera_to_world = recording_run.camera_poses(
+        files, poses, image_paths, frames.names, max_time_difference, match_frames
+    )
+    ranges_path = Path(ranges).expanduser()
+    frame_paths = list(image_paths) if image_paths else [Path(name) for name in frames.names]
     try:
         readings = recordings.read_range_readings(
-            Path(ranges).expanduser(), frames.names, first.shape[:2], range_scale
+            ranges_path,
+            frames.names,
+            first.shape[:2],
+            range_scale,
+            frame_indices=lambda fields, line_numbers: files.reading_frame_indices(
+                fields, line_numbers, ranges_path, frame_paths, match_frames, max_time_difference
+            ),
         )
+    except ArgumentError:
+        raise
     except (FileNotFoundError, ValueError, OSError) as error:
         raise ArgumentError(f"--ranges: {error}") from None
     return RecordingStream(

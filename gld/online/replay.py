@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import cv2
 import numpy as np
 
 # The example contract's vector fields a pair carries besides the images and flow.
@@ -117,9 +118,59 @@ class ReplayBuffer:
         self.newest = slot
         return slot
 
-    def batch(self, batch_size: int, newest: int = 1) -> dict[str, np.ndarray]:
+    def _zoom(self, example: dict[str, np.ndarray], smallest: float) -> dict[str, np.ndarray]:
+        """A random crop of a pair, at least `smallest` of each side, holding its first
+        label, resized back (the flow and the cameras with it, depth unchanged)."""
+        height, width = self.height, self.width
+        side = self._rng.uniform(smallest, 1.0)
+        crop_height, crop_width = max(1, round(height * side)), max(1, round(width * side))
+        labels = example["labels"]
+        row, column = (int(labels[0, 0]), int(labels[0, 1])) if len(labels) else (0, 0)
+        low_top, high_top = (max(0, row - crop_height + 1), min(row, height - crop_height))
+        low_left, high_left = (max(0, column - crop_width + 1), min(column, width - crop_width))
+        if not len(labels):
+            low_top, high_top, low_left, high_left = 0, height - crop_height, 0, width - crop_width
+        top = int(self._rng.integers(low_top, high_top + 1))
+        left = int(self._rng.integers(low_left, high_left + 1))
+        scale_y, scale_x = height / crop_height, width / crop_width
+
+        def resized(image):
+            crop = image[top : top + crop_height, left : left + crop_width]
+            return cv2.resize(crop, (width, height), interpolation=cv2.INTER_LINEAR)
+
+        zoomed = dict(example)
+        for key in ("image1", "image2"):
+            zoomed[key] = resized(example[key])
+        zoomed["flow"] = resized(example["flow"]) * np.float32([scale_x, scale_y])
+        moved = labels.copy()
+        # The pixel holding each labelled pixel's centre after the crop and resize.
+        moved[:, 0] = np.floor((labels[:, 0] - top + 0.5) * scale_y)
+        moved[:, 1] = np.floor((labels[:, 1] - left + 0.5) * scale_x)
+        inside = (
+            (moved[:, 0] >= 0) & (moved[:, 0] < height) & (moved[:, 1] >= 0) & (moved[:, 1] < width)
+        )
+        zoomed["labels"] = moved[inside]
+        for key in ("intrinsics1", "intrinsics2"):
+            fx, fy, cx, cy = example[key]
+            zoomed[key] = np.float32(
+                [
+                    fx * width / crop_width,
+                    fy * height / crop_height,
+                    (cx * width - left) / crop_width,
+                    (cy * height - top) / crop_height,
+                ]
+            )
+        return zoomed
+
+    def batch(self, batch_size: int, newest: int = 1, zoom: float = 1.0) -> dict[str, np.ndarray]:
         """A training batch of the example contract: the newest pair `newest` times
         (0 or 1), the rest drawn uniformly (with replacement) from the buffer.
+
+        With `zoom` < 1, each pair is a random crop of at least that fraction of each
+        side, holding its labelled pixel, resized back to the full size: a range sensor
+        that reads one fixed pixel then labels pixels all over the image (the crop is a
+        camera of longer focal length: the flow and the intrinsics scale with it, the
+        camera-z depth does not change).
 
         Returns:
           image1, image2 [B, H, W, 3] float32 in [-0.5, 0.5]; flow; depth [B, H, W]
@@ -132,24 +183,35 @@ class ReplayBuffer:
             raise ValueError(
                 f"need batch_size >= 1 and newest in (0, 1), got {batch_size}, {newest}"
             )
+        if not 0 < zoom <= 1:
+            raise ValueError(f"zoom must be in (0, 1], got {zoom}")
         drawn = self._rng.integers(len(self), size=batch_size - newest)
         slots = np.concatenate([[self.newest] * newest, drawn]).astype(np.int64)
         arrays = self._arrays
+        examples = []
+        for slot in slots:
+            example = {
+                key: arrays[key][slot] for key in ("image1", "image2", "flow", *VECTOR_FIELDS)
+            }
+            example["labels"] = arrays["labels"][slot, : arrays["label_count"][slot]]
+            examples.append(self._zoom(example, zoom) if zoom < 1 else example)
         depth = np.zeros((batch_size, self.height, self.width), np.float32)
         mask = np.zeros((batch_size, self.height, self.width), bool)
-        for index, slot in enumerate(slots):
-            for row, column, value in arrays["labels"][slot, : arrays["label_count"][slot]]:
+        for index, example in enumerate(examples):
+            for row, column, value in example["labels"]:
                 depth[index, int(row), int(column)] = value
                 mask[index, int(row), int(column)] = True
         batch = {
-            "image1": arrays["image1"][slots].astype(np.float32) / 255.0 - 0.5,
-            "image2": arrays["image2"][slots].astype(np.float32) / 255.0 - 0.5,
-            "flow": arrays["flow"][slots],
-            "depth": depth,
-            "sparse_mask": mask,
-            "depth_valid": mask,
+            key: np.stack([example[key] for example in examples]).astype(np.float32) / 255.0 - 0.5
+            for key in ("image1", "image2")
         }
-        batch.update({key: arrays[key][slots] for key in VECTOR_FIELDS})
+        batch.update(
+            {
+                key: np.stack([example[key] for example in examples])
+                for key in ("flow", *VECTOR_FIELDS)
+            }
+        )
+        batch.update(depth=depth, sparse_mask=mask, depth_valid=mask)
         return batch
 
     def state(self) -> dict[str, Any]:

@@ -85,3 +85,39 @@ def test_bad_use_is_refused():
         )
     with pytest.raises(ValueError, match="the buffer holds 6x8 pairs"):
         buffer.add(LabelledPair(pair.image1[:4], pair.image2, pair.flow, pair.labels, pair.vectors))
+
+
+def test_a_zoomed_pair_labels_another_pixel_with_the_same_geometry():
+    height, width = 24, 32
+    buffer = ReplayBuffer(capacity=2, height=height, width=width, seed=5)
+    vectors = {key: np.zeros(shape, np.float32) for key, shape in VECTOR_FIELDS.items()}
+    camera = np.float32([0.9, 1.2, 0.5, 0.5])
+    vectors.update(intrinsics1=camera, intrinsics2=camera)
+    image = np.zeros((height, width, 3), np.uint8)
+    flow = np.broadcast_to(np.float32([1.5, -2.0]), (height, width, 2)).copy()
+    labels = np.float32([[10, 20, 3.0]])
+    buffer.add(LabelledPair(image, image, flow, labels, vectors))
+
+    def ray(row, column, intrinsics):
+        fx, fy, cx, cy = intrinsics * np.float32([width, height, width, height])
+        return np.array([(column - (cx - 0.5)) / fx, (row - (cy - 0.5)) / fy])
+
+    before = ray(10, 20, camera)
+    positions = set()
+    for _ in range(20):
+        batch = buffer.batch(1, newest=1, zoom=0.5)
+        ((row, column),) = np.argwhere(batch["sparse_mask"][0])
+        positions.add((row, column))
+        assert batch["depth"][0, row, column] == pytest.approx(3.0)  # camera-z depth kept
+        scale = batch["flow"][0, 0, 0, 0] / 1.5
+        assert 1.0 <= scale <= 2.1
+        np.testing.assert_allclose(batch["flow"][0, ..., 1], -2.0 * scale, rtol=0.05)
+        intrinsics = batch["intrinsics1"][0]
+        np.testing.assert_array_equal(intrinsics, batch["intrinsics2"][0])
+        # The labelled pixel still looks along the same ray, within half a new pixel.
+        after = ray(row, column, intrinsics)
+        pixel = 1.0 / (intrinsics[0] * width)
+        assert np.all(
+            np.abs(after - before) <= 0.5 * pixel * np.float32([1, width / height]) + 1e-4
+        )
+    assert len(positions) > 5  # the one fixed pixel labels many
