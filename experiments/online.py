@@ -65,6 +65,13 @@ flags.DEFINE_integer(
     "view_every", 0, "Write the view of every N-th frame (0: none).", lower_bound=0
 )
 flags.DEFINE_bool("progress", True, "Show a progress bar.")
+flags.DEFINE_string(
+    "offline_reference_of",
+    None,
+    "Instead of learning online: the offline reference of this online run's workdir (its "
+    "frames and gradient steps, shuffled; both final models scored on the frames), written "
+    "to --workdir/offline_reference.json. Give the run's stream and learner flags.",
+)
 # A recording instead of the simulated robot.
 flags.DEFINE_string("images", None, "A recording's frames: a folder of images.")
 flags.DEFINE_string("video", None, "A recording's frames: a video file.")
@@ -146,6 +153,45 @@ def _model(height: int, width: int):
     return model, variables, weights, f"{FLAGS.model} from scratch"
 
 
+def _offline_reference(stream, model, variables, settings, size, weights, learner) -> None:
+    """The offline reference of --offline_reference_of's run (`gld.online.offline`)."""
+    import dataclasses
+
+    from gld.online import checkpoint, offline, run
+
+    online = Path(FLAGS.offline_reference_of)
+    summary_path = online / run.SUMMARY_FILE
+    if not summary_path.is_file():
+        raise app.UsageError(f"--offline_reference_of: {summary_path} not found (a finished run?)")
+    summary = json.loads(summary_path.read_text())
+    checkpoints = checkpoint.manager(online)
+    try:
+        if checkpoint.restore(checkpoints, learner) is None:
+            raise app.UsageError(f"--offline_reference_of: {online} holds no checkpoint")
+    finally:
+        checkpoints.close()
+
+    def make_learner(**changes):
+        start = changes.pop("variables", variables)
+        changed = dataclasses.replace(settings, **changes)
+        return learner_lib.OnlineLearner(model, start, changed, *size, weights)
+
+    from gld.online import learner as learner_lib
+
+    result = offline.offline_reference(
+        stream,
+        make_learner,
+        frames=summary["frames"],
+        updates=summary["updates"],
+        online_variables=learner.published,
+    )
+    output = Path(FLAGS.workdir) / "offline_reference.json"
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps({"online_run": str(online), **result}, indent=1) + "\n")
+    print(json.dumps(result))
+    print(f"wrote {output}")
+
+
 def main(argv: list[str]) -> None:
     if len(argv) > 1:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
@@ -177,6 +223,9 @@ def main(argv: list[str]) -> None:
     stream = _stream(height, width)
     model, variables, weights, described = _model(height, width)
     learner = learner_lib.OnlineLearner(model, variables, settings, height, width, weights)
+    if FLAGS.offline_reference_of:
+        _offline_reference(stream, model, variables, settings, (height, width), weights, learner)
+        return
     meta = {
         "name": Path(FLAGS.workdir).name,
         "model": described,

@@ -224,21 +224,23 @@ class OnlineLearner:
             self._pending = None
             self.published = self._state.variables()
 
+    def _batches(self, count: int, newest: int) -> list[dict[str, np.ndarray]]:
+        """`count` training batches from the buffer, only the keys the train step reads."""
+        size, zoom = self.settings.batch_size, self.settings.zoom
+        return [
+            {
+                key: value
+                for key, value in self.buffer.batch(size, newest=newest, zoom=zoom).items()
+                if key in self.keys
+            }
+            for _ in range(count)
+        ]
+
     def _update(self) -> None:
         count = self.settings.updates_per_frame
         if not self.settings.learn or count == 0 or len(self.buffer) == 0:
             return
-        keys = [key for key in self.keys if key not in ("depth_valid",)]
-        batches = [
-            {
-                key: value
-                for key, value in self.buffer.batch(
-                    self.settings.batch_size, zoom=self.settings.zoom
-                ).items()
-                if key in keys
-            }
-            for _ in range(count)
-        ]
+        batches = self._batches(count, newest=1)
         state = self._state
         if self._worker is None:
             self._state = self._run_updates(state, batches)
@@ -246,6 +248,16 @@ class OnlineLearner:
         else:
             self._pending = self._worker.submit(self._run_updates, state, batches)
         self.updates += count
+
+    def train_offline(self, updates: int, chunk: int = 50) -> None:
+        """`updates` steps on batches drawn uniformly from the whole buffer (no newest
+        pair first): the offline reference's training on the pairs a stream gave."""
+        self._join()
+        for done in range(0, updates, chunk):
+            batches = self._batches(min(chunk, updates - done), newest=0)
+            self._state = self._run_updates(self._state, batches)
+            self.updates += len(batches)
+        self.published = self._state.variables()
 
     # -------------------------------------------------------------------- API
 

@@ -15,7 +15,7 @@ from conftest import TINY_MODEL, random_variables
 from data.gld_scenes import robot_stream
 from gld.losses.supervised import LossWeights
 from gld.models import registry
-from gld.online import run
+from gld.online import offline, run
 from gld.online.learner import OnlineLearner, OnlineSettings
 
 HEIGHT, WIDTH = 24, 32
@@ -157,3 +157,29 @@ def test_bad_settings_are_refused():
         OnlineSettings(min_baseline=0)
     with pytest.raises(ValueError, match="batch_size must be >= 1"):
         OnlineSettings(batch_size=0)
+
+
+def test_the_offline_reference_trains_on_every_pair_and_scores_both_models(
+    model_and_variables, stream, frames
+):
+    model, variables = model_and_variables
+
+    def make_learner(**changes):
+        start = changes.pop("variables", variables)
+        settings = OnlineSettings(**{**SETTINGS, **changes})
+        return OnlineLearner(model, start, settings, HEIGHT, WIDTH, LossWeights())
+
+    online = _learner(model_and_variables)
+    rows = _observe_all(online, frames[:12])
+    result = offline.offline_reference(
+        stream, make_learner, frames=12, updates=5, online_variables=online.published
+    )
+    # Every labelled pair is kept (the buffer holds them all), and the steps are as asked.
+    assert result["pairs"] == sum(bool(row.get("labelled")) for row in rows) > 0
+    assert result["updates"] == 5
+    for name in ("offline", "online"):
+        assert 0 < result[name]["abs_inv"] and result[name]["x_mean"] > 0
+    untrained = offline.score_frozen(make_learner(learn=False), stream, 12)
+    assert result["offline"]["abs_inv"] != pytest.approx(untrained["abs_inv"], rel=1e-6)
+    with pytest.raises(ValueError, match="learn=False"):
+        offline.score_frozen(make_learner(), stream, 12)
