@@ -190,7 +190,8 @@ class OnlineLearner:
 
     def _score(self, frame: Frame, inv_depth: np.ndarray, partner: Frame) -> dict[str, float]:
         """Abs-Inv of the prediction against the truth in the true baseline's units, and
-        of the running reference: the mean true inverse depth of the frames so far."""
+        of the running reference: the mean true inverse depth of the frames scored
+        before (the frame's own for the first), a constant that knows the world so far."""
         _, true_translation = geometry.relative_pose(
             frame.true_rotation,
             frame.true_translation,
@@ -200,9 +201,12 @@ class OnlineLearner:
         true_baseline = float(np.linalg.norm(true_translation))
         valid = np.isfinite(frame.depth) & (frame.depth > 0)
         truth = true_baseline / frame.depth[valid]
+        if self._reference_count:
+            reference = self._reference_sum / self._reference_count
+        else:
+            reference = float(truth.mean())
         self._reference_sum += float(truth.mean())
         self._reference_count += 1
-        reference = self._reference_sum / self._reference_count
         return {
             "abs_inv": float(np.mean(np.abs(truth - inv_depth[valid]))),
             "abs_inv_mean": float(np.mean(np.abs(truth - reference))),
