@@ -21,6 +21,8 @@ there, so no labelled reading is lost and the run ends as an uninterrupted one w
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import statistics
 import time
@@ -181,40 +183,25 @@ def run_online(
             f"{checkpoint_every}, {window}"
         )
     workdir.mkdir(parents=True, exist_ok=True)
-    with training_lock(workdir):
-        checkpoints = checkpoint.manager(workdir)
-        try:
-            return _run(
-                stream,
-                learner,
-                workdir,
-                checkpoints,
-                frames,
-                meta,
-                checkpoint_every,
-                window,
-                view_every,
-                progress,
-                print_fn,
-            )
-        finally:
-            checkpoints.close()
+    with training_lock(workdir), contextlib.closing(checkpoint.manager(workdir)) as checkpoints:
+        restored = checkpoint.restore(checkpoints, learner)
+        options = _Options(frames, checkpoint_every, window, view_every, progress)
+        return _continue(stream, learner, workdir, checkpoints, restored, meta, options, print_fn)
 
 
-def _run(
-    stream,
-    learner,
-    workdir,
-    checkpoints,
-    frames,
-    meta,
-    checkpoint_every,
-    window,
-    view_every,
-    progress,
-    print_fn,
-) -> dict[str, Any]:
-    restored = checkpoint.restore(checkpoints, learner)
+@dataclasses.dataclass(frozen=True)
+class _Options:
+    frames: int
+    checkpoint_every: int
+    window: int
+    view_every: int
+    progress: bool
+
+
+def _continue(stream, learner, workdir, checkpoints, restored, meta, options, print_fn) -> dict:
+    """`run_online` from the learner's position (restored, or 0)."""
+    frames, checkpoint_every, window = options.frames, options.checkpoint_every, options.window
+    view_every, progress = options.view_every, options.progress
     position = learner.next_frame
     log_path = workdir / LOG_FILE
     rows = _read_log(log_path, position)
