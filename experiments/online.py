@@ -43,6 +43,11 @@ flags.DEFINE_string("workdir", None, "Where the run is written (and resumed from
 flags.DEFINE_integer("frames", 5000, "Frames of the stream to learn from.", lower_bound=1)
 flags.DEFINE_enum("world", "training", ["training", "shifted"], "The simulated robot's world.")
 flags.DEFINE_integer("seed", 0, "The simulated world and trajectory, and the learner's sampling.")
+flags.DEFINE_float(
+    "camera_yaw",
+    0.0,
+    "The simulated camera's heading from the direction of travel, degrees (90: sideways).",
+)
 flags.DEFINE_string("size", "96x128", "HEIGHTxWIDTH of the frames (a new model's resolution).")
 flags.DEFINE_string("pretrained", None, "A training workdir to start from (its model).")
 flags.DEFINE_enum(
@@ -119,7 +124,12 @@ def _stream(height: int, width: int):
         )
     from data.gld_scenes import robot_stream
 
-    settings = robot_stream.RobotSettings(height=height, width=width, world=FLAGS.world)
+    try:
+        settings = robot_stream.RobotSettings(
+            height=height, width=width, world=FLAGS.world, camera_yaw_degrees=FLAGS.camera_yaw
+        )
+    except ValueError as error:
+        raise app.UsageError(str(error)) from None
     return robot_stream.SimulatedRobot(FLAGS.seed, settings)
 
 

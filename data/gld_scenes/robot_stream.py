@@ -91,6 +91,10 @@ class RobotSettings:
       camera_height: the camera's mean height above the floor (metres).
       height_amplitude: the height's oscillation amplitude (metres).
       pitch_amplitude_degrees: the camera's pitch oscillation amplitude (degrees).
+      camera_yaw_degrees: the camera's heading relative to the direction of travel
+        (degrees, positive to the right): 0 looks ahead, where moving forward gives the
+        flow of an expansion, and no flow at its centre whatever the depth; 90 looks
+        sideways, where the flow is a translation's parallax.
       wall_margin: the camera stays at least this far (metres) from the walls.
       object_margin: the camera stays at least this far (metres) from every object's
         bounding sphere.
@@ -117,6 +121,7 @@ class RobotSettings:
     camera_height: float = 1.0
     height_amplitude: float = 0.05
     pitch_amplitude_degrees: float = 3.0
+    camera_yaw_degrees: float = 0.0
     wall_margin: float = 0.4
     object_margin: float = 0.3
     odometry_translation_noise: float = 0.02
@@ -163,6 +168,10 @@ class RobotSettings:
         if not 0 <= self.pitch_amplitude_degrees <= 30:
             raise ValueError(
                 f"pitch_amplitude_degrees must be in [0, 30], got {self.pitch_amplitude_degrees}"
+            )
+        if not -180 <= self.camera_yaw_degrees <= 180:
+            raise ValueError(
+                f"camera_yaw_degrees must be in [-180, 180], got {self.camera_yaw_degrees}"
             )
         if not 0 <= self.wall_margin <= 1.0:
             raise ValueError(f"wall_margin must be in [0, 1] m, got {self.wall_margin}")
@@ -324,6 +333,7 @@ class SimulatedRobot:
         response = 1.0 - np.exp(-step_time / _RESPONSE_TIME)
         turn_deviation = np.radians(settings.turn_rate_deviation_degrees)
         pitch_amplitude = np.radians(settings.pitch_amplitude_degrees)
+        camera_yaw = np.radians(settings.camera_yaw_degrees)
         height_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, 2)
         position, yaw = self._start(rng), self._start_yaw
         speed = free_speed = settings.mean_speed
@@ -335,8 +345,9 @@ class SimulatedRobot:
                 phase + height_phase
             )
             pitch = pitch_amplitude * np.sin(phase + pitch_phase)
+            heading = yaw + camera_yaw
             forward = np.array(
-                [np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)]
+                [np.cos(pitch) * np.sin(heading), np.sin(pitch), np.cos(pitch) * np.cos(heading)]
             )
             rotation = scenes.look_at_rotation(forward, 0.0)
             yield rotation, -rotation @ np.array([position[0], height, position[1]])

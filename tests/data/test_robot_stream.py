@@ -206,8 +206,22 @@ def test_the_shifted_world_differs_as_documented():
         ("wall_margin", 2.0),
         ("range_dropout", 1.5),
         ("reading_pixel", (64, 0)),
+        ("camera_yaw_degrees", 200),
     ],
 )
 def test_bad_settings_are_refused_by_name(name, value):
     with pytest.raises(ValueError, match=name):
         dataclasses.replace(SETTINGS, **{name: value})
+
+
+@pytest.mark.parametrize("yaw, axis", [(0.0, 2), (90.0, 0)])
+def test_the_camera_looks_ahead_or_sideways(yaw, axis):
+    """The direction of travel in the camera's frame: along its optical axis (z) when it
+    looks ahead, along its x axis when it looks sideways (same trajectory)."""
+    settings = dataclasses.replace(SETTINGS, camera_yaw_degrees=yaw)
+    poses = list(itertools.islice(robot_stream.SimulatedRobot(4, settings).true_poses(), 40))
+    shares = []
+    for (rotation1, translation1), (rotation2, translation2) in itertools.pairwise(poses):
+        _, translation = geometry.relative_pose(rotation1, translation1, rotation2, translation2)
+        shares.append(abs(translation[axis]) / np.linalg.norm(translation))
+    assert np.median(shares) > 0.95
