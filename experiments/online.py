@@ -4,7 +4,7 @@ r"""Learns depth online, on a robot's stream of frames, odometry and range readi
     python -m experiments.online --workdir=runs/shifted --world=shifted \
         --pretrained=runs/demo --frames=1000               # adapt a trained model
     python -m experiments.online --workdir=runs/frozen --pretrained=runs/demo --nolearn
-    python -m experiments.online --workdir=runs/photometric --model=self_supervised
+    python -m experiments.online --workdir=runs/photometric --model=struct2depth_flow
     python -m experiments.online --workdir=runs/rec --images=rec/rgb --poses=rec/poses.txt \
         --ranges=rec/range.csv --intrinsics=517.3,516.5,318.6,255.3 --size=96x128
 
@@ -18,8 +18,8 @@ learner trains on the frame), then the pair with its range reading joins a bound
 replay buffer and `--updates_per_frame` Adam steps run on batches of the newest and
 replayed pairs, beside the next frames' predictions. The model: `--pretrained` (a
 training workdir: its model and weights), or a new one (`--model`: the main job's
-global-local model and loss, or `self_supervised`, the photometric route, which reads no
-range). `--nolearn` keeps it frozen.
+global-local model and loss, or `struct2depth[_flow]`, the self-supervised baseline's
+photometric route, which reads no range). `--nolearn` keeps it frozen.
 
 Writes to `--workdir` (`gld.online.run`): prequential.jsonl, checkpoints/, summary.json
 (speed and the curve), curve.png and, with `--view_every=N`, view/ (the frame, the
@@ -51,7 +51,11 @@ flags.DEFINE_float(
 flags.DEFINE_string("size", "96x128", "HEIGHTxWIDTH of the frames (a new model's resolution).")
 flags.DEFINE_string("pretrained", None, "A training workdir to start from (its model).")
 flags.DEFINE_enum(
-    "model", "global_local", ["global_local", "self_supervised"], "A new model's kind."
+    "model",
+    "global_local",
+    ["global_local", "struct2depth", "struct2depth_flow"],
+    "A new model: the main job's global-local model and loss, or the self-supervised "
+    "baseline (photometric loss, no range reading), without or with the flow.",
 )
 flags.DEFINE_bool("learn", True, "Learn online (--nolearn: the frozen reference).")
 flags.DEFINE_integer("updates_per_frame", 1, "Adam steps after each frame.", lower_bound=0)
@@ -148,10 +152,10 @@ def _model(height: int, width: int):
                 f"stream is {height}x{width}: give --size={config.height}x{config.width}"
             )
         return model, variables, config.loss_weights(), f"{config.model} from {FLAGS.pretrained}"
-    if FLAGS.model == "self_supervised":
+    if FLAGS.model != "global_local":
         from gld.losses.photometric import SelfSupervisedWeights
 
-        model = registry.make_model("self_supervised")
+        model = registry.make_model(FLAGS.model)
         weights = SelfSupervisedWeights()
     else:
         model = registry.make_model("global_local", **recipe.ARCHITECTURE)

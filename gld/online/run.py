@@ -93,7 +93,7 @@ def curve(rows: list[dict[str, Any]], window: int) -> list[dict[str, Any]]:
         reference = float(np.mean([row["abs_inv_mean"] for row in scored]))
         points.append(
             {
-                "frames": start + window,
+                "frames": min(start + window, rows[-1]["frame"] + 1),
                 "abs_inv": error,
                 "abs_inv_mean": reference,
                 "x_mean": error / reference,
