@@ -96,13 +96,19 @@ def colour_bar(height: int, top: float, unit: str) -> np.ndarray:
     """[height, W, 3] uint8 RGB: the magma scale of `colourise_inverse_depth` (top:
     inverse depth `top`, bottom: 0, i.e. far), each tick labelled with its depth in
     `unit` ("m" for metric depth), on a white strip."""
-    bar_width, label_width = 12, 76
+    bar_width = 12
+    scale = min(0.45, max(0.33, height / 400))
+    ticks = colour_bar_ticks(top, unit)
+    # Wide enough for the longest label ("58.5 x baseline" as much as "2.31 m").
+    text_widths = [
+        cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] for _, label in ticks
+    ]
+    label_width = max(text_widths) + 10
     column = np.linspace(255, 0, height).astype(np.uint8)[:, None]
     bar = cv2.applyColorMap(np.repeat(column, bar_width, 1), cv2.COLORMAP_MAGMA)
     strip = np.full((height, bar_width + label_width, 3), 255, np.uint8)
     strip[:, :bar_width] = cv2.cvtColor(bar, cv2.COLOR_BGR2RGB)
-    scale = min(0.45, max(0.33, height / 400))
-    for position, label in colour_bar_ticks(top, unit):
+    for position, label in ticks:
         row = int(round(position * (height - 1)))
         strip[row, bar_width : bar_width + 4] = 0
         baseline = min(max(row + 4, 10), height - 2)

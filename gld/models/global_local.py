@@ -33,6 +33,8 @@ from gld.options import option
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
+# What the local network sees beyond the image (`GlobalLocal.border`).
+BORDERS = ("zero", "edge")
 GLOBAL_SOURCES = ("encoder", "pose", "flow_pose")
 # The paper's ablations (its Table): each one switch of the model, by the name its rows,
 # flagfiles (experiments/flags/scenes11_ablation_<name>.flags) and suite runs carry.
@@ -150,6 +152,11 @@ class GlobalLocal(nn.Module):
         filters at initialisation, as a fraction of the filters' scale.
       filter_formulation: how per-example banks are applied (see `gld.models.filter_banks`);
         None picks the fastest for the platform.
+      border: what the local network's convolutions see beyond the image: "zero" (the
+        paper's 'SAME' padding) makes the outermost pixels' depth differ from their
+        neighbours' (a rim in every depth map); "edge" repeats the input's outermost
+        pixels instead (the input padded once by the receptive field's reach, the output
+        cropped), so a uniform input gives a uniform depth map to the border.
     """
 
     encoder_channels: Sequence[int] = option(
@@ -206,6 +213,7 @@ class GlobalLocal(nn.Module):
     filter_formulation: str | None = option(
         None, "apply_filter_banks formulation (default: the platform's).", tuple(FORMULATIONS)
     )
+    border: str = option("zero", "The local network's padding beyond the image.", BORDERS)
 
     @property
     def local_in_channels(self) -> int:
@@ -350,9 +358,18 @@ class GlobalLocal(nn.Module):
             kernel_size=self.kernel_size,
             name="final_conv",
         )()
+        if self.border not in BORDERS:
+            raise ValueError(f"border must be one of {BORDERS}, got {self.border!r}")
+        # The banks and the head each reach kernel_size // 2 pixels further out.
+        reach = (len(self.bank_channels) + 1) * (self.kernel_size // 2)
+        if self.border == "edge" and reach:
+            widths = ((0, 0), (reach, reach), (reach, reach), (0, 0))
+            local_inputs = jnp.pad(local_inputs, widths, mode="edge")
         logits = apply_filter_banks(
             filter_banks, local_inputs, head=final_conv, formulation=self.filter_formulation
         )
+        if self.border == "edge" and reach:
+            logits = logits[:, reach:-reach, reach:-reach]
         outputs = layers.depth_outputs(logits)
         outputs["global_params"] = global_params
         if self.use_global_module and self.global_dim == 6:

@@ -44,6 +44,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "pose_refinement_steps": 0,
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
+        "border": "zero",
     },
     "global_local_flow_net": {"global_local": {}},
 }

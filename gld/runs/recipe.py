@@ -5,9 +5,11 @@
 The recipe is the best measured within the main job's CPU budget (WORKSPACE.md): Adam
 1e-3 with 100 warm-up steps and cosine decay over 2,000 steps, and a global module that
 learns the camera motion with no label: an instance-normalised encoder that sees the
-flow alone, the epipolar term at 0.1, the classical pose teacher, and ten Gauss-Newton
-steps refining the encoder's pose on the flow. None of it is the paper's (its recipe:
-Adam 1e-4, constant, the image pair and the flow, no motion terms). The recipe is
+flow alone, the epipolar term at 0.1, the classical pose teacher, ten Gauss-Newton
+steps refining the encoder's pose on the flow, and a local network that repeats the
+image's edge beyond it (no rim of different depth at the border). None of it is the
+paper's (its recipe: Adam 1e-4, constant, the image pair and the flow, no motion terms,
+zero padding). The recipe is
 written here once: the train launcher's defaults, `experiments/flags/demo.flags`, the
 paper suite's main-job rows and the tests all read it.
 
@@ -30,7 +32,12 @@ from gld.runs import workdir as workdir_lib
 
 # The global-local model's architecture in the main job (its other options: the model's
 # defaults).
-ARCHITECTURE = {"encoder_norm": "instance", "use_image_pair": False, "pose_refinement_steps": 10}
+ARCHITECTURE = {
+    "encoder_norm": "instance",
+    "use_image_pair": False,
+    "pose_refinement_steps": 10,
+    "border": "edge",
+}
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
 # The architecture for a model without an encoder's pose to refine, or without the flow.

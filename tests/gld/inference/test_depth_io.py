@@ -39,3 +39,15 @@ def test_a_preview_is_the_image_the_map_on_its_scale_and_the_bar(tmp_path):
     # Without a scale, the map's own: its 99th percentile of inverse depth.
     expected = np.percentile(1 / depth[np.isfinite(depth)].astype(np.float64), 99)
     np.testing.assert_allclose(depth_io.inverse_depth_top(depth), expected, rtol=1e-12)
+
+
+def test_the_colour_bar_has_room_for_its_longest_label():
+    """The strip ends in white after every label: none is cut off at the edge."""
+    for unit, top in (("m", 0.5), ("x baseline", 0.0171)):
+        bar = depth_io.colour_bar(192, top=top, unit=unit)
+        np.testing.assert_array_equal(bar[:, -4:], 255)
+        labels = [label for _, label in depth_io.colour_bar_ticks(top, unit)]
+        assert any(len(label) > 12 for label in labels) == (unit != "m")
+    assert depth_io.colour_bar(192, 0.0171, "x baseline").shape[1] > depth_io.colour_bar(
+        192, 0.5, "m"
+    ).shape[1]

@@ -461,3 +461,35 @@ def test_encoder_coordinates_reach_the_global_encoder_alone():
     )
     # A stored config written before the option had no coordinates in the encoder.
     assert registry.complete_stored_config("global_local", {})["encoder_coordinates"] is False
+
+
+@pytest.fixture(scope="module")
+def model_without_coordinates():
+    """The paper's model without CoordConv (whose depth varies across a uniform input)."""
+    model = model_lib.GlobalLocal(use_coordinates=False)
+    return model, _init(model, *_inputs())
+
+
+@pytest.mark.parametrize("formulation", ["fused", "shifted", "vmap"])
+def test_an_edge_border_gives_a_uniform_input_a_uniform_depth_map(
+    model_without_coordinates, formulation
+):
+    """Zero padding makes the outermost pixels differ from their neighbours (a rim in
+    every depth map); repeating the input's edge does not, and the interior is the same."""
+    model, variables = model_without_coordinates
+    height, width = 24, 32
+    image = jnp.full((1, height, width, 3), 0.1, jnp.float32)
+    flow = jnp.broadcast_to(jnp.float32([2.0, -1.0]), (1, height, width, 2))
+
+    def inv_depth(border):
+        bordered = model.clone(border=border, filter_formulation=formulation)
+        return np.asarray(bordered.apply(variables, image, image, flow)["inv_depth"][0])
+
+    zero, edge = inv_depth("zero"), inv_depth("edge")
+    assert np.ptp(zero) > 1e-5 and np.ptp(zero[4:-4, 4:-4]) < 1e-6  # the rim
+    assert np.ptp(edge) < 1e-6
+    np.testing.assert_allclose(edge, zero[height // 2, width // 2], rtol=1e-6)
+    # A stored config written before the option had the zero border.
+    assert registry.complete_stored_config("global_local", {})["border"] == "zero"
+    with pytest.raises(ValueError, match="border must be one of"):
+        registry.check_config("global_local", {"border": "reflect"})

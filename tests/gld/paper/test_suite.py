@@ -24,6 +24,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
         "encoder_norm": "instance",
         "use_image_pair": False,
         "pose_refinement_steps": 10,
+        "border": "edge",
     }
     assert main.epipolar_weight == 0.1 and main.pose_teacher_weight == 1.0
     assert main.gt_pixels == 1 and main.flow_source == "estimated"
