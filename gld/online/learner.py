@@ -44,7 +44,7 @@ from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.losses import supervised as losses
 from gld.models import layers
-from gld.online.replay import LabelledPair, ReplayBuffer
+from gld.online.replay import VECTOR_FIELDS, LabelledPair, ReplayBuffer
 from gld.online.stream import Frame
 from gld.runs import optimizer as optimizer_lib
 from gld.runs.state import TrainState
@@ -292,7 +292,7 @@ class OnlineLearner:
             labels = self._labels(frame, baseline)
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:
-                vectors = {key: example[key] for key in self._vector_keys()}
+                vectors = {key: example[key] for key in VECTOR_FIELDS}
                 self.buffer.add(
                     LabelledPair(frame.image, partner.image, example["flow"], labels, vectors)
                 )
@@ -305,17 +305,6 @@ class OnlineLearner:
         self._window.append(frame)
         self.next_frame = frame.index + 1
         return result
-
-    @staticmethod
-    def _vector_keys() -> tuple[str, ...]:
-        return (
-            "intrinsics1",
-            "intrinsics2",
-            "rotation",
-            "translation",
-            "flow_rotation",
-            "flow_translation",
-        )
 
     def resume_from(self, frame: Frame) -> None:
         """Puts a frame before `next_frame` back in the partner window (a resumed run
