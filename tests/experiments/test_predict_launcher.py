@@ -66,8 +66,9 @@ def test_predict_writes_metric_depth_previews_and_point_clouds(trained_workdir, 
     assert [row["pair"] for row in rows] == names and rows[0]["scale_source"] == "ranges"
 
     preview = cv2.imread(str(out / "preview" / f"{names[0]}.png"))
-    bar = depth_io.colour_bar(HEIGHT, 1.0, "m")  # the image, the map, its colour bar in metres
-    assert preview.shape == (HEIGHT, 2 * WIDTH + bar.shape[1], 3)
+    # The image, the map, and its colour bar in metres (as wide as its labels).
+    assert preview.shape[0] == HEIGHT and preview.shape[1] > 2 * WIDTH + 12
+    np.testing.assert_array_equal(preview[:, -4:], 255)
     for name, (u, v, distance) in zip(names, [(40, 30, 2.0), (10.5, 60, 3.5)], strict=True):
         depth = stored_predictions.load_depth(out / "depth" / f"{name}.png")  # millimetres
         assert depth.shape == (HEIGHT, WIDTH) and np.all(depth > 0)
