@@ -12,8 +12,9 @@ are timed per pair (median and p90), at the paper's resolution (256x192) and at 
 benchmark's (128x96, `gld_scenes/small`), with the network run two ways: jit-compiled
 from the live Flax model, and as the file `python -m experiments.export` writes, loaded
 by `gld.inference.deploy`. The "runtime" row times that file end to end as a robot runs
-it, `gld.inference.runtime.DepthRuntime.predict` from the two frames to metric depth
-(input checks, resizing, the flow the file records, the network, scale, all inside);
+it, pair by pair between the other two: `gld.inference.runtime.DepthRuntime.predict`
+from the two frames to metric depth (input checks, resizing, the flow the file records,
+the network, scale, all inside);
 `--artifact` times a given file so, at its resolution. The network is untrained (latency
 does not depend on the weights) and the pair is rendered by the embedded benchmark's
 renderer. The paper's figures (an
@@ -145,47 +146,50 @@ def _networks(height: int, width: int, seed: int, scratch: Path, pair: dict) -> 
 
 def _measurements(runtime, pair: dict) -> dict[str, Any]:
     """What the runtime is given besides the frames: one range reading, and the odometry
-    or the camera where the model reads them."""
+    or the camera where the model reads them (the camera only then: with it the runtime
+    also lifts every pixel to 3-D, which the other rows do not)."""
     import numpy as np
 
     pixel, distance = _range_reading(pair["depth1"])
     given: dict[str, Any] = {"ranges": [[*pixel, distance]]}
     if runtime.reads == "odometry":
         given.update(rotation=pair["rotation"], translation=pair["translation"])
-    height, width = pair["depth1"].shape
-    fx, fy, cx, cy = np.asarray(pair["intrinsics1"], np.float64) * [width, height, width, height]
-    given["intrinsics"] = (fx, fy, cx - 0.5, cy - 0.5)
+    if runtime.reads == "camera":
+        height, width = pair["depth1"].shape
+        scale = np.array([width, height, width, height], np.float64)
+        fx, fy, cx, cy = np.asarray(pair["intrinsics1"], np.float64) * scale
+        given["intrinsics"] = (fx, fy, cx - 0.5, cy - 0.5)
     return given
 
 
-def _time_runtime(path: Path, pair: dict, repeats: int) -> dict[str, Any]:
-    """The end-to-end row of an exported file run by `DepthRuntime`."""
-    import numpy as np
-
+def _load_runtime(path: Path, pair: dict) -> tuple[Any, dict[str, Any], float]:
+    """(`DepthRuntime` of the file, what it is given besides the frames, seconds to load
+    it and make the first call)."""
     from gld.inference.runtime import DepthRuntime
 
     start = time.perf_counter()
     runtime = DepthRuntime.load(path)
     given = _measurements(runtime, pair)
     runtime.predict(pair["image1"], pair["image2"], **given)
-    load_s = time.perf_counter() - start
-    totals = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        depth = runtime.predict(pair["image1"], pair["image2"], **given)["depth"]
-        totals.append(time.perf_counter() - start)
-        if not np.all(np.isfinite(depth)):
-            raise ValueError(f"{path} gave a non-finite metric depth map")
+    return runtime, given, time.perf_counter() - start
+
+
+def _runtime_row(runtime, load_s: float, totals: list[float]) -> dict[str, Any]:
+    """The end-to-end row of a file run by `DepthRuntime`: its total alone."""
     row = {"network": "runtime", "flow_estimator": runtime.flow["estimator"]}
     row.update({stage: None for stage in STAGES[:-1]})
     return {**row, "total": _summary(totals), "load_s": load_s}
 
 
-def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str, list[float]]]:
-    """Seconds of every stage of `repeats` robot loops per network, after a warm-up loop.
+def _time_loops(
+    networks: dict, pair: dict, repeats: int, runtime: tuple | None = None
+) -> dict[str, dict[str, list[float]]]:
+    """Seconds of every stage of `repeats` robot loops per network, after a warm-up loop,
+    and with `runtime` ((DepthRuntime, its measurements)) the seconds of its whole call
+    under "runtime".
 
-    The networks alternate pair by pair, so that a shared machine's drifting load falls
-    on both alike.
+    The networks and the runtime alternate pair by pair, so that a shared machine's
+    drifting load falls on all alike.
     """
     import numpy as np
 
@@ -195,6 +199,7 @@ def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str,
     image1, image2 = pair["image1"], pair["image2"]
     pixel, distance = _range_reading(pair["depth1"])
     times = {name: {stage: [] for stage in STAGES} for name in networks}
+    times["runtime"] = {"total": []}
     for index in range(repeats + 1):
         for name, (forward, _, _) in networks.items():
             start = time.perf_counter()
@@ -212,6 +217,14 @@ def _time_loops(networks: dict, pair: dict, repeats: int) -> dict[str, dict[str,
                 timed["model"].append(after_model - after_flow)
                 timed["scale"].append(end - after_model)
                 timed["total"].append(end - start)
+        if runtime is not None:
+            model, given = runtime
+            start = time.perf_counter()
+            metres = model.predict(image1, image2, **given)["depth"]
+            if index > 0:
+                times["runtime"]["total"].append(time.perf_counter() - start)
+            if not np.all(np.isfinite(metres)):
+                raise ValueError("the runtime gave a non-finite metric depth map")
     return times
 
 
@@ -263,7 +276,9 @@ def run(
         settings = scenes.SceneSettings(height=model.height, width=model.width)
         pair = renderer.render_pair(renderer.example_rng(seed, "robot", 0), settings)
         log(f"{artifact}: {model.metadata['model']} at {model.width}x{model.height}")
-        row = _time_runtime(Path(artifact), pair, repeats)
+        runtime, given, load_s = _load_runtime(Path(artifact), pair)
+        totals = _time_loops({}, pair, repeats, (runtime, given))["runtime"]["total"]
+        row = _runtime_row(runtime, load_s, totals)
         rows.append({"height": model.height, "width": model.width, **row})
     with tempfile.TemporaryDirectory(prefix="gld_robot_benchmark") as scratch:
         for height, width in sizes if artifact is None else ():
@@ -271,15 +286,17 @@ def run(
             settings = scenes.SceneSettings(height=height, width=width)
             pair = renderer.render_pair(renderer.example_rng(seed, "robot", 0), settings)
             networks = _networks(height, width, seed, Path(scratch), pair)
-            times = _time_loops(networks, pair, repeats)
+            path = Path(scratch) / f"robot_{height}x{width}.gldx"
+            runtime, given, load_s = _load_runtime(path, pair)
+            times = _time_loops(networks, pair, repeats, (runtime, given))
             for name, (_, setup, formulation) in networks.items():
                 row = {"height": height, "width": width, "network": name}
                 row["formulation"] = formulation
                 row.update({stage: _summary(times[name][stage]) for stage in STAGES})
                 row.update(setup)
                 rows.append(row)
-            runtime = _time_runtime(Path(scratch) / f"robot_{height}x{width}.gldx", pair, repeats)
-            rows.append({"height": height, "width": width, "formulation": formulation, **runtime})
+            row = _runtime_row(runtime, load_s, times["runtime"]["total"])
+            rows.append({"height": height, "width": width, "formulation": formulation, **row})
 
     result = {
         "rows": rows,
