@@ -37,15 +37,12 @@ import numpy as np
 from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.flow_pose import FLOW_POSE_KEYS
-from gld.inference import metric_scale, resampling
+from gld.inference import frame_pairs, resampling
 from gld.inference.inputs import (
     ASPECT_MODES,
-    _as_rgb_float,
     camera_matrix_from,
-    crop_box,
     odometry,
     resize_camera_matrix,
-    warn_if_stretched,
 )
 from gld.models.global_local import CAMERA_INPUTS, GIVEN_POSE_INPUTS
 from gld.runs import trained_flow
@@ -187,19 +184,10 @@ class DepthPredictor:
           ValueError: naming the argument that breaks the rules (shape, dtype, range,
             NaN, empty input, a bad reading or baseline).
         """
-        first, single, channels1 = _as_rgb_float(image1, "image1")
-        second, single2, channels2 = _as_rgb_float(image2, "image2")
-        if first.shape != second.shape or single != single2:
-            raise ValueError(
-                f"image1 and image2 must have the same shape, got {np.shape(image1)} and "
-                f"{np.shape(image2)}"
-            )
-        if channels1 != channels2:
-            raise ValueError(
-                f"image1 has {channels1} channel(s) and image2 {channels2}: give both images "
-                f"of a pair in the same format"
-            )
-        batch_size, in_height, in_width, _ = first.shape
+        frames = frame_pairs.model_frames(image1, image2, self.height, self.width, self.aspect)
+        single, box = frames.single, frames.box
+        batch_size, in_height, in_width = len(frames.image1), frames.in_height, frames.in_width
+        resized1, resized2 = frames.image1, frames.image2
         camera_matrix = None if intrinsics is None else camera_matrix_from(intrinsics)
         if flow is not None:
             flow = np.asarray(flow, np.float32)
@@ -216,10 +204,6 @@ class DepthPredictor:
                     f"flow contains {non_finite} NaN or inf value(s); fill or mask them "
                     f"before prediction (or omit flow= to estimate it)"
                 )
-        box = crop_box(in_height, in_width, self.height, self.width, self.aspect)
-        warn_if_stretched(box, self.height, self.width, self.aspect, stacklevel=3)
-        resized1 = resampling.model_frames(first, box, self.height, self.width)
-        resized2 = resampling.model_frames(second, box, self.height, self.width)
         if flow is None:
             model_flow = np.stack(
                 [
@@ -237,24 +221,9 @@ class DepthPredictor:
         # Per-pair arrays only: filter banks and the pose g stands for are training aids.
         outputs = jax.device_get({k: v for k, v in outputs.items() if isinstance(v, jax.Array)})
         outputs = {k: np.asarray(v) for k, v in outputs.items()}
-        depth = resampling.depth_at_input(outputs["inv_depth"], box, in_height, in_width)
-        scales, source = metric_scale.pair_scales(depth, baseline, ranges, single)
-        outputs["depth_baseline_units"] = depth
-        outputs["depth"] = depth * scales[:, None, None]
-        outputs["scale"] = scales
-        if camera_matrix is not None:
-            outputs["points"] = geometry.backproject(outputs["depth"], camera_matrix).astype(
-                np.float32
-            )
-        if single:
-            outputs = {k: v[0] for k, v in outputs.items()}
-        outputs["units"] = "baseline" if source == "none" else "metres"
-        outputs["scale_source"] = source
-        if camera_matrix is not None:
-            outputs["model_camera_matrix"] = resize_camera_matrix(
-                camera_matrix, box, self.height, self.width
-            )
-        return outputs
+        return frame_pairs.metric_outputs(
+            outputs, frames, baseline=baseline, ranges=ranges, camera_matrix=camera_matrix
+        )
 
     def __call__(
         self,

@@ -45,20 +45,17 @@ import numpy as np
 
 from gld import flow as flow_lib
 from gld import flow_pose, geometry
-from gld.inference import metric_scale, resampling
+from gld.inference import frame_pairs
 from gld.inference.deploy import DeployedModel
 from gld.inference.inputs import (
     ASPECT_MODES,
-    _as_rgb_float,
     camera_matrix_from,
-    crop_box,
     odometry,
     resize_camera_matrix,
-    warn_if_stretched,
 )
 
 _POSE = ("rotation", "translation")
-_FLOW_POSE = ("flow_rotation", "flow_translation")
+_FLOW_POSE = flow_pose.FLOW_POSE_KEYS
 _CAMERAS = ("intrinsics1", "intrinsics2")
 
 
@@ -200,49 +197,23 @@ class DepthRuntime:
           resolution (in baselines), "global_params" where the model has them; with
           intrinsics, "points" [H, W, 3] in the depth's units. Batched inputs keep B.
         """
-        first, single, channels1 = _as_rgb_float(image1, "image1")
-        second, _, channels2 = _as_rgb_float(image2, "image2")
-        if first.shape != second.shape or np.ndim(image1) != np.ndim(image2):
-            raise ValueError(
-                f"image1 and image2 must have the same shape, got {np.shape(image1)} and "
-                f"{np.shape(image2)}"
-            )
-        if channels1 != channels2:
-            raise ValueError(
-                f"image1 has {channels1} channel(s) and image2 {channels2}: give both "
-                "frames of a pair in the same format"
-            )
-        _, in_height, in_width, _ = first.shape
+        frames = frame_pairs.model_frames(image1, image2, self.height, self.width, self.aspect)
         camera = None if intrinsics is None else camera_matrix_from(intrinsics)
-        box = crop_box(in_height, in_width, self.height, self.width, self.aspect)
-        warn_if_stretched(box, self.height, self.width, self.aspect, stacklevel=3)
-        resized1 = resampling.model_frames(first, box, self.height, self.width)
-        resized2 = resampling.model_frames(second, box, self.height, self.width)
-        flow = self.model_flow(resized1, resized2)
-        model_camera = (
-            None if camera is None else resize_camera_matrix(camera, box, self.height, self.width)
-        )
-        extra, norms = self._extra(flow, model_camera, rotation, translation, single)
-        if norms is not None and baseline is None and ranges is None:
-            baseline = float(norms[0]) if single else norms
-        outputs = self.model.predict(resized1, resized2, flow, **extra)
-        depth = resampling.depth_at_input(outputs["inv_depth"], box, in_height, in_width)
-        scales, source = metric_scale.pair_scales(depth, baseline, ranges, single)
-        result = {
-            "inv_depth": outputs["inv_depth"],
-            "flow": flow,
-            "depth": depth * scales[:, None, None],
-            "scale": scales,
-        }
-        if "global_params" in outputs:
-            result["global_params"] = outputs["global_params"]
+        flow = self.model_flow(frames.image1, frames.image2)
+        model_camera = None
         if camera is not None:
-            result["points"] = geometry.backproject(result["depth"], camera).astype(np.float32)
-        if single:
-            result = {key: value[0] for key, value in result.items()}
-        result["units"] = "baseline" if source == "none" else "metres"
-        result["scale_source"] = source
-        return result
+            model_camera = resize_camera_matrix(camera, frames.box, self.height, self.width)
+        extra, norms = self._extra(flow, model_camera, rotation, translation, frames.single)
+        if norms is not None and baseline is None and ranges is None:
+            baseline = float(norms[0]) if frames.single else norms
+        outputs = self.model.predict(frames.image1, frames.image2, flow, **extra)
+        return frame_pairs.metric_outputs(
+            {**outputs, "flow": flow},
+            frames,
+            baseline=baseline,
+            ranges=ranges,
+            camera_matrix=camera,
+        )
 
     def __call__(self, image1: Any, image2: Any, **measurements: Any) -> np.ndarray:
         """Depth of frame 1 at the frames' size: `predict(...)["depth"]`."""

@@ -47,6 +47,7 @@ from gld.models import layers
 from gld.online.replay import VECTOR_FIELDS, LabelledPair, ReplayBuffer
 from gld.online.stream import Frame
 from gld.runs import optimizer as optimizer_lib
+from gld.runs import state as state_lib
 from gld.runs.state import TrainState
 from gld.training import trainer
 
@@ -114,14 +115,7 @@ class OnlineLearner:
         self.self_supervised = trainer.loss_name(model) == "self_supervised"
         self.keys = trainer.batch_keys(model, loss_weights)
         optimizer = optimizer_lib.make_optimizer(settings.learning_rate, "constant")
-        params = variables["params"]
-        self._state = TrainState(
-            step=np.zeros((), np.int32),
-            params=params,
-            batch_stats=variables.get("batch_stats", {}),
-            opt_state=optimizer.init(params),
-            rng=jax.random.key_data(jax.random.key(settings.seed + 1)),
-        )
+        self._state = state_lib.state_of(variables, optimizer, settings.seed)
         step = trainer.make_train_step(model=model, optimizer=optimizer, loss_weights=loss_weights)
         self._train_step = jax.jit(step)
         self._predict = jax.jit(
@@ -265,8 +259,11 @@ class OnlineLearner:
 
     # -------------------------------------------------------------------- API
 
-    def observe(self, frame: Frame) -> dict[str, Any]:
+    def observe(self, frame: Frame, predict: bool = True) -> dict[str, Any]:
         """Predicts `frame`'s depth, scores it (in simulation), then learns from it.
+
+        `predict=False` only pairs the frame and stores its pair (the offline
+        reference's collection: nothing predicted, scored or learned).
 
         Returns:
           {"frame", "partner" (its index, or None: no partner yet, nothing predicted),
@@ -283,12 +280,14 @@ class OnlineLearner:
         if found is not None:
             partner, _ = found
             example, baseline = self._pair(frame, partner)
-            batch = {key: value[None] for key, value in example.items() if key in self.keys}
-            inv_depth = np.asarray(self._predict(self.published, batch)[0])
-            result.update(partner=partner.index, baseline=baseline, inv_depth=inv_depth)
-            result["latency_ms"] = 1e3 * (time.perf_counter() - start)
-            if frame.depth is not None:
-                result.update(self._score(frame, inv_depth, partner))
+            result.update(partner=partner.index, baseline=baseline)
+            if predict:
+                batch = {key: value[None] for key, value in example.items() if key in self.keys}
+                inv_depth = np.asarray(self._predict(self.published, batch)[0])
+                result["inv_depth"] = inv_depth
+                result["latency_ms"] = 1e3 * (time.perf_counter() - start)
+                if frame.depth is not None:
+                    result.update(self._score(frame, inv_depth, partner))
             labels = self._labels(frame, baseline)
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:
@@ -299,7 +298,7 @@ class OnlineLearner:
         joined = time.perf_counter()
         self._join()
         result["update_wait_ms"] = 1e3 * (time.perf_counter() - joined)
-        if found is not None:
+        if found is not None and predict:
             self._update()
         result["updates"] = self.updates
         self._window.append(frame)

@@ -63,7 +63,7 @@ def offline_reference(
     """
     collector = make_learner(learn=False, capacity=frames, asynchronous=False)
     for frame in itertools.islice(stream.frames(), frames):
-        collector.observe(frame)
+        collector.observe(frame, predict=False)
     trainer = make_learner(learn=True, capacity=frames, asynchronous=False)
     trainer.buffer = collector.buffer
     trainer.train_offline(updates)

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from gld import geometry
 from gld.arguments import ArgumentError
 from gld.inference import frames as frames_lib
 from gld.inference import recording_run, recordings, resampling
@@ -52,14 +53,8 @@ class RecordingStream:
         in_height, in_width = frames.read(0).shape[:2]
         self._box = (0, 0, in_height, in_width)
         camera = resize_camera_matrix(np.asarray(camera_matrix), self._box, height, width)
-        self._intrinsics = np.array(
-            [
-                camera[0, 0] / width,
-                camera[1, 1] / height,
-                (camera[0, 2] + 0.5) / width,
-                (camera[1, 2] + 0.5) / height,
-            ],
-            np.float32,
+        self._intrinsics = np.asarray(
+            geometry.normalised_intrinsics(camera, height, width), np.float32
         )
         scale = np.array([width / in_width, height / in_height])
         # One reading a frame, its pixel moved to the resized frame (pixel centres).

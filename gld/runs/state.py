@@ -70,7 +70,14 @@ def create_train_state(
     model: nn.Module, optimizer: optax.GradientTransformation, height: int, width: int, seed: int
 ) -> TrainState:
     """A fresh state: initial parameters, optimiser state, step 0, the run's base key."""
-    variables = init_variables(model, height, width, seed)
+    return state_of(init_variables(model, height, width, seed), optimizer, seed)
+
+
+def state_of(
+    variables: dict[str, Any], optimizer: optax.GradientTransformation, seed: int
+) -> TrainState:
+    """The state that starts training from `variables` (given or trained): a new
+    optimiser state, step 0, the run's base key from `seed`."""
     params = variables["params"]
     return TrainState(
         step=jnp.zeros((), jnp.int32),
