@@ -47,6 +47,18 @@ def _interpreter(arguments, *, timeout: int, env=None, **options) -> subprocess.
     )
 
 
+def run_isolated(script: str, *arguments) -> subprocess.CompletedProcess:
+    """`script` in `python -I` (no PYTHONPATH, user site or working directory on sys.path:
+    only site-packages), on the CPU, given `arguments` as one JSON argv entry."""
+    return subprocess.run(
+        [sys.executable, "-I", "-c", script, json.dumps(list(arguments))],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        timeout=300,
+    )
+
+
 def run_python(
     script: str, *args: str, device_count: int = 1, timeout: int = 300
 ) -> subprocess.CompletedProcess:

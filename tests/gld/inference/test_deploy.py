@@ -2,8 +2,6 @@
 
 import ast
 import json
-import os
-import subprocess
 import sys
 import textwrap
 import zipfile
@@ -11,7 +9,7 @@ import zipfile
 import global_local_reference as reference
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, TINY_MODEL, random_variables
+from conftest import REPO_ROOT, TINY_MODEL, random_variables, run_isolated
 
 from gld.inference import export, onnx_export
 from gld.inference.deploy import DeployedModel
@@ -94,13 +92,8 @@ def test_runs_without_the_training_stack_and_gives_the_models_outputs(exported, 
         inputs[str(batch_size)] = str(tmp_path / f"pairs{batch_size}.npz")
         np.savez(inputs[str(batch_size)], **pairs)
     outputs = tmp_path / "outputs.npz"
-    arguments = [list(TRAINING_PACKAGES), str(REPO_ROOT), inputs, str(outputs)]
-    completed = subprocess.run(
-        [sys.executable, "-I", "-c", ISOLATED_RUN, json.dumps(arguments)],
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, JAX_PLATFORMS="cpu"),
-        timeout=300,
+    completed = run_isolated(
+        ISOLATED_RUN, *[list(TRAINING_PACKAGES), str(REPO_ROOT), inputs, str(outputs)]
     )
     assert completed.returncode == 0, completed.stderr[-3000:]
     imported = completed.stdout.strip().splitlines()[-1]

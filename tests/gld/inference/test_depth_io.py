@@ -48,6 +48,7 @@ def test_the_colour_bar_has_room_for_its_longest_label():
         np.testing.assert_array_equal(bar[:, -4:], 255)
         labels = [label for _, label in depth_io.colour_bar_ticks(top, unit)]
         assert any(len(label) > 12 for label in labels) == (unit != "m")
-    assert depth_io.colour_bar(192, 0.0171, "x baseline").shape[1] > depth_io.colour_bar(
-        192, 0.5, "m"
-    ).shape[1]
+    assert (
+        depth_io.colour_bar(192, 0.0171, "x baseline").shape[1]
+        > depth_io.colour_bar(192, 0.5, "m").shape[1]
+    )

@@ -3,16 +3,13 @@ with only the packages of requirements-runtime.txt importable, against DepthPred
 
 import importlib.metadata
 import json
-import os
 import re
-import subprocess
-import sys
 import textwrap
 
 import jax
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, TINY_MODEL, random_variables
+from conftest import REPO_ROOT, TINY_MODEL, random_variables, run_isolated
 
 from gld.inference import export, resampling
 from gld.inference.predict import DepthPredictor
@@ -278,14 +275,7 @@ def _isolated(path, frames, measurements, with_opencv, tmp_path):
     outputs = tmp_path / "outputs.npz"
     allowed = _runtime_modules(with_opencv)
     assert ("cv2" in allowed) == with_opencv and "flax" not in allowed
-    arguments = [allowed, str(REPO_ROOT), inputs, str(outputs)]
-    completed = subprocess.run(
-        [sys.executable, "-I", "-c", ISOLATED_RUN, json.dumps(arguments)],
-        capture_output=True,
-        text=True,
-        env=dict(os.environ, JAX_PLATFORMS="cpu"),
-        timeout=300,
-    )
+    completed = run_isolated(ISOLATED_RUN, allowed, str(REPO_ROOT), inputs, str(outputs))
     assert completed.returncode == 0, completed.stderr[-3000:]
     with np.load(outputs) as results:
         return dict(results), json.loads(completed.stdout.strip().splitlines()[-1])
