@@ -6,6 +6,8 @@
     python -m experiments.benchmark --formulations=fused,vmap --repeats=3
     python -m experiments.benchmark --suite=pipeline                       # other suites
     python -m experiments.benchmark --suite=robot      # flow + depth + scale per pair
+    python -m experiments.benchmark --torch_python=python3 --torch_device=cuda  # on a GPU
+    python -m experiments.benchmark --readme_from=gpu.json    # README table from a result
 
 The default suite (`experiments/benchmarks/model.py`) times the depth networks per
 `apply_filter_banks` formulation: compile time, forward latency at batch 1 (median,
@@ -13,7 +15,10 @@ p90), forward throughput, the Adam train step, peak host memory and achieved
 GFLOP/s, and the machine's float32 GEMM rate; with `--torch_python` the PyTorch
 reference runs in the same session, alternating with the default formulation
 (`--pairs`), and each pair's ratios are printed. `--readme` rewrites the README's speed
-table from the result. The other suites are modules `experiments/benchmarks/<suite>.py`
+table from the result (`--readme_from` from a stored one: a GPU machine's result is
+written into the README's GPU table where the README is edited). On a GPU,
+`--torch_device=cuda` times the reference there, the device synchronised around each
+call. The other suites are modules `experiments/benchmarks/<suite>.py`
 with a `run() -> dict`, called with their defaults (run them directly for their own
 flags). Every suite prints its result and writes it as JSON to `--output`.
 """
@@ -58,6 +63,15 @@ flags.DEFINE_bool(
     "readme", False, "Rewrite the README's speed table (between its markers) from the result."
 )
 flags.DEFINE_bool("torch_compile", True, "Also measure torch.compile in the reference.")
+flags.DEFINE_enum(
+    "torch_device", "cpu", ["cpu", "cuda"], "Where the PyTorch reference runs (cuda: a GPU's)."
+)
+flags.DEFINE_string(
+    "readme_from",
+    None,
+    "Measure nothing: rewrite the README's speed table (the CPU's or the GPU's, as the "
+    "result's backend says) from this stored model-suite result (--output's JSON).",
+)
 flags.DEFINE_bool(
     "quick", False, "Tiny shapes and one repeat: checks that everything runs, times nothing."
 )
@@ -82,6 +96,7 @@ def run_model_suite() -> dict:
         pairs=FLAGS.pairs,
         cpu_devices=FLAGS.cpu_devices,
         torch_compile=FLAGS.torch_compile,
+        torch_device=FLAGS.torch_device,
     )
     if FLAGS.torch_reference:
         settings["torch_reference"] = FLAGS.torch_reference
@@ -97,13 +112,32 @@ def run_model_suite() -> dict:
     result = model.run(**settings)
     print(model_tables.format_table(result))
     if FLAGS.readme:
-        from experiments import common
-
-        readme = Path(__file__).resolve().parents[1] / "README.md"
-        table = model_tables.markdown_table(result, common.commit_stamp(readme) or "unknown")
-        readme.write_text(model_tables.replace_readme_table(readme.read_text(), table))
-        print(f"rewrote the speed table of {readme}")
+        rewrite_readme(result, common.commit_stamp(README) or "unknown")
     return result
+
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def rewrite_readme(result: dict, commit: str) -> None:
+    """Puts `result`'s table between the README's markers for its backend."""
+    from experiments.benchmarks import model_tables
+
+    backend = result.get("backend", "cpu")
+    table = model_tables.markdown_table(result, commit)
+    README.write_text(model_tables.replace_readme_table(README.read_text(), table, backend))
+    print(f"rewrote the {backend.upper()} speed table of {README}")
+
+
+def readme_from(path: Path) -> None:
+    """`--readme_from`: the README's table from a stored result, at its recorded commit."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise app.UsageError(f"--readme_from: cannot read a result from {path}: {error}") from None
+    if record.get("suite") != "model":
+        raise app.UsageError(f"--readme_from: {path} is not a model-suite result")
+    rewrite_readme(record["result"], record.get("commit") or "unknown")
 
 
 def main(argv: list[str]) -> None:
@@ -111,6 +145,9 @@ def main(argv: list[str]) -> None:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     if FLAGS.suite not in SUITES:
         raise app.UsageError(f"--suite must be one of {SUITES}, got {FLAGS.suite!r}")
+    if FLAGS.readme_from:
+        readme_from(Path(FLAGS.readme_from))
+        return
     start = time.time()
     if FLAGS.suite == "model":
         result = run_model_suite()
@@ -120,7 +157,12 @@ def main(argv: list[str]) -> None:
         print(json.dumps(result, indent=1, default=str))
     output = Path(FLAGS.output)
     output.parent.mkdir(parents=True, exist_ok=True)
-    record = {"suite": FLAGS.suite, "seconds": time.time() - start, "result": result}
+    record = {
+        "suite": FLAGS.suite,
+        "commit": common.commit_stamp(README),
+        "seconds": time.time() - start,
+        "result": result,
+    }
     output.write_text(json.dumps(record, indent=1, default=str))
     print(f"wrote {output}")
 

@@ -156,6 +156,7 @@ def measure_one(
         "model": model_name,
         "formulation": formulation or "-",
         "backend": jax.default_backend(),
+        "device_kind": jax.devices()[0].device_kind,
         "devices": len(jax.devices()),
         "height": height,
         "width": width,
@@ -231,20 +232,34 @@ def measure_one(
     }
     # ru_maxrss is in KiB on Linux.
     result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # An accelerator's own peak (its allocator's; None on the CPU).
+    stats = jax.devices()[0].memory_stats() or {}
+    if "peak_bytes_in_use" in stats:
+        result["peak_device_mb"] = stats["peak_bytes_in_use"] / 2**20
     return result
 
 
-def measure_gemm(size: int = 2048, repeats: int = 10) -> dict[str, Any]:
-    """The machine's float32 GEMM rate through XLA (all cores, one device): a
-    `size` x `size` matmul, best and median GFLOP/s over `repeats` calls."""
+# The GEMM that measures the peak: large enough to fill the device.
+GEMM_SIZES = {"cpu": 2048}
+ACCELERATOR_GEMM_SIZE = 8192
+
+
+def measure_gemm(size: int | None = None, repeats: int = 10) -> dict[str, Any]:
+    """The machine's float32 GEMM rate through XLA at JAX's default precision (all
+    cores, one device): a `size` x `size` matmul (None = `GEMM_SIZES` of the backend),
+    best and median GFLOP/s over `repeats` calls, with the backend and its device."""
     import jax
     import jax.numpy as jnp
 
+    backend = jax.default_backend()
+    size = size or GEMM_SIZES.get(backend, ACCELERATOR_GEMM_SIZE)
     matrix = jax.random.normal(jax.random.key(0), (size, size), jnp.float32)
     matmul = jax.jit(lambda a: a @ a)
     times = _timed(lambda: jax.block_until_ready(matmul(matrix)), repeats, 60.0)
     flop = 2.0 * size**3
     return {
+        "backend": backend,
+        "device_kind": jax.devices()[0].device_kind,
         "size": size,
         "best_gflops_per_s": flop / min(times) / 1e9,
         "median_gflops_per_s": flop / statistics.median(times) / 1e9,
@@ -276,10 +291,20 @@ def _measure_in_subprocess(arguments: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_torch_reference(
-    torch_python: str, reference: str | Path, repeats: int, compile_torch: bool
+    torch_python: str,
+    reference: str | Path,
+    repeats: int,
+    compile_torch: bool,
+    device: str = "cpu",
 ) -> dict[str, Any]:
-    """Runs the PyTorch reference; returns its JSON (milliseconds) or {'error': ...}."""
+    """Runs the PyTorch reference on `device` ("cpu": the reference's own timer; else
+    `torch_on_device.py`, which times it with the device synchronised); returns its
+    JSON (milliseconds) or {'error': ...}."""
     command = [torch_python, str(reference), "--repeats", str(repeats)]
+    if device != "cpu":
+        runner = Path(__file__).with_name("torch_on_device.py")
+        command = [torch_python, str(runner), f"--device={device}", f"--reference={reference}"]
+        command += ["--repeats", str(repeats)]
     if not compile_torch:
         command.append("--no-compile")
     completed = subprocess.run(command, capture_output=True, text=True)
@@ -359,6 +384,7 @@ def run(
     torch_reference: str | Path = DEFAULT_TORCH_REFERENCE,
     pairs: int = 3,
     torch_compile: bool = True,
+    torch_device: str = "cpu",
     cpu_devices: int = 2,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
@@ -378,13 +404,15 @@ def run(
       torch_reference: path of torch_reference.py.
       pairs: alternating (reference, default formulation) measurements (>= 1).
       torch_compile: also measure torch.compile.
+      torch_device: where the reference runs ("cpu", or "cuda" beside a JAX GPU).
       cpu_devices: CPU devices each gld measurement splits the host into, as the
         launchers do (`--cpu_devices`).
       log: progress lines go here.
 
     Returns:
       {"rows": [...], "pairs": [...], "summary": {...}, "gemm": {...}, "torch": {...},
-       "default_formulation": ..., "settings": {...}}.
+       "default_formulation": ..., "paired_formulation": ..., "backend": ...,
+       "settings": {...}}. The paired formulation is the measured backend's default.
     """
     from gld.models import filter_banks
 
@@ -422,14 +450,19 @@ def run(
     log("float32 GEMM ...")
     gemm = _in_subprocess("gemm", {})
     log(f"  {json.dumps(gemm)}")
-    default = filter_banks.default_formulation("cpu")
+    # The backend as the measuring interpreters see it (this one never starts JAX, so
+    # that an accelerator's memory is theirs alone).
+    backend = gemm.get("backend", "cpu")
+    default = filter_banks.default_formulation(backend)
     paired_name = default if default in names else names[0]
     measured_pairs = []
     for index in range(pairs):
         reference = None
         if torch_python is not None:
             log(f"PyTorch reference ({torch_python}), pair {index + 1} of {pairs} ...")
-            reference = run_torch_reference(torch_python, torch_reference, repeats, torch_compile)
+            reference = run_torch_reference(
+                torch_python, torch_reference, repeats, torch_compile, torch_device
+            )
             log(f"  {json.dumps(reference)}")
         measured_pairs.append({"torch": reference, "gld": measure(models[0], paired_name)})
     rows = [pair["gld"] for pair in measured_pairs]
@@ -463,22 +496,26 @@ def run(
             "median_s": torch_summary,
         },
         "default_formulation": {
-            backend: filter_banks.default_formulation(backend) for backend in ("cpu", "gpu")
+            name: filter_banks.default_formulation(name) for name in ("cpu", "gpu")
         },
+        "paired_formulation": paired_name,
+        "backend": backend,
         "settings": dict(
             **measurement,
             pairs=pairs,
             torch_comparable=comparable,
+            torch_device=torch_device,
             cpu_count=os.cpu_count(),
             load_average=os.getloadavg(),
         ),
-        "machine": machine(),
+        "machine": machine(gemm.get("device_kind") if backend != "cpu" else None),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
 
 
-def machine() -> str:
-    """The CPU's model name and core count, as /proc/cpuinfo gives them."""
+def machine(accelerator: str | None = None) -> str:
+    """The CPU's model name and core count, as /proc/cpuinfo gives them, after the
+    accelerator's name if one was measured."""
     name = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -487,7 +524,8 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return f"{name}, {os.cpu_count()} cores"
+    host = f"{name}, {os.cpu_count()} cores"
+    return f"{accelerator} (host: {host})" if accelerator else host
 
 
 if __name__ == "__main__":

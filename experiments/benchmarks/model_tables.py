@@ -56,7 +56,9 @@ def format_row(
         f"{forward_one['p90_s'] * 1e3:8.1f}",
     ]
     cells += [f"{row[f'forward_b{b}']['pairs_per_s']:9.1f}" for b in forward_batch_sizes]
-    cells += [f"{train['median_s']:8.3f}", f"{row['peak_rss_mb']:8.0f}"]
+    # The accelerator's own peak where there is one, else the host's.
+    peak = row.get("peak_device_mb", row["peak_rss_mb"])
+    cells += [f"{train['median_s']:8.3f}", f"{peak:8.0f}"]
     for figure in (row[f"forward_b{max(forward_batch_sizes, default=1)}"], train):
         cells.append(f"{figure['gflops_per_s']:7.1f}" if figure["gflops_per_s"] else "      -")
     return " ".join(cells)
@@ -78,8 +80,13 @@ def format_table(result: dict[str, Any]) -> str:
     header += [f"{f'train{train_batch}':>8s}", f"{'peak MB':>8s}"]
     header += [f"{f'GF/s{biggest}':>7s}", f"{'GF/s tr':>7s}"]
     lines = [
-        f"{settings['height']}x{settings['width']}, {settings['cpu_devices']} CPU devices; "
-        "compile = train step [s]; b1 = forward latency [ms]; pr/s = forward pairs/s; "
+        f"{settings['height']}x{settings['width']}, "
+        + (
+            f"{settings['cpu_devices']} CPU devices; "
+            if result.get("backend", "cpu") == "cpu"
+            else f"one {result['backend']} device (peak MB: its memory); "
+        )
+        + "compile = train step [s]; b1 = forward latency [ms]; pr/s = forward pairs/s; "
         "train = Adam step [s]; GF/s = cost-analysis flops / median time",
         " ".join(header),
     ]
@@ -117,10 +124,25 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def paired_formulation(result: dict[str, Any]) -> str:
+    """The formulation measured against the reference (results before it was recorded
+    were CPU runs, paired with the CPU default)."""
+    return result.get("paired_formulation", result["default_formulation"]["cpu"])
+
+
 def markdown_table(result: dict[str, Any], commit: str) -> str:
     """The README's speed table (the default formulation's pairs against PyTorch)."""
     summary, settings = result["summary"], result["settings"]
     gemm = result.get("gemm", {})
+    backend = result.get("backend", "cpu")
+    paired = paired_formulation(result)
+    if backend == "cpu":
+        where = f"the CPU default `{paired}` on {settings['cpu_devices']} CPU devices"
+    else:
+        where = f"the {backend.upper()} default `{paired}` on one device"
+    peak_note = ""
+    if backend == "gpu":
+        peak_note = " (JAX's default precision: TF32 on the GPU's matrix units)"
     torch_version = next(
         (p["torch"].get("torch") for p in result["pairs"] if p["torch"] and "torch" in p["torch"]),
         None,
@@ -128,21 +150,24 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
     lines = [
         f"Measured {result['date']} at commit {commit} on {result['machine']} (load average "
         f"{settings['load_average'][0]:.1f} at the end), {settings['width']}x"
-        f"{settings['height']}, the CPU default `{result['default_formulation']['cpu']}` on "
-        f"{settings['cpu_devices']} CPU devices, PyTorch {torch_version or '-'} "
+        f"{settings['height']}, {where}, PyTorch {torch_version or '-'} "
         f"({settings['pairs']} alternating pairs; medians over {settings['repeats']} calls, "
         "spread = the pairs' min-max):",
         "",
         "| measure | gld | PyTorch eager | PyTorch compiled | gld / eager | gld / compiled |",
         "|---|---|---|---|---|---|",
     ]
+    # Seconds for the CPU's batches of 16; milliseconds for the rest.
+    in_seconds = {"train_b16", "forward_b16"} if backend == "cpu" else set()
     labels = {
-        "train_b16": "Adam train step, batch 16 [s]",
-        "forward_b16": "forward, batch 16 [s]",
-        "forward_b1": "forward, batch 1 [ms]",
+        "train_b16": "Adam train step, batch 16",
+        "forward_b16": "forward, batch 16",
+        "forward_b1": "forward, batch 1",
     }
     for figure, entry in summary["figures"].items():
-        scale, digits = (1000, 1) if figure == "forward_b1" else (1, 3)
+        scale, digits, unit = (1, 3, "s") if figure in in_seconds else (1000, 2, "ms")
+        if figure == "forward_b1" and backend == "cpu":
+            digits = 1
 
         def cell(values: list[float], scale: float = scale, digits: int = digits) -> str:
             if not values:
@@ -155,7 +180,7 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
 
         ratios = [" / ".join(f"{r:.2f}" for r in entry[f"vs_{mode}"]) or "-" for mode in MODES]
         lines.append(
-            f"| {labels[figure]} | {cell(entry['gld'])} | {cell(entry['eager'])} | "
+            f"| {labels[figure]} [{unit}] | {cell(entry['gld'])} | {cell(entry['eager'])} | "
             f"{cell(entry['compiled'])} | {ratios[0]} | {ratios[1]} |"
         )
     lines.append("")
@@ -163,7 +188,8 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
     if "best_gflops_per_s" in gemm:
         shares = summary.get("train_share_of_gemm_peak", [])
         notes.append(
-            f"The machine's float32 GEMM ({gemm['size']}x{gemm['size']} matmul through XLA): "
+            f"The machine's float32 GEMM ({gemm['size']}x{gemm['size']} matmul through XLA"
+            f"{peak_note}): "
             f"{gemm['best_gflops_per_s']:.0f} GFLOP/s best, {gemm['median_gflops_per_s']:.0f} "
             "median; the train step reaches "
             + ", ".join(f"{share:.0%}" for share in shares)
@@ -177,8 +203,10 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
     train_key = f"train_b{settings.get('train_batch_size', 16)}"
     others = [
         f"`{row['formulation']}` {row[train_key]['median_s']:.2f} s"
+        if backend == "cpu"
+        else f"`{row['formulation']}` {row[train_key]['median_s'] * 1e3:.2f} ms"
         for row in result.get("rows", [])
-        if "error" not in row and row["formulation"] != result["default_formulation"]["cpu"]
+        if "error" not in row and row["formulation"] != paired
     ]
     if others:
         notes.append(
@@ -196,12 +224,21 @@ README_START = (
     "--torch_python=.torchref/bin/python --readme -->"
 )
 README_END = "<!-- end of speed table -->"
+# The GPU's table: measured on a GPU machine, written into the README from its JSON.
+GPU_README_START = (
+    "<!-- GPU speed table: python -m experiments.benchmark --torch_python=python3 "
+    "--torch_device=cuda, then --readme_from=benchmark.json -->"
+)
+GPU_README_END = "<!-- end of GPU speed table -->"
+README_MARKERS = {"cpu": (README_START, README_END), "gpu": (GPU_README_START, GPU_README_END)}
 
 
-def replace_readme_table(readme: str, table: str) -> str:
-    """`readme` with the text between the speed table's markers replaced by `table`."""
-    if README_START not in readme or README_END not in readme:
-        raise ValueError(f"the README has no speed table markers ({README_START} ... {README_END})")
-    head, rest = readme.split(README_START, 1)
-    _, tail = rest.split(README_END, 1)
-    return f"{head}{README_START}\n{table}\n{README_END}{tail}"
+def replace_readme_table(readme: str, table: str, backend: str = "cpu") -> str:
+    """`readme` with the text between the `backend`'s speed table markers replaced by
+    `table`."""
+    start, end = README_MARKERS[backend]
+    if start not in readme or end not in readme:
+        raise ValueError(f"the README has no speed table markers ({start} ... {end})")
+    head, rest = readme.split(start, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{start}\n{table}\n{end}{tail}"

@@ -172,3 +172,58 @@ def test_unknown_suite_and_formulation_are_refused(tmp_path):
     assert completed.returncode != 0 and "--suite must be one of" in completed.stderr
     with pytest.raises(ValueError, match="unknown formulations"):
         model_benchmark.run(formulations=["nope"])
+
+
+def test_a_device_reference_runs_through_the_synchronising_runner(tmp_path):
+    """With a device, the reference is timed by torch_on_device.py, told the device and
+    the reference file; on the CPU the reference runs itself."""
+    echo = tmp_path / "python"
+    program = 'import json, sys; print(json.dumps({"argv": sys.argv[1:]}))'
+    echo.write_text(f"#!/bin/sh\nexec {sys.executable} -c '{program}' \"$@\"\n")
+    echo.chmod(0o755)
+    on_device = model_benchmark.run_torch_reference(str(echo), "ref.py", 7, True, device="cuda")
+    runner, *arguments = on_device["argv"]
+    assert runner.endswith("experiments/benchmarks/torch_on_device.py")
+    assert arguments == ["--device=cuda", "--reference=ref.py", "--repeats", "7"]
+    on_cpu = model_benchmark.run_torch_reference(str(echo), "ref.py", 7, False)
+    assert on_cpu["argv"] == ["ref.py", "--repeats", "7", "--no-compile"]
+
+
+def test_a_gpu_result_goes_to_the_gpu_table_in_milliseconds():
+    pairs = [_pair(0.005, 10.0), _pair(0.006, 11.0)]
+    rows = [pair["gld"] for pair in pairs] + [
+        {"formulation": "fused", "train_b16": {"median_s": 0.0123}}
+    ]
+    for row in rows[:2]:
+        row["formulation"] = "vmap"
+    result = {
+        "pairs": pairs,
+        "rows": rows,
+        "summary": model_benchmark.summarise_pairs(pairs),
+        "gemm": {"size": 8192, "best_gflops_per_s": 4.0e5, "median_gflops_per_s": 3.9e5},
+        "settings": {
+            "height": 192,
+            "width": 256,
+            "cpu_devices": 2,
+            "pairs": 2,
+            "repeats": 5,
+            "train_batch_size": 16,
+            "load_average": (1.0, 1.0, 1.0),
+        },
+        "machine": "NVIDIA H200 (host: a CPU, 16 cores)",
+        "date": "2026-11-27 05:00 UTC",
+        "default_formulation": {"cpu": "fused", "gpu": "vmap"},
+        "paired_formulation": "vmap",
+        "backend": "gpu",
+    }
+    table = model_tables.markdown_table(result, "abc1234")
+    assert "the GPU default `vmap` on one device" in table and "TF32" in table
+    # The train step in milliseconds, and the other formulation beside the paired one.
+    assert "| Adam train step, batch 16 [ms] | 5.50 (5.00-6.00) |" in table
+    assert "`fused` 12.30 ms" in table and "`vmap`" not in table.split("same run:")[1]
+    readme = (
+        f"{model_tables.README_START}\ncpu table\n{model_tables.README_END}\n"
+        f"{model_tables.GPU_README_START}\nold\n{model_tables.GPU_README_END}\n"
+    )
+    rewritten = model_tables.replace_readme_table(readme, table, "gpu")
+    assert "cpu table" in rewritten and "old" not in rewritten and table in rewritten
