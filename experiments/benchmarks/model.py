@@ -67,16 +67,19 @@ def _timed(fn: Callable[[], Any], repeats: int, max_seconds: float) -> list[floa
 
 
 def _flops(lowered) -> float | None:
-    """Flops of a lowered XLA program from its cost analysis (None if unavailable)."""
-    try:
-        analysis = lowered.cost_analysis()
-    except Exception:  # noqa: BLE001 - some backends do not implement it
-        return None
-    if isinstance(analysis, list | tuple):
-        analysis = analysis[0] if analysis else None
-    if not analysis or "flops" not in analysis:
-        return None
-    return float(analysis["flops"])
+    """Flops of a lowered XLA program from its cost analysis: the lowered program's
+    where the backend analyses it (the CPU), else the compiled program's (a GPU
+    analyses only what it compiled); None if neither is available."""
+    for analyse in (lowered.cost_analysis, lambda: lowered.compile().cost_analysis()):
+        try:
+            analysis = analyse()
+        except Exception:  # noqa: BLE001 - some backends do not implement it
+            continue
+        if isinstance(analysis, list | tuple):
+            analysis = analysis[0] if analysis else None
+        if analysis and "flops" in analysis:
+            return float(analysis["flops"])
+    return None
 
 
 def _percentile(values: Sequence[float], fraction: float) -> float:
@@ -157,6 +160,7 @@ def measure_one(
         "formulation": formulation or "-",
         "backend": jax.default_backend(),
         "device_kind": jax.devices()[0].device_kind,
+        "matmul_precision": jax.config.jax_default_matmul_precision or "default",
         "devices": len(jax.devices()),
         "height": height,
         "width": width,
