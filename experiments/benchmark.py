@@ -119,12 +119,13 @@ def run_model_suite() -> dict:
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def rewrite_readme(result: dict, commit: str) -> None:
-    """Puts `result`'s table between the README's markers for its backend."""
+def rewrite_readme(result: dict, commit: str, source: str = "benchmark.json") -> None:
+    """Puts `result`'s table between the README's markers for its backend; `source`
+    is where the table says every row is."""
     from experiments.benchmarks import model_tables
 
     backend = result.get("backend", "cpu")
-    table = model_tables.markdown_table(result, commit)
+    table = model_tables.markdown_table(result, commit, source)
     README.write_text(model_tables.replace_readme_table(README.read_text(), table, backend))
     print(f"rewrote the {backend.upper()} speed table of {README}")
 
@@ -137,7 +138,7 @@ def readme_from(path: Path) -> None:
         raise app.UsageError(f"--readme_from: cannot read a result from {path}: {error}") from None
     if record.get("suite") != "model":
         raise app.UsageError(f"--readme_from: {path} is not a model-suite result")
-    rewrite_readme(record["result"], record.get("commit") or "unknown")
+    rewrite_readme(record["result"], record.get("commit") or "unknown", str(path))
 
 
 def main(argv: list[str]) -> None:

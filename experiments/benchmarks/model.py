@@ -66,20 +66,20 @@ def _timed(fn: Callable[[], Any], repeats: int, max_seconds: float) -> list[floa
     return times
 
 
-def _flops(lowered) -> float | None:
-    """Flops of a lowered XLA program from its cost analysis: the lowered program's
-    where the backend analyses it (the CPU), else the compiled program's (a GPU
-    analyses only what it compiled); None if neither is available."""
-    for analyse in (lowered.cost_analysis, lambda: lowered.compile().cost_analysis()):
-        try:
-            analysis = analyse()
-        except Exception:  # noqa: BLE001 - some backends do not implement it
-            continue
-        if isinstance(analysis, list | tuple):
-            analysis = analysis[0] if analysis else None
-        if analysis and "flops" in analysis:
-            return float(analysis["flops"])
-    return None
+def _flops(jitted, *args) -> float | None:
+    """Flops of `jitted(*args)` from XLA's cost analysis of its program lowered for the
+    CPU, whatever the backend: the count belongs to the program, and a GPU analyses
+    only its compiled program, where cuDNN's convolutions count nothing. None if
+    unavailable."""
+    try:
+        analysis = jitted.trace(*args).lower(lowering_platforms=("cpu",)).cost_analysis()
+    except Exception:  # noqa: BLE001 - an analysis is a nicety, never a failure
+        return None
+    if isinstance(analysis, list | tuple):
+        analysis = analysis[0] if analysis else None
+    if not analysis or "flops" not in analysis:
+        return None
+    return float(analysis["flops"])
 
 
 def _percentile(values: Sequence[float], fraction: float) -> float:
@@ -171,7 +171,7 @@ def measure_one(
         mesh = mesh_for(batch_size)
         batch = make_batch(batch_size)
         args = (params, batch["image1"], batch["image2"], batch["flow"])
-        flops = _flops(flops_forward_jit.lower(*args))
+        flops = _flops(flops_forward_jit, *args)
         args = (
             jax.device_put(params, sharding.replicated(mesh)),
             *jax.device_put(args[1:], sharding.batch_sharded(mesh)),
@@ -207,7 +207,7 @@ def measure_one(
         if key in train_lib.TRAIN_KEYS
     }
     step_rng = jax.random.key_data(jax.random.key(1))
-    flops = _flops(jax.jit(make_step(flops_model)).lower(state, batch, step_rng))
+    flops = _flops(jax.jit(make_step(flops_model)), state, batch, step_rng)
     mesh = mesh_for(train_batch_size)
     # Compiled as the trainer compiles it (`loop.jit_train_step`).
     step_jit = loop.jit_train_step(make_step(model), mesh).__wrapped__

@@ -130,7 +130,7 @@ def paired_formulation(result: dict[str, Any]) -> str:
     return result.get("paired_formulation", result["default_formulation"]["cpu"])
 
 
-def markdown_table(result: dict[str, Any], commit: str) -> str:
+def markdown_table(result: dict[str, Any], commit: str, source: str = "benchmark.json") -> str:
     """The README's speed table (the default formulation's pairs against PyTorch)."""
     summary, settings = result["summary"], result["settings"]
     gemm = result.get("gemm", {})
@@ -142,7 +142,7 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
         where = f"the {backend.upper()} default `{paired}` on one device"
     peak_note = ""
     if backend == "gpu":
-        peak_note = " (JAX's default precision: TF32 on the GPU's matrix units)"
+        peak_note = " at JAX's default precision, TF32 on the GPU's matrix units"
     torch_version = next(
         (p["torch"].get("torch") for p in result["pairs"] if p["torch"] and "torch" in p["torch"]),
         None,
@@ -213,7 +213,7 @@ def markdown_table(result: dict[str, Any], commit: str) -> str:
             "The train step of the other formulations in the same run: "
             + ", ".join(others)
             + "; every row (compile time, p90, batch 64, peak memory, GFLOP/s) is in "
-            "`benchmark.json`."
+            f"`{source}`."
         )
     lines.append(" ".join(notes))
     return "\n".join(lines)
