@@ -48,6 +48,12 @@ flags.DEFINE_float(
     0.0,
     "The simulated camera's heading from the direction of travel, degrees (90: sideways).",
 )
+flags.DEFINE_list(
+    "reading_pixel",
+    None,
+    "u,v: the simulated range sensor's pixel (default: the image centre, where a forward-"
+    "looking robot's flow has its expansion's centre).",
+)
 flags.DEFINE_string("size", "96x128", "HEIGHTxWIDTH of the frames (a new model's resolution).")
 flags.DEFINE_string("pretrained", None, "A training workdir to start from (its model).")
 flags.DEFINE_enum(
@@ -130,11 +136,27 @@ def _stream(height: int, width: int):
 
     try:
         settings = robot_stream.RobotSettings(
-            height=height, width=width, world=FLAGS.world, camera_yaw_degrees=FLAGS.camera_yaw
+            height=height,
+            width=width,
+            world=FLAGS.world,
+            camera_yaw_degrees=FLAGS.camera_yaw,
+            reading_pixel=_reading_pixel(),
         )
     except ValueError as error:
         raise app.UsageError(str(error)) from None
     return robot_stream.SimulatedRobot(FLAGS.seed, settings)
+
+
+def _reading_pixel() -> tuple[int, int] | None:
+    if FLAGS.reading_pixel is None:
+        return None
+    try:
+        u, v = (int(value) for value in FLAGS.reading_pixel)
+    except ValueError:
+        raise app.UsageError(
+            f"--reading_pixel must be two integers u,v, got {','.join(FLAGS.reading_pixel)}"
+        ) from None
+    return u, v
 
 
 def _model(height: int, width: int):

@@ -127,14 +127,11 @@ def test_pairs_are_compared_each_with_its_own_reference():
     ]
 
 
-def test_the_readme_table_is_rewritten_between_its_markers():
-    pairs = [_pair(0.5, 1000.0), _pair(0.6, 1100.0)]
-    result = {
+def _result(pairs: list[dict], **overrides) -> dict:
+    """A model-suite result of the CPU (2 pairs at 256x192) around `pairs`."""
+    return {
         "pairs": pairs,
-        "summary": {
-            **model_benchmark.summarise_pairs(pairs),
-            "train_share_of_gemm_peak": [0.3, 0.25],
-        },
+        "summary": model_benchmark.summarise_pairs(pairs),
         "gemm": {"size": 2048, "best_gflops_per_s": 150.0, "median_gflops_per_s": 140.0},
         "settings": {
             "height": 192,
@@ -142,12 +139,25 @@ def test_the_readme_table_is_rewritten_between_its_markers():
             "cpu_devices": 2,
             "pairs": 2,
             "repeats": 5,
+            "train_batch_size": 16,
             "load_average": (1.0, 1.0, 1.0),
         },
         "machine": "a CPU, 2 cores",
         "date": "2026-11-27 05:00 UTC",
         "default_formulation": {"cpu": "fused", "gpu": "vmap"},
+        **overrides,
     }
+
+
+def test_the_readme_table_is_rewritten_between_its_markers():
+    pairs = [_pair(0.5, 1000.0), _pair(0.6, 1100.0)]
+    result = _result(
+        pairs,
+        summary={
+            **model_benchmark.summarise_pairs(pairs),
+            "train_share_of_gemm_peak": [0.3, 0.25],
+        },
+    )
     table = model_tables.markdown_table(result, "abc1234")
     assert "commit abc1234" in table and "PyTorch 9.9" in table
     # Each pair's ratio against its own reference, and the GEMM share of each pair.
@@ -196,26 +206,14 @@ def test_a_gpu_result_goes_to_the_gpu_table_in_milliseconds():
     ]
     for row in rows[:2]:
         row["formulation"] = "vmap"
-    result = {
-        "pairs": pairs,
-        "rows": rows,
-        "summary": model_benchmark.summarise_pairs(pairs),
-        "gemm": {"size": 8192, "best_gflops_per_s": 4.0e5, "median_gflops_per_s": 3.9e5},
-        "settings": {
-            "height": 192,
-            "width": 256,
-            "cpu_devices": 2,
-            "pairs": 2,
-            "repeats": 5,
-            "train_batch_size": 16,
-            "load_average": (1.0, 1.0, 1.0),
-        },
-        "machine": "NVIDIA H200 (host: a CPU, 16 cores)",
-        "date": "2026-11-27 05:00 UTC",
-        "default_formulation": {"cpu": "fused", "gpu": "vmap"},
-        "paired_formulation": "vmap",
-        "backend": "gpu",
-    }
+    result = _result(
+        pairs,
+        rows=rows,
+        gemm={"size": 8192, "best_gflops_per_s": 4.0e5, "median_gflops_per_s": 3.9e5},
+        machine="NVIDIA H200 (host: a CPU, 16 cores)",
+        paired_formulation="vmap",
+        backend="gpu",
+    )
     table = model_tables.markdown_table(result, "abc1234")
     assert "the GPU default `vmap` on one device" in table and "TF32" in table
     # The train step in milliseconds, and the other formulation beside the paired one.

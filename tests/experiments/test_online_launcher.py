@@ -62,3 +62,24 @@ def test_a_run_killed_part_way_resumes_and_ends_as_an_uninterrupted_one(tmp_path
     # No frame lost or scored twice, and every score as the uninterrupted run's.
     assert [row["frame"] for row in _rows(killed)] == list(range(30))
     assert _rows(killed) == _rows(tmp_path / "straight")
+
+
+@pytest.mark.parametrize(
+    "pixel, message",
+    [
+        ("64", "--reading_pixel must be two integers u,v, got 64"),
+        ("a,b", "--reading_pixel must be two integers u,v, got a,b"),
+        ("40,3", "reading_pixel must lie in the 32x24 image"),
+    ],
+)
+def test_a_bad_sensor_pixel_is_refused_in_one_line_before_anything_is_written(
+    tmp_path, pixel, message
+):
+    workdir = tmp_path / "run"
+    completed = launch(
+        "experiments.online", f"--workdir={workdir}", f"--reading_pixel={pixel}", *COMMON
+    )
+    assert completed.returncode == 2, completed.stderr[-2000:]
+    assert message in completed.stderr and "Traceback" not in completed.stderr
+    assert len(completed.stderr.strip().splitlines()) == 1
+    assert not workdir.exists()
