@@ -63,6 +63,13 @@ flags.DEFINE_enum(
     "A new model: the main job's global-local model and loss, or the self-supervised "
     "baseline (photometric loss, no range reading), without or with the flow.",
 )
+flags.DEFINE_enum(
+    "global_source",
+    "encoder",
+    ["encoder", "pose", "flow_pose"],
+    "A new global-local model's g: its encoder (the main job's: a teacher and refinement on "
+    "the flow), the robot's odometry (pose), or the flow's essential matrix (flow_pose).",
+)
 flags.DEFINE_bool("learn", True, "Learn online (--nolearn: the frozen reference).")
 flags.DEFINE_integer("updates_per_frame", 1, "Adam steps after each frame.", lower_bound=0)
 flags.DEFINE_integer("batch_size", 4, "Pairs per update.", lower_bound=1)
@@ -71,6 +78,12 @@ flags.DEFINE_float(
     "zoom", 0.5, "Replayed pairs are random crops of at least this much of each side (1: none)."
 )
 flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
+flags.DEFINE_integer(
+    "reading_memory",
+    0,
+    "Earlier frames whose range readings, carried by the odometry, also label each frame.",
+    lower_bound=0,
+)
 flags.DEFINE_float("min_baseline", 0.05, "Metres of odometry between a frame and its partner.")
 flags.DEFINE_integer("max_partner_gap", 20, "Frames back a partner may be.", lower_bound=1)
 flags.DEFINE_bool("asynchronous", True, "Updates in a worker thread beside prediction.")
@@ -166,6 +179,11 @@ def _model(height: int, width: int):
     from gld.runs import recipe, state
     from gld.runs import workdir as workdir_lib
 
+    if FLAGS.global_source != "encoder" and (FLAGS.pretrained or FLAGS.model != "global_local"):
+        raise app.UsageError(
+            f"--global_source={FLAGS.global_source} makes a new global-local model: it does not "
+            "go with --pretrained or another --model"
+        )
     if FLAGS.pretrained:
         model, variables, config = workdir_lib.load_trained(FLAGS.pretrained)
         if (config.height, config.width) != (height, width):
@@ -179,6 +197,14 @@ def _model(height: int, width: int):
 
         model = registry.make_model(FLAGS.model)
         weights = SelfSupervisedWeights()
+    elif FLAGS.global_source != "encoder":
+        # A given pose: no encoder to teach, nothing to refine.
+        model = registry.make_model(
+            "global_local",
+            **recipe.ARCHITECTURE_WITHOUT_MOTION,
+            global_source=FLAGS.global_source,
+        )
+        weights = LossWeights(epipolar=0.0, pose_teacher=0.0)
     else:
         model = registry.make_model("global_local", **recipe.ARCHITECTURE)
         weights = LossWeights(
@@ -186,7 +212,8 @@ def _model(height: int, width: int):
             pose_teacher=recipe.MOTION_WEIGHTS["pose_teacher_weight"],
         )
     variables = state.init_variables(model, height, width, FLAGS.seed)
-    return model, variables, weights, f"{FLAGS.model} from scratch"
+    source = "" if FLAGS.global_source == "encoder" else f", g from {FLAGS.global_source}"
+    return model, variables, weights, f"{FLAGS.model} from scratch{source}"
 
 
 def _offline_reference(stream, model, variables, settings, size, weights, learner) -> None:
@@ -250,6 +277,7 @@ def main(argv: list[str]) -> None:
             capacity=FLAGS.capacity,
             zoom=FLAGS.zoom,
             learning_rate=FLAGS.learning_rate,
+            reading_memory=FLAGS.reading_memory,
             learn=FLAGS.learn,
             asynchronous=FLAGS.asynchronous,
             seed=FLAGS.seed,

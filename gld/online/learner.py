@@ -66,6 +66,13 @@ class OnlineSettings:
         holding its labelled pixel, resized back (`ReplayBuffer.batch`): a sensor that
         reads one fixed pixel then labels the whole image; 1 = no crop.
       learning_rate: Adam's, constant.
+      reading_memory: the range readings of up to this many earlier frames also label
+        each new frame: each reading's point, placed in the world by its frame's
+        odometry, is projected into the new frame by the new frame's odometry
+        (`carried_labels`). A forward-looking robot's sensor reads where its flow has
+        no parallax (the expansion's centre); the points it read earlier have moved out
+        from there, to pixels whose flow carries their depth. 0 = only the frame's own
+        reading.
       learn: False keeps the model as given (the frozen reference).
       asynchronous: run updates in a worker thread beside the next frames.
       seed: the buffer's sampling and the train steps' randomness.
@@ -78,6 +85,7 @@ class OnlineSettings:
     capacity: int = 256
     zoom: float = 0.5
     learning_rate: float = 5e-4
+    reading_memory: int = 0
     learn: bool = True
     asynchronous: bool = True
     seed: int = 0
@@ -86,6 +94,8 @@ class OnlineSettings:
         for name in ("max_partner_gap", "batch_size", "capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.reading_memory < 0:
+            raise ValueError(f"reading_memory must be >= 0, got {self.reading_memory}")
         if self.updates_per_frame < 0:
             raise ValueError(f"updates_per_frame must be >= 0, got {self.updates_per_frame}")
         if not self.min_baseline > 0:
@@ -124,8 +134,14 @@ class OnlineLearner:
             ]
         )
         self.published = self._state.variables()
-        self.buffer = ReplayBuffer(settings.capacity, height, width, settings.seed)
+        self.buffer = ReplayBuffer(
+            settings.capacity, height, width, settings.seed, 1 + settings.reading_memory
+        )
         self._window: collections.deque[Frame] = collections.deque(maxlen=settings.max_partner_gap)
+        # The world points of the last `reading_memory` frames' readings (None: no reading).
+        self._memory: collections.deque[np.ndarray | None] = collections.deque(
+            maxlen=settings.reading_memory
+        )
         self._worker = concurrent.futures.ThreadPoolExecutor(1) if settings.asynchronous else None
         self._pending: concurrent.futures.Future | None = None
         self.next_frame = 0  # the stream position of the next frame to observe
@@ -170,15 +186,36 @@ class OnlineLearner:
             example["flow_translation"] = np.zeros(3, np.float32)
         return example, baseline
 
-    def _labels(self, frame: Frame, baseline: float) -> np.ndarray:
-        """[N, 3] (row, column, depth in baselines) of the frame's range reading."""
-        if frame.reading is None:
-            return np.zeros((0, 3), np.float32)
-        u, v, distance = frame.reading
-        row, column = int(round(v)), int(round(u))
-        if not (0 <= row < self.height and 0 <= column < self.width and distance > 0):
-            raise ValueError(f"frame {frame.index}: reading {frame.reading} is not in the image")
-        return np.array([[row, column, distance / baseline]], np.float32)
+    @property
+    def history(self) -> int:
+        """Frames before a position that a resumed run replays (`resume_from`): the
+        partner window's and the reading memory's."""
+        return max(self.settings.max_partner_gap, self.settings.reading_memory)
+
+    def labels_of(self, frame: Frame, baseline: float) -> np.ndarray:
+        """[N, 3] (row, column, depth in baselines): the frame's range reading first,
+        then the earlier readings carried into it (`reading_memory`)."""
+        own = np.zeros((0, 3), np.float32)
+        if frame.reading is not None:
+            u, v, distance = frame.reading
+            row, column = int(round(v)), int(round(u))
+            if not (0 <= row < self.height and 0 <= column < self.width and distance > 0):
+                raise ValueError(
+                    f"frame {frame.index}: reading {frame.reading} is not in the image"
+                )
+            own = np.array([[row, column, distance]], np.float32)
+        points = [point for point in self._memory if point is not None]
+        carried = carried_labels(frame, np.array(points).reshape(-1, 3), self.height, self.width)
+        labels = np.concatenate([own, carried])
+        # One label a pixel: the frame's own reading, else the newest carried point.
+        _, first = np.unique(labels[:, :2], axis=0, return_index=True)
+        labels = labels[np.sort(first)]
+        labels[:, 2] /= baseline
+        return labels
+
+    def _remember(self, frame: Frame) -> None:
+        if self.settings.reading_memory:
+            self._memory.appendleft(reading_point(frame))
 
     # ----------------------------------------------------------------- scoring
 
@@ -288,7 +325,7 @@ class OnlineLearner:
                 result["latency_ms"] = 1e3 * (time.perf_counter() - start)
                 if frame.depth is not None:
                     result.update(self._score(frame, inv_depth, partner))
-            labels = self._labels(frame, baseline)
+            labels = self.labels_of(frame, baseline)
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:
                 vectors = {key: example[key] for key in VECTOR_FIELDS}
@@ -302,6 +339,7 @@ class OnlineLearner:
             self._update()
         result["updates"] = self.updates
         self._window.append(frame)
+        self._remember(frame)
         self.next_frame = frame.index + 1
         return result
 
@@ -311,6 +349,7 @@ class OnlineLearner:
         if frame.index >= self.next_frame:
             raise ValueError(f"frame {frame.index} is not before the position {self.next_frame}")
         self._window.append(frame)
+        self._remember(frame)
 
     def finish(self) -> None:
         """Waits for the update in flight and swaps it in."""
@@ -342,3 +381,39 @@ class OnlineLearner:
         self._reference_sum = float(counters["reference_sum"])
         self._reference_count = int(counters["reference_count"])
         self._window.clear()
+        self._memory.clear()
+
+
+def _pixels_to_camera(intrinsics: np.ndarray, height: int, width: int):
+    """(fx, fy, cx, cy) in pixels of a normalised camera (`Frame.intrinsics`)."""
+    fx, fy, cx, cy = np.asarray(intrinsics, np.float64)
+    return fx * width, fy * height, cx * width - 0.5, cy * height - 0.5
+
+
+def reading_point(frame: Frame) -> np.ndarray | None:
+    """The world point of `frame`'s range reading, placed by its odometry (None without
+    a reading). The reading is camera-z metres at pixel (u, v)."""
+    if frame.reading is None:
+        return None
+    height, width = frame.image.shape[:2]
+    fx, fy, cx, cy = _pixels_to_camera(frame.intrinsics, height, width)
+    u, v, depth = frame.reading
+    camera = depth * np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
+    rotation = np.asarray(frame.rotation, np.float64)
+    return rotation.T @ (camera - np.asarray(frame.translation, np.float64))
+
+
+def carried_labels(frame: Frame, points: np.ndarray, height: int, width: int) -> np.ndarray:
+    """[N, 3] (row, column, camera-z metres) of world `points` [M, 3] seen from `frame` by
+    its odometry: those in front of the camera and inside the image, in `points`' order."""
+    if not len(points):
+        return np.zeros((0, 3), np.float32)
+    camera = points @ np.asarray(frame.rotation, np.float64).T + np.asarray(frame.translation)
+    fx, fy, cx, cy = _pixels_to_camera(frame.intrinsics, height, width)
+    depth = camera[:, 2]
+    ahead = depth > 1e-6
+    safe = np.where(ahead, depth, 1.0)
+    column = np.round(fx * camera[:, 0] / safe + cx)
+    row = np.round(fy * camera[:, 1] / safe + cy)
+    keep = ahead & (row >= 0) & (row < height) & (column >= 0) & (column < width)
+    return np.stack([row[keep], column[keep], depth[keep]], axis=1).astype(np.float32)

@@ -209,7 +209,7 @@ def _continue(stream, learner, workdir, checkpoints, restored, meta, options, pr
     if restored:
         print_fn(f"resumed {workdir} at frame {position} ({learner.updates} updates)")
     files.write_atomically(log_path, "".join(json.dumps(row) + "\n" for row in rows))
-    replay_from = max(0, position - learner.settings.max_partner_gap)
+    replay_from = max(0, position - learner.history)
     bar = tqdm(total=frames, initial=position, disable=not progress, unit="frame")
     with open(log_path, "a") as log:
         for frame in stream.frames(replay_from):

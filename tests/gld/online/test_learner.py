@@ -15,8 +15,10 @@ from conftest import TINY_MODEL, random_variables
 from data.gld_scenes import robot_stream
 from gld.losses.supervised import LossWeights
 from gld.models import registry
+from gld.online import learner as learner_lib
 from gld.online import offline, run
 from gld.online.learner import OnlineLearner, OnlineSettings
+from gld.online.stream import Frame
 
 HEIGHT, WIDTH = 24, 32
 # A short partner window and baseline: the robot moves about 3 cm a frame.
@@ -123,21 +125,26 @@ def _summaryless(rows):
     return [{k: v for k, v in row.items() if not k.endswith("_ms")} for row in rows]
 
 
+# Readings carried over 7 frames: more than the partner window's 6, so a resumed run
+# must replay the frames before its position for the memory, not only for the partners.
+@pytest.mark.parametrize("reading_memory", [0, 7])
 def test_a_run_stopped_after_a_checkpoint_resumes_to_the_same_result(
-    model_and_variables, stream, tmp_path
+    model_and_variables, stream, tmp_path, reading_memory
 ):
     arguments = dict(frames=16, checkpoint_every=8, window=8, meta={}, progress=False)
+
+    def learner():
+        return _learner(model_and_variables, reading_memory=reading_memory)
+
     whole = tmp_path / "whole"
-    run.run_online(stream, _learner(model_and_variables), whole, **arguments)
+    run.run_online(stream, learner(), whole, **arguments)
     # A run killed after its checkpoint at 8 and before the one at 12: its log runs on.
     stopped = tmp_path / "stopped"
-    run.run_online(stream, _learner(model_and_variables), stopped, **{**arguments, "frames": 12})
+    run.run_online(stream, learner(), stopped, **{**arguments, "frames": 12})
     shutil.rmtree(stopped / "checkpoints" / "12")
     assert len((stopped / run.LOG_FILE).read_text().splitlines()) == 12
     lines = []
-    resumed = run.run_online(
-        stream, _learner(model_and_variables), stopped, **arguments, print_fn=lines.append
-    )
+    resumed = run.run_online(stream, learner(), stopped, **arguments, print_fn=lines.append)
 
     def rows(workdir):
         return [json.loads(line) for line in (workdir / run.LOG_FILE).read_text().splitlines()]
@@ -157,6 +164,55 @@ def test_bad_settings_are_refused():
         OnlineSettings(min_baseline=0)
     with pytest.raises(ValueError, match="batch_size must be >= 1"):
         OnlineSettings(batch_size=0)
+    with pytest.raises(ValueError, match="reading_memory must be >= 0"):
+        OnlineSettings(reading_memory=-1)
+
+
+def _frame(index, translation, reading=None):
+    """A frame of a 32x24 camera (fx = fy = 20 px, centre (16, 12)) at `translation`
+    (world-to-camera, no rotation)."""
+    return Frame(
+        index=index,
+        time=index / 10,
+        image=np.zeros((HEIGHT, WIDTH, 3), np.uint8),
+        rotation=np.eye(3),
+        translation=np.asarray(translation, np.float64),
+        intrinsics=np.array([20 / WIDTH, 20 / HEIGHT, 16.5 / WIDTH, 12.5 / HEIGHT]),
+        reading=reading,
+    )
+
+
+def test_a_reading_is_carried_to_where_the_odometry_puts_its_point():
+    # Read 4 m ahead at pixel (26, 12), 10 px right of the centre: the point (2, 0, 4).
+    first = _frame(0, [0.0, 0.0, 0.0], reading=(26.0, 12.0, 4.0))
+    point = learner_lib.reading_point(first)
+    np.testing.assert_allclose(point, [2.0, 0.0, 4.0])
+    # The camera 1 m further on (world-to-camera t = -c): the point is 3 m ahead and has
+    # moved out from the expansion's centre, u = 16 + 20 * 2 / 3 = 29.3 -> column 29.
+    labels = learner_lib.carried_labels(_frame(1, [0.0, 0.0, -1.0]), point[None], 24, 32)
+    np.testing.assert_allclose(labels, [[12.0, 29.0, 3.0]])
+    # 2 m on, u = 16 + 20 * 2 / 2 = 36 is outside the 32-pixel image; 5 m on, the point is
+    # behind the camera: nothing.
+    assert not len(learner_lib.carried_labels(_frame(1, [0.0, 0.0, -2.0]), point[None], 24, 32))
+    behind = _frame(1, [0.0, 0.0, -5.0])
+    assert not len(learner_lib.carried_labels(behind, point[None], 24, 32))
+
+
+def test_carried_readings_agree_with_the_rendered_depth(model_and_variables, frames):
+    """On the simulated robot, the labels a frame gets from earlier readings hold the
+    depth the renderer gives at their pixels, within the sensor's 1% noise and the
+    odometry's drift."""
+    learner = _learner(model_and_variables, reading_memory=10, learn=False)
+    errors, carried = [], 0
+    for frame in frames:
+        labels = learner.labels_of(frame, baseline=1.0)
+        learner.observe(frame, predict=False)
+        carried += max(0, len(labels) - (frame.reading is not None))
+        for row, column, depth in labels:
+            errors.append(depth / frame.depth[int(row), int(column)] - 1)
+    errors = np.abs(errors)
+    assert carried > len(frames)  # more than one carried label a frame (24x32 frames)
+    assert np.median(errors) < 0.03 and np.mean(errors < 0.1) > 0.95
 
 
 def test_the_offline_reference_trains_on_every_pair_and_scores_both_models(
@@ -183,3 +239,28 @@ def test_the_offline_reference_trains_on_every_pair_and_scores_both_models(
     assert result["offline"]["abs_inv"] != pytest.approx(untrained["abs_inv"], rel=1e-6)
     with pytest.raises(ValueError, match="learn=False"):
         offline.score_frozen(make_learner(), stream, 12)
+
+
+def test_a_restored_learner_carries_the_readings_of_the_frames_it_replays(
+    model_and_variables, frames
+):
+    """`history` frames replayed into a restored learner give it the reading memory of
+    the learner it was saved from; the partner window's frames alone would not."""
+    whole = _learner(model_and_variables, reading_memory=12, learn=False)
+    for frame in frames[:16]:
+        whole.observe(frame, predict=False)
+    assert whole.history == 12
+
+    def restored(replayed: int) -> OnlineLearner:
+        learner = _learner(model_and_variables, reading_memory=12, learn=False)
+        learner.restore(whole.state())
+        for frame in frames[16 - replayed : 16]:
+            learner.resume_from(frame)
+        return learner
+
+    def labels(learner):
+        return [learner.labels_of(frame, baseline=1.0).tolist() for frame in frames[16:20]]
+
+    expected = labels(whole)
+    assert labels(restored(whole.history)) == expected
+    assert labels(restored(SETTINGS["max_partner_gap"])) != expected
