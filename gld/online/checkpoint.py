@@ -61,6 +61,15 @@ def save(checkpoints: ocp.CheckpointManager, learner: OnlineLearner, meta: dict[
     return position
 
 
+def saved_meta(checkpoints: ocp.CheckpointManager) -> dict[str, Any] | None:
+    """The newest checkpoint's meta (what the run was), or None without one."""
+    position = checkpoints.latest_step()
+    if position is None:
+        return None
+    restored = checkpoints.restore(position, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+    return restored["meta"]
+
+
 def restore(checkpoints: ocp.CheckpointManager, learner: OnlineLearner) -> dict[str, Any] | None:
     """Restores the newest checkpoint into `learner`; its meta, or None without one."""
     position = checkpoints.latest_step()

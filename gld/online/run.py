@@ -35,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from gld import files
+from gld.arguments import ArgumentError
 from gld.inference import depth_io
 from gld.online import checkpoint
 from gld.online.learner import OnlineLearner
@@ -184,9 +185,43 @@ def run_online(
         )
     workdir.mkdir(parents=True, exist_ok=True)
     with training_lock(workdir), contextlib.closing(checkpoint.manager(workdir)) as checkpoints:
+        saved = checkpoint.saved_meta(checkpoints)
+        if saved is not None:
+            _check_same_run(workdir, saved, meta)
         restored = checkpoint.restore(checkpoints, learner)
         options = _Options(frames, checkpoint_every, window, view_every, progress)
         return _continue(stream, learner, workdir, checkpoints, restored, meta, options, print_fn)
+
+
+# What a resumed run must share with the run it continues.
+RESUMED_KEYS = ("model", "stream", "settings")
+
+
+def _check_same_run(workdir: Path, saved: dict[str, Any], meta: dict[str, Any]) -> None:
+    """Refuses to resume `workdir`'s run with another model, stream or learner setting,
+    naming each that differs."""
+
+    def plain(value):  # as the checkpoint's JSON holds it (tuples as lists)
+        return json.loads(json.dumps(value, default=str))
+
+    differences = []
+    for key in RESUMED_KEYS:
+        if key not in saved or key not in meta:
+            continue
+        was, now = saved[key], plain(meta[key])
+        if isinstance(was, dict) and isinstance(now, dict):
+            differences += [
+                f"{key}.{name} {was.get(name)!r} -> {now.get(name)!r}"
+                for name in sorted(set(was) | set(now))
+                if was.get(name) != now.get(name)
+            ]
+        elif was != now:
+            differences.append(f"{key} {was!r} -> {now!r}")
+    if differences:
+        raise ArgumentError(
+            f"--workdir={workdir} holds a run made otherwise ({'; '.join(differences)}): "
+            "resume it as it was made, or give another --workdir"
+        )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,6 +13,7 @@ import pytest
 from conftest import TINY_MODEL, random_variables
 
 from data.gld_scenes import robot_stream
+from gld.arguments import ArgumentError
 from gld.losses.supervised import LossWeights
 from gld.models import registry
 from gld.online import learner as learner_lib
@@ -157,6 +158,28 @@ def test_a_run_stopped_after_a_checkpoint_resumes_to_the_same_result(
     summary = json.loads((whole / run.SUMMARY_FILE).read_text())
     assert resumed["curve"] == summary["curve"] and resumed["labelled"] == summary["labelled"]
     assert (stopped / run.CURVE_FILE).is_file()
+
+
+def test_a_run_is_resumed_only_as_it_was_made(model_and_variables, stream, tmp_path):
+    arguments = dict(frames=8, checkpoint_every=4, window=4, progress=False)
+    meta = {"model": "tiny", "settings": {"reading_memory": 0, "batch_size": 2}}
+    run.run_online(stream, _learner(model_and_variables), tmp_path, meta=meta, **arguments)
+    log = (tmp_path / run.LOG_FILE).read_text()
+    other = {"model": "tiny", "settings": {"reading_memory": 30, "batch_size": 2}}
+    with pytest.raises(ArgumentError, match=r"settings.reading_memory 0 -> 30\)"):
+        run.run_online(
+            stream,
+            _learner(model_and_variables, reading_memory=30),
+            tmp_path,
+            meta=other,
+            **{**arguments, "frames": 12},
+        )
+    assert (tmp_path / run.LOG_FILE).read_text() == log  # nothing written
+    # The same run resumes.
+    run.run_online(
+        stream, _learner(model_and_variables), tmp_path, meta=meta, **{**arguments, "frames": 12}
+    )
+    assert len((tmp_path / run.LOG_FILE).read_text().splitlines()) == 12
 
 
 def test_bad_settings_are_refused():
