@@ -126,9 +126,19 @@ def _size() -> tuple[int, int]:
     return int(height), int(width)
 
 
+# The flags of the simulated robot alone.
+SIMULATOR_FLAGS = ("world", "camera_yaw", "reading_pixel")
+
+
 def _stream(height: int, width: int):
     """The simulated robot, or the recording the flags name."""
     if FLAGS.images or FLAGS.video:
+        simulated = [name for name in SIMULATOR_FLAGS if FLAGS[name].present]
+        if simulated:
+            raise app.UsageError(
+                f"--{simulated[0]} sets the simulated robot; a recording has its own camera "
+                "and readings"
+            )
         from data.demon import recordings as recording_files
         from gld.online import recording_stream
 
