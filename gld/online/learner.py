@@ -11,8 +11,9 @@ computes the flow from the frame to the partner (OpenCV DIS, as the datasets), p
 the frame's depth with the model as it is and publishes it (in baselines; times the
 odometry's baseline, metres). In simulation the prediction is then scored against the
 truth, before anything is learned from the frame (prequential). The pair, with its range
-reading as the one labelled pixel (camera-z metres over the odometry's baseline: the
-model's units), goes into a bounded replay buffer (`gld.online.replay`), and
+reading as a labelled pixel (camera-z metres over the odometry's baseline: the model's
+units), and with the readings of up to `reading_memory` earlier frames carried into it by
+the odometry, goes into a bounded replay buffer (`gld.online.replay`), and
 `updates_per_frame` optimiser steps run on batches of the newest pair and replayed ones.
 
 The updates run in a worker thread beside the next frames: a prediction never waits for
@@ -24,8 +25,8 @@ fixed, so a run is deterministic for a stream and a seed, with the worker or wit
 
 `state()` and `restore()` hold everything a resumed run needs besides the stream (the
 model and optimiser state, the buffer, the running reference, counters); the stream is
-replayed from the recorded position (`next_frame`), after the `max_partner_gap` frames
-before it refill the partner window (`resume_from`).
+replayed from the recorded position (`next_frame`), after the `history` frames before it
+refill the partner window and the reading memory (`resume_from`).
 """
 
 from __future__ import annotations
@@ -384,21 +385,17 @@ class OnlineLearner:
         self._memory.clear()
 
 
-def _pixels_to_camera(intrinsics: np.ndarray, height: int, width: int):
-    """(fx, fy, cx, cy) in pixels of a normalised camera (`Frame.intrinsics`)."""
-    fx, fy, cx, cy = np.asarray(intrinsics, np.float64)
-    return fx * width, fy * height, cx * width - 0.5, cy * height - 0.5
-
-
 def reading_point(frame: Frame) -> np.ndarray | None:
     """The world point of `frame`'s range reading, placed by its odometry (None without
     a reading). The reading is camera-z metres at pixel (u, v)."""
     if frame.reading is None:
         return None
     height, width = frame.image.shape[:2]
-    fx, fy, cx, cy = _pixels_to_camera(frame.intrinsics, height, width)
+    camera_matrix = geometry.intrinsics_matrix(
+        np.asarray(frame.intrinsics, np.float64), height, width
+    )
     u, v, depth = frame.reading
-    camera = depth * np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
+    camera = depth * np.linalg.solve(camera_matrix, np.array([u, v, 1.0]))
     rotation = np.asarray(frame.rotation, np.float64)
     return rotation.T @ (camera - np.asarray(frame.translation, np.float64))
 
@@ -408,12 +405,15 @@ def carried_labels(frame: Frame, points: np.ndarray, height: int, width: int) ->
     its odometry: those in front of the camera and inside the image, in `points`' order."""
     if not len(points):
         return np.zeros((0, 3), np.float32)
-    camera = points @ np.asarray(frame.rotation, np.float64).T + np.asarray(frame.translation)
-    fx, fy, cx, cy = _pixels_to_camera(frame.intrinsics, height, width)
-    depth = camera[:, 2]
-    ahead = depth > 1e-6
-    safe = np.where(ahead, depth, 1.0)
-    column = np.round(fx * camera[:, 0] / safe + cx)
-    row = np.round(fy * camera[:, 1] / safe + cy)
-    keep = ahead & (row >= 0) & (row < height) & (column >= 0) & (column < width)
+    camera = geometry.transform_points(
+        np.asarray(points, np.float64)[None],
+        np.asarray(frame.rotation, np.float64),
+        np.asarray(frame.translation, np.float64),
+    )
+    camera_matrix = geometry.intrinsics_matrix(
+        np.asarray(frame.intrinsics, np.float64), height, width
+    )
+    pixels, depth = geometry.project(camera, camera_matrix)
+    column, row, depth = np.round(pixels[0, :, 0]), np.round(pixels[0, :, 1]), depth[0]
+    keep = (depth > 1e-6) & (row >= 0) & (row < height) & (column >= 0) & (column < width)
     return np.stack([row[keep], column[keep], depth[keep]], axis=1).astype(np.float32)
