@@ -190,7 +190,7 @@ def markdown_table(result: dict[str, Any], commit: str, source: str = "benchmark
         notes.append(
             f"The machine's float32 GEMM ({gemm['size']}x{gemm['size']} matmul through XLA"
             f"{peak_note}): "
-            f"{gemm['best_gflops_per_s']:.0f} GFLOP/s best, {gemm['median_gflops_per_s']:.0f} "
+            f"{gemm['best_gflops_per_s']:,.0f} GFLOP/s best, {gemm['median_gflops_per_s']:,.0f} "
             "median; the train step reaches "
             + ", ".join(f"{share:.0%}" for share in shares)
             + " of it."
