@@ -119,26 +119,22 @@ def run_model_suite() -> dict:
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def rewrite_readme(result: dict, commit: str, source: str = "benchmark.json") -> None:
-    """Puts `result`'s table between the README's markers for its backend; `source`
-    is where the table says every row is."""
+def rewrite_readme(result: dict, commit: str) -> None:
     from experiments.benchmarks import model_tables
 
-    backend = result.get("backend", "cpu")
-    table = model_tables.markdown_table(result, commit, source)
-    README.write_text(model_tables.replace_readme_table(README.read_text(), table, backend))
+    backend = model_tables.rewrite_readme(README, result, commit)
     print(f"rewrote the {backend.upper()} speed table of {README}")
 
 
 def readme_from(path: Path) -> None:
     """`--readme_from`: the README's table from a stored result, at its recorded commit."""
+    from experiments.benchmarks import model_tables
+
     try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
-        raise app.UsageError(f"--readme_from: cannot read a result from {path}: {error}") from None
-    if record.get("suite") != "model":
-        raise app.UsageError(f"--readme_from: {path} is not a model-suite result")
-    rewrite_readme(record["result"], record.get("commit") or "unknown", str(path))
+        backend = model_tables.readme_from(README, path)
+    except ValueError as error:
+        raise app.UsageError(f"--readme_from: {error}") from None
+    print(f"rewrote the {backend.upper()} speed table of {README} from {path}")
 
 
 def main(argv: list[str]) -> None:

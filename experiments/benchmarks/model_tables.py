@@ -7,8 +7,10 @@ and `replace_readme_table` puts it between the README's markers.
 
 from __future__ import annotations
 
+import json
 import statistics
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 # The figures measured against the reference: gld's row key (+ "_s" in the reference's).
@@ -242,3 +244,32 @@ def replace_readme_table(readme: str, table: str, backend: str = "cpu") -> str:
     head, rest = readme.split(start, 1)
     _, tail = rest.split(end, 1)
     return f"{head}{start}\n{table}\n{end}{tail}"
+
+
+def rewrite_readme(
+    readme: Path, result: dict[str, Any], commit: str, source: str = "benchmark.json"
+) -> str:
+    """Puts `result`'s table between `readme`'s markers for its backend (`source`: where
+    the table says every row is); returns the backend."""
+    backend = result.get("backend", "cpu")
+    table = markdown_table(result, commit, source)
+    readme.write_text(replace_readme_table(readme.read_text(), table, backend))
+    return backend
+
+
+def readme_from(readme: Path, path: Path) -> str:
+    """`readme`'s table from a stored model-suite result (`experiments.benchmark`'s
+    `--output`), at the commit it records; ValueError, with `readme` untouched, if `path`
+    holds no complete one. Returns the backend."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read a result from {path}: {error}") from None
+    if not isinstance(record, dict) or record.get("suite") != "model":
+        raise ValueError(f"{path} is not a model-suite result")
+    try:
+        return rewrite_readme(
+            readme, record["result"], record.get("commit") or "unknown", str(path)
+        )
+    except (KeyError, TypeError, AttributeError) as error:
+        raise ValueError(f"{path} is not a complete model-suite result (no {error})") from None

@@ -225,3 +225,26 @@ def test_a_gpu_result_goes_to_the_gpu_table_in_milliseconds():
     )
     rewritten = model_tables.replace_readme_table(readme, table, "gpu")
     assert "cpu table" in rewritten and "old" not in rewritten and table in rewritten
+
+
+@pytest.mark.parametrize(
+    "record, message",
+    [
+        ({"suite": "robot", "result": {}}, "is not a model-suite result"),
+        ({"suite": "model", "result": {"pairs": []}}, "is not a complete model-suite result"),
+    ],
+)
+def test_readme_from_refuses_what_is_not_a_model_result(tmp_path, record, message):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{model_tables.README_START}\nold\n{model_tables.README_END}\n")
+    before = readme.read_text()
+    path = tmp_path / "result.json"
+    path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=message):
+        model_tables.readme_from(readme, path)
+    assert readme.read_text() == before
+    # A complete result goes in.
+    result = _result([_pair(0.5, 1000.0)])
+    path.write_text(json.dumps({"suite": "model", "commit": "abc1234", "result": result}))
+    assert model_tables.readme_from(readme, path) == "cpu"
+    assert "commit abc1234" in readme.read_text() and "old" not in readme.read_text()
