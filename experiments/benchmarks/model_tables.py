@@ -1,8 +1,9 @@
 """The model benchmark's tables: the printed one, and the README's speed table.
 
 `experiments.benchmarks.model` measures; this module formats what it measured.
-`markdown_table` writes the README's table (`python -m experiments.benchmark --readme`)
-and `replace_readme_table` puts it between the README's markers.
+`markdown_table` writes the README's table (`python -m experiments.benchmark --readme`),
+`replace_readme_table` puts it between the README's markers for the result's backend (the
+CPU's or the GPU's), and `readme_from` does both from a stored result (`--readme_from`).
 """
 
 from __future__ import annotations
