@@ -11,12 +11,12 @@ of a whole Adam train step (the model's loss, `gld.training.trainer.make_train_s
 compiled as the trainer compiles it: over a mesh of `cpu_devices` CPU devices), peak
 host memory, and the GFLOP/s achieved (the flops of the computation, from XLA's cost
 analysis of the "vmap" reference program, divided by the median time). It also
-measures the machine's float32 GEMM rate (a 2048x2048 matmul through XLA, all cores),
-the peak the train step's GFLOP/s is compared with.
+measures the machine's float32 GEMM rate (a 2048x2048 matmul through XLA, all cores;
+8192x8192 on an accelerator), the peak the train step's GFLOP/s is compared with.
 
-With a PyTorch interpreter it runs `../shared/bench/torch_reference.py` (the same
-network in PyTorch, eager and compiled) alternating with the default formulation's
-row, `pairs` times: each pair's ratios are reported, with their median and spread, and
+With a PyTorch interpreter it runs the PyTorch reference (`torch_pairs`) alternating with
+the measured backend's default formulation's row, `pairs` times: each pair's ratios are
+reported, with their median and spread, and
 the reference is called noisy when its own train step varies by more than 25% across
 pairs. Goals: train step at most 0.5x PyTorch eager and below compiled PyTorch; forward
 at batch 16 no slower than compiled PyTorch; forward at batch 1 no slower than eager.
@@ -38,19 +38,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.benchmarks.model_tables import (
-    FIGURES,
-    GOALS,
-    MODES,
-    format_row,
-    spread,
-    torch_seconds,
+from experiments.benchmarks.model_tables import format_row
+from experiments.benchmarks.torch_pairs import (
+    DEFAULT_TORCH_REFERENCE,
+    TORCH_SHAPE,
+    goal_ratios,
+    run_torch_reference,
+    summarise_pairs,
+    torch_summary,
 )
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_TORCH_REFERENCE = REPO_ROOT.parent / "shared" / "bench" / "torch_reference.py"
-# The reference's fixed problem: 256x192 images, batch 1 and 16.
-TORCH_SHAPE = (192, 256)
 
 
 def _timed(fn: Callable[[], Any], repeats: int, max_seconds: float) -> list[float]:
@@ -243,20 +241,16 @@ def measure_one(
     return result
 
 
-# The GEMM that measures the peak: large enough to fill the device.
-GEMM_SIZES = {"cpu": 2048}
-ACCELERATOR_GEMM_SIZE = 8192
-
-
 def measure_gemm(size: int | None = None, repeats: int = 10) -> dict[str, Any]:
     """The machine's float32 GEMM rate through XLA at JAX's default precision (all
-    cores, one device): a `size` x `size` matmul (None = `GEMM_SIZES` of the backend),
+    cores, one device): a `size` x `size` matmul (None: 2048 on the CPU, 8192 on an
+    accelerator, large enough to fill it),
     best and median GFLOP/s over `repeats` calls, with the backend and its device."""
     import jax
     import jax.numpy as jnp
 
     backend = jax.default_backend()
-    size = size or GEMM_SIZES.get(backend, ACCELERATOR_GEMM_SIZE)
+    size = size or (2048 if backend == "cpu" else 8192)
     matrix = jax.random.normal(jax.random.key(0), (size, size), jnp.float32)
     matmul = jax.jit(lambda a: a @ a)
     times = _timed(lambda: jax.block_until_ready(matmul(matrix)), repeats, 60.0)
@@ -292,85 +286,6 @@ def _measure_in_subprocess(arguments: dict[str, Any]) -> dict[str, Any]:
             **row,
         }
     return row
-
-
-def run_torch_reference(
-    torch_python: str,
-    reference: str | Path,
-    repeats: int,
-    compile_torch: bool,
-    device: str = "cpu",
-) -> dict[str, Any]:
-    """Runs the PyTorch reference on `device` ("cpu": the reference's own timer; else
-    `torch_on_device.py`, which times it with the device synchronised); returns its
-    JSON (milliseconds) or {'error': ...}."""
-    command = [torch_python, str(reference), "--repeats", str(repeats)]
-    if device != "cpu":
-        runner = Path(__file__).with_name("torch_on_device.py")
-        command = [torch_python, str(runner), f"--device={device}", f"--reference={reference}"]
-        command += ["--repeats", str(repeats)]
-    if not compile_torch:
-        command.append("--no-compile")
-    completed = subprocess.run(command, capture_output=True, text=True)
-    if completed.returncode != 0:
-        return {"error": (completed.stderr.strip().splitlines() or ["failed"])[-1]}
-    return json.loads(completed.stdout.strip().splitlines()[-1])
-
-
-def _torch_summary(rounds: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    """Median over rounds of each reference figure, in seconds: {mode: {key: s}}."""
-    summary: dict[str, dict[str, float]] = {}
-    for mode in MODES:
-        figures = [torch_seconds(r)[mode] for r in rounds if mode in r]
-        if figures:
-            summary[mode] = {key: statistics.median(f[key] for f in figures) for key in figures[0]}
-    return summary
-
-
-def goal_ratios(row: dict[str, Any], torch: dict[str, dict[str, float]]) -> dict[str, float]:
-    """Ratios of gld's median time to PyTorch's, for each goal of `GOALS` both have."""
-    ratios = {}
-    for name, figure, mode, torch_figure, _ in GOALS:
-        if figure in row and torch_figure in torch.get(mode, {}):
-            ratios[name] = row[figure]["median_s"] / torch[mode][torch_figure]
-    return ratios
-
-
-def summarise_pairs(pairs: list[dict[str, Any]]) -> dict[str, Any]:
-    """The alternating (reference, gld) pairs, compared once: for each figure of
-    `FIGURES`, gld's times, each mode's reference times and the pair-by-pair ratios
-    ("figures"); each pair's goal ratios; the goals' median and spread; and whether the
-    reference was noisy (its eager train step varies by more than 25%)."""
-    measured = [p for p in pairs if "error" not in p["gld"]]
-    summary: dict[str, Any] = {"pairs": len(pairs)}
-    if not measured:
-        return summary
-    compared = [p for p in measured if p.get("torch") and "error" not in p["torch"]]
-    references = [torch_seconds(p["torch"]) for p in compared]
-    figures: dict[str, dict[str, list[float]]] = {}
-    for figure in FIGURES:
-        entry = {"gld": [p["gld"][figure]["median_s"] for p in measured if figure in p["gld"]]}
-        for mode in MODES:
-            paired = [
-                (p["gld"][figure]["median_s"], reference[mode][f"{figure}_s"])
-                for p, reference in zip(compared, references, strict=True)
-                if figure in p["gld"] and mode in reference
-            ]
-            entry[mode] = [torch_time for _, torch_time in paired]
-            entry[f"vs_{mode}"] = [gld_time / torch_time for gld_time, torch_time in paired]
-        figures[figure] = entry
-        if entry["gld"]:
-            summary[f"gld_{figure}_s"] = spread(entry["gld"])
-    summary["figures"] = figures
-    summary["ratios_per_pair"] = [
-        goal_ratios(p["gld"], reference) for p, reference in zip(compared, references, strict=True)
-    ]
-    for name, figure, mode, _, _ in GOALS:
-        if figures[figure][f"vs_{mode}"]:
-            summary[name] = spread(figures[figure][f"vs_{mode}"])
-    eager = figures["train_b16"]["eager"]
-    summary["torch_noisy"] = bool(eager and max(eager) > 1.25 * min(eager))
-    return summary
 
 
 def run(
@@ -476,12 +391,12 @@ def run(
                 rows.append(measure(model_name, formulation))
 
     references = [p["torch"] for p in measured_pairs if p["torch"] and "error" not in p["torch"]]
-    torch_summary = _torch_summary(references)
+    reference_summary = torch_summary(references)
     comparable = (height, width) == TORCH_SHAPE and train_batch_size == 16
-    if torch_summary and comparable:
+    if reference_summary and comparable:
         for row in rows:
             if "error" not in row:
-                row["vs_torch"] = goal_ratios(row, torch_summary)
+                row["vs_torch"] = goal_ratios(row, reference_summary)
     summary = summarise_pairs(measured_pairs) if comparable else {}
     train = measured_pairs[-1]["gld"].get(f"train_b{train_batch_size}", {})
     if "error" not in gemm and train.get("gflops_per_s"):
@@ -497,7 +412,7 @@ def run(
         "gemm": gemm,
         "torch": {
             "rounds": [p["torch"] for p in measured_pairs if p["torch"]],
-            "median_s": torch_summary,
+            "median_s": reference_summary,
         },
         "default_formulation": {
             name: filter_banks.default_formulation(name) for name in ("cpu", "gpu")

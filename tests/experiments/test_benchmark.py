@@ -10,7 +10,7 @@ import pytest
 from conftest import REPO_ROOT
 
 from experiments.benchmarks import model as model_benchmark
-from experiments.benchmarks import model_tables
+from experiments.benchmarks import model_tables, torch_pairs
 from gld.models import filter_banks
 
 FAKE_TORCH_FIGURES = {
@@ -94,8 +94,8 @@ def test_goal_ratios_against_the_reference():
         "forward_b16": {"median_s": 0.5},
         "forward_b1": {"median_s": 0.006},
     }
-    torch = model_benchmark._torch_summary([FAKE_TORCH_FIGURES])
-    ratios = model_benchmark.goal_ratios(row, torch)
+    torch = torch_pairs.torch_summary([FAKE_TORCH_FIGURES])
+    ratios = torch_pairs.goal_ratios(row, torch)
     assert ratios["train_b16_vs_eager"] == pytest.approx(1.0 / 1.25)
     assert ratios["train_b16_vs_compiled"] == pytest.approx(1.0 / 1.3)
     assert ratios["forward_b16_vs_compiled"] == pytest.approx(0.5 / 0.25)
@@ -115,23 +115,21 @@ def _pair(train_s: float, eager_train_ms: float) -> dict:
 
 def test_pairs_are_compared_each_with_its_own_reference():
     pairs = [_pair(0.5, 1000.0), _pair(0.6, 2000.0), _pair(0.4, 1000.0)]
-    summary = model_benchmark.summarise_pairs(pairs)
+    summary = torch_pairs.summarise_pairs(pairs)
     per_pair = [ratios["train_b16_vs_eager"] for ratios in summary["ratios_per_pair"]]
     assert per_pair == pytest.approx([0.5, 0.3, 0.4])
     assert summary["train_b16_vs_eager"] == pytest.approx({"median": 0.4, "min": 0.3, "max": 0.5})
     assert summary["gld_train_b16_s"]["median"] == pytest.approx(0.5)
     # The reference's train step varied 2x across the pairs: noisy.
     assert summary["torch_noisy"]
-    assert not model_benchmark.summarise_pairs([_pair(0.5, 1000.0), _pair(0.5, 1100.0)])[
-        "torch_noisy"
-    ]
+    assert not torch_pairs.summarise_pairs([_pair(0.5, 1000.0), _pair(0.5, 1100.0)])["torch_noisy"]
 
 
 def _result(pairs: list[dict], **overrides) -> dict:
     """A model-suite result of the CPU (2 pairs at 256x192) around `pairs`."""
     return {
         "pairs": pairs,
-        "summary": model_benchmark.summarise_pairs(pairs),
+        "summary": torch_pairs.summarise_pairs(pairs),
         "gemm": {"size": 2048, "best_gflops_per_s": 150.0, "median_gflops_per_s": 140.0},
         "settings": {
             "height": 192,
@@ -154,7 +152,7 @@ def test_the_readme_table_is_rewritten_between_its_markers():
     result = _result(
         pairs,
         summary={
-            **model_benchmark.summarise_pairs(pairs),
+            **torch_pairs.summarise_pairs(pairs),
             "train_share_of_gemm_peak": [0.3, 0.25],
         },
     )
@@ -191,11 +189,11 @@ def test_a_device_reference_runs_through_the_synchronising_runner(tmp_path):
     program = 'import json, sys; print(json.dumps({"argv": sys.argv[1:]}))'
     echo.write_text(f"#!/bin/sh\nexec {sys.executable} -c '{program}' \"$@\"\n")
     echo.chmod(0o755)
-    on_device = model_benchmark.run_torch_reference(str(echo), "ref.py", 7, True, device="cuda")
+    on_device = torch_pairs.run_torch_reference(str(echo), "ref.py", 7, True, device="cuda")
     runner, *arguments = on_device["argv"]
     assert runner.endswith("experiments/benchmarks/torch_on_device.py")
     assert arguments == ["--device=cuda", "--reference=ref.py", "--repeats", "7"]
-    on_cpu = model_benchmark.run_torch_reference(str(echo), "ref.py", 7, False)
+    on_cpu = torch_pairs.run_torch_reference(str(echo), "ref.py", 7, False)
     assert on_cpu["argv"] == ["ref.py", "--repeats", "7", "--no-compile"]
 
 
