@@ -77,6 +77,8 @@ flags.DEFINE_bool(
 )
 
 SUITES = ("model", "renderer", "pipeline", "demon", "robot")
+# The README whose speed tables `--readme` and `--readme_from` rewrite.
+README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def run_model_suite() -> dict:
@@ -112,18 +114,10 @@ def run_model_suite() -> dict:
     result = model.run(**settings)
     print(model_tables.format_table(result))
     if FLAGS.readme:
-        rewrite_readme(result, common.commit_stamp(README) or "unknown")
+        commit = common.commit_stamp(README) or "unknown"
+        backend = model_tables.rewrite_readme(README, result, commit)
+        print(f"rewrote the {backend.upper()} speed table of {README}")
     return result
-
-
-README = Path(__file__).resolve().parents[1] / "README.md"
-
-
-def rewrite_readme(result: dict, commit: str) -> None:
-    from experiments.benchmarks import model_tables
-
-    backend = model_tables.rewrite_readme(README, result, commit)
-    print(f"rewrote the {backend.upper()} speed table of {README}")
 
 
 def readme_from(path: Path) -> None:

@@ -40,6 +40,7 @@ from gld.inference import depth_io
 from gld.online import checkpoint
 from gld.online.learner import OnlineLearner
 from gld.online.stream import Frame, FrameStream
+from gld.runs import workdir as workdir_lib
 from gld.runs.lock import training_lock
 
 LOG_FILE = "prequential.jsonl"
@@ -201,26 +202,27 @@ def _check_same_run(workdir: Path, saved: dict[str, Any], meta: dict[str, Any]) 
     """Refuses to resume `workdir`'s run with another model, stream or learner setting,
     naming each that differs."""
 
-    def plain(value):  # as the checkpoint's JSON holds it (tuples as lists)
-        return json.loads(json.dumps(value, default=str))
+    def flat(key, value):  # as the checkpoint's JSON holds it (tuples as lists)
+        value = json.loads(json.dumps(value, default=str))
+        if isinstance(value, dict):
+            return {f"{key}.{name}": item for name, item in value.items()}
+        return {key: value}
 
-    differences = []
+    was, now = {}, {}
     for key in RESUMED_KEYS:
-        if key not in saved or key not in meta:
-            continue
-        was, now = saved[key], plain(meta[key])
-        if isinstance(was, dict) and isinstance(now, dict):
-            differences += [
-                f"{key}.{name} {was.get(name)!r} -> {now.get(name)!r}"
-                for name in sorted(set(was) | set(now))
-                if was.get(name) != now.get(name)
-            ]
-        elif was != now:
-            differences.append(f"{key} {was!r} -> {now!r}")
-    if differences:
+        if key in saved and key in meta:
+            was.update(flat(key, saved[key]))
+            now.update(flat(key, meta[key]))
+    changes = {
+        key: (was.get(key), now.get(key))
+        for key in sorted(set(was) | set(now))
+        if was.get(key) != now.get(key)
+    }
+    if changes:
         raise ArgumentError(
-            f"--workdir={workdir} holds a run made otherwise ({'; '.join(differences)}): "
-            "resume it as it was made, or give another --workdir"
+            f"--workdir={workdir} holds a run made otherwise "
+            f"({workdir_lib.describe_changes(changes)}): resume it as it was made, or give "
+            "another --workdir"
         )
 
 
