@@ -159,6 +159,33 @@ def depth_to_flow(
     return pixels2 - pixel_grid(height, width, xp), z2
 
 
+def rotation_flow(
+    rotation: Array, camera_matrix1: Array, camera_matrix2: Array, height: int, width: int
+) -> Array:
+    """The flow a rotation alone gives (the flow of points at infinity), I1 -> I2.
+
+    A rigid scene's flow is this plus the parallax, which lies along the epipolar lines
+    and scales with inverse depth; the flow less this (`flow - rotation_flow(...)`) is
+    the parallax alone.
+
+    Args:
+      rotation: [..., 3, 3], X2 = R X1 + t.
+      camera_matrix1, camera_matrix2: [..., 3, 3] pixel-index K of each view.
+      height, width: image size in pixels.
+
+    Returns:
+      [..., H, W, 2] pixels (a point that the rotation takes behind camera 2 is mapped
+      through a depth clamped at 1e-6).
+    """
+    xp = _xp(rotation, camera_matrix1, camera_matrix2)
+    homography = camera_matrix2 @ rotation @ xp.linalg.inv(camera_matrix1)
+    pixels = pixel_grid(height, width, xp)
+    homogeneous = xp.concatenate([pixels, xp.ones_like(pixels[..., :1])], axis=-1)
+    mapped = xp.einsum("...ij,hwj->...hwi", homography, homogeneous)
+    depth = xp.maximum(mapped[..., 2:], 1e-6)
+    return mapped[..., :2] / depth - pixels
+
+
 def sample_nearest(image: Array, pixels: Array) -> tuple[Array, Array]:
     """Nearest-neighbour lookup of `image` [H, W, ...] at `pixels` [H, W, 2] (numpy).
 

@@ -98,6 +98,21 @@ def perturbed_pose(
     return rotation.astype(dtype), translation.astype(dtype)
 
 
+def parallax_flow(
+    flow: jax.Array, global_params: jax.Array, intrinsics1: jax.Array, intrinsics2: jax.Array
+) -> jax.Array:
+    """The flow [B, H, W, 2] (pixels) less the flow of the rotation six global parameters
+    stand for (`global_params_pose`), with the cameras' normalised intrinsics [B, 4]: the
+    parallax alone, as `GlobalLocal.derotate_flow` gives it to the local network."""
+    height, width = flow.shape[1:3]
+    camera1, camera2 = (
+        geometry.intrinsics_matrix(intrinsics.astype(flow.dtype), height, width)
+        for intrinsics in (intrinsics1, intrinsics2)
+    )
+    rotation = global_params_pose(global_params)["rotation"]
+    return flow - geometry.rotation_flow(rotation, camera1, camera2, height, width)
+
+
 class GlobalLocal(nn.Module):
     """The paper's global-local network.
 
@@ -157,6 +172,12 @@ class GlobalLocal(nn.Module):
         neighbours' (a rim in every depth map); "edge" repeats the input's outermost
         pixels instead (the input padded once by the receptive field's reach, the output
         cropped), so a uniform input gives a uniform depth map to the border.
+      derotate_flow: the local network sees the flow less the flow of g's rotation
+        (`gld.geometry.rotation_flow`; the call then needs intrinsics1= and
+        intrinsics2=): the parallax alone, which lies along the epipolar lines and scales
+        with inverse depth. The rotation's flow is quadratic in the pixel's position, which
+        filters linear in g cannot subtract. The global module still sees the flow as it
+        is. False (the paper's) gives the local network the flow.
     """
 
     encoder_channels: Sequence[int] = option(
@@ -214,6 +235,9 @@ class GlobalLocal(nn.Module):
         None, "apply_filter_banks formulation (default: the platform's).", tuple(FORMULATIONS)
     )
     border: str = option("zero", "The local network's padding beyond the image.", BORDERS)
+    derotate_flow: bool = option(
+        False, "The local network sees the flow less the flow of g's rotation (the parallax)."
+    )
 
     @property
     def local_in_channels(self) -> int:
@@ -225,7 +249,7 @@ class GlobalLocal(nn.Module):
         """Contract keys the call reads by keyword besides the images and flow."""
         if not self.use_global_module:
             return ()
-        if self.global_source == "encoder" and self.pose_refinement_steps:
+        if self.global_source == "encoder" and (self.pose_refinement_steps or self.derotate_flow):
             return CAMERA_INPUTS
         return GIVEN_POSE_INPUTS.get(self.global_source, ())
 
@@ -282,8 +306,6 @@ class GlobalLocal(nn.Module):
         else:
             local_inputs = image_pair
             global_inputs = image_pair
-        if self.use_coordinates:
-            local_inputs = layers.with_coordinates(local_inputs)
         if self.encoder_coordinates:
             global_inputs = layers.with_coordinates(global_inputs)
 
@@ -351,6 +373,10 @@ class GlobalLocal(nn.Module):
         else:
             global_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
             filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
+        if self.derotate_flow:
+            local_inputs = self._derotated(flow, global_params, intrinsics1, intrinsics2)
+        if self.use_coordinates:
+            local_inputs = layers.with_coordinates(local_inputs)
 
         final_conv = ConvParameters(
             in_channels=self.bank_channels[-1],
@@ -383,6 +409,18 @@ class GlobalLocal(nn.Module):
             outputs["encoder_pose"] = global_params_pose(encoder_params)
         outputs["filter_banks"] = list(filter_banks)
         return outputs
+
+    def _derotated(self, flow, global_params, intrinsics1, intrinsics2):
+        """The local network's flow less the flow of g's rotation, in its units."""
+        if intrinsics1 is None or intrinsics2 is None:
+            raise ValueError(
+                "derotate_flow subtracts the flow of g's rotation, which needs the cameras: "
+                "call with intrinsics1= and intrinsics2= [B, 4]"
+            )
+        parallax = parallax_flow(flow, global_params, intrinsics1, intrinsics2)
+        if self.local_flow_units == "pixels":
+            return parallax
+        return layers.scaled_flow(parallax, self.flow_scale)
 
     def _refined(self, proposal, flow, intrinsics1, intrinsics2):
         """The global parameters of the encoder's pose refined on the flow."""

@@ -45,6 +45,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
         "border": "zero",
+        "derotate_flow": False,
     },
     "global_local_flow_net": {"global_local": {}},
 }
@@ -118,6 +119,16 @@ def check_config(name: str, config: dict) -> None:
         raise ValueError(
             "pose_refinement_steps refines the pose on the flow, which a model without the "
             "flow (use_flow false) must not read"
+        )
+    if values["derotate_flow"] and not (
+        values["use_global_module"]
+        and values["use_flow"]
+        and values["global_source"] == "encoder"
+        and values["global_dim"] == 6
+    ):
+        raise ValueError(
+            "derotate_flow subtracts the flow of g's rotation: it needs the flow, the global "
+            "module, global_source encoder and global_dim 6"
         )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
