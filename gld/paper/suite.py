@@ -13,11 +13,13 @@ The global-local runs use the main job's recipe (`gld.runs.recipe`): a
 global encoder with instance normalisation that sees the flow alone, and a global
 module that learns the motion: the epipolar term at 0.1, the classical pose teacher
 (`pose_teacher_weight`) and ten refinement steps of the encoder's pose on the flow
-(`pose_refinement_steps`). Two ablations therefore read differently from the paper's:
-"+ image pair" adds the image pair the main recipe leaves out, and the runs without a
-global module or without flow drop all three ways of learning the motion too (they need
-g, and they read the flow); the run "- epipolar term, teacher and refinement" measures
-what those alone cost (g learned from the depth loss alone, as the paper's). The runs
+(`pose_refinement_steps`), whose rotation's flow is subtracted from the local network's
+flow (`derotate_flow`; it goes with the refinement below). Two ablations therefore read
+differently from the paper's: "+ image pair" adds the image pair the main recipe leaves
+out, and the runs without a global module or without flow drop all three ways of
+learning the motion too (they need g, and they read the flow); the run "- epipolar term,
+teacher and refinement" measures what those alone cost (g learned from the depth loss
+alone, as the paper's). The runs
 given a pose have no encoder to teach or refine.
 
 A suite with the further runs (`Scale.further`; all but cpu) adds the control of one

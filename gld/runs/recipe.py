@@ -37,11 +37,15 @@ ARCHITECTURE = {
     "use_image_pair": False,
     "pose_refinement_steps": 10,
     "border": "edge",
+    "derotate_flow": True,
 }
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
+# What needs an encoder's pose and the flow (refinement, the rotation's flow subtracted
+# from the local network's), off.
+WITHOUT_A_POSE = {"pose_refinement_steps": 0, "derotate_flow": False}
 # The architecture for a model without an encoder's pose to refine, or without the flow.
-ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, "pose_refinement_steps": 0}
+ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, **WITHOUT_A_POSE}
 # The main job's training options (its other options: `TrainConfig`'s defaults).
 TRAINING = {
     "steps": 2000,
@@ -74,7 +78,8 @@ def motion_where_it_applies(
     They are defaults of the global-local model whose encoder infers a pose: a model
     without one (another model, a given pose, no global module) trains without the
     epipolar term and the teacher, and one without it or without the flow without
-    refinement, unless the command line gives them (`given`: the option names given).
+    refinement and without the rotation's flow subtracted (`WITHOUT_A_POSE`), unless the
+    command line gives them (`given`: the option names given).
 
     Args:
       model, model_config: the run's model and its constructor arguments.
@@ -87,8 +92,9 @@ def motion_where_it_applies(
     infers = config_lib.infers_pose(model, model_config)
     weights = {name: value if infers or name in given else 0.0 for name, value in weights.items()}
     refines = config_lib.refines_pose(model, model_config)
-    if model == "global_local" and not refines and "pose_refinement_steps" not in given:
-        model_config = {**model_config, "pose_refinement_steps": 0}
+    if model == "global_local" and not refines:
+        off = {name: value for name, value in WITHOUT_A_POSE.items() if name not in given}
+        model_config = {**model_config, **off}
     return model_config, weights
 
 

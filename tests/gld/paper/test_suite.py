@@ -25,6 +25,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
         "use_image_pair": False,
         "pose_refinement_steps": 10,
         "border": "edge",
+        "derotate_flow": True,
     }
     assert main.epipolar_weight == 0.1 and main.pose_teacher_weight == 1.0
     assert main.gt_pixels == 1 and main.flow_source == "estimated"
@@ -43,7 +44,12 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert differences("global_local_image_pair") == {"use_image_pair": True}
     assert differences("global_local_no_coordconv") == {"use_coordinates": False}
     # Without g from the encoder, or without the flow, nothing teaches g the motion.
-    no_motion = {"epipolar_weight": 0.0, "pose_teacher_weight": 0.0, "pose_refinement_steps": 0}
+    no_motion = {
+        "epipolar_weight": 0.0,
+        "pose_teacher_weight": 0.0,
+        "pose_refinement_steps": 0,
+        "derotate_flow": False,
+    }
     assert differences("global_local_no_global_module") == {"use_global_module": False, **no_motion}
     assert differences("global_local_no_flow") == {"use_flow": False, **no_motion}
     assert differences("global_local_no_epipolar") == no_motion

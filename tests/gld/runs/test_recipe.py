@@ -42,29 +42,40 @@ def _main_job(model: str, given: dict) -> tuple[dict, dict]:
 
 
 @pytest.mark.parametrize(
-    "given, teacher, epipolar, refinement",
+    "given, teacher, epipolar, refinement, derotate",
     [
-        ({}, 1.0, 0.1, 10),  # the main job
-        ({"model": "small_encdec"}, 0.0, 0.0, None),  # no global parameters to teach
-        ({"global_source": "pose"}, 0.0, 0.0, 0),  # a given pose: no encoder's to refine
-        ({"use_global_module": False}, 0.0, 0.0, 0),
-        ({"use_flow": False}, 1.0, 0.1, 0),  # the encoder infers g; refinement reads the flow
-        ({"global_dim": 4}, 0.0, 0.0, 0),  # g cannot stand for a pose
-        ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3),  # asked for: kept
-        ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None),
+        ({}, 1.0, 0.1, 10, True),  # the main job
+        ({"model": "small_encdec"}, 0.0, 0.0, None, None),  # no global parameters to teach
+        ({"global_source": "pose"}, 0.0, 0.0, 0, False),  # a given pose: no encoder's to refine
+        ({"use_global_module": False}, 0.0, 0.0, 0, False),
+        (
+            {"use_flow": False},
+            1.0,
+            0.1,
+            0,
+            False,
+        ),  # the encoder infers g; refinement reads the flow
+        ({"global_dim": 4}, 0.0, 0.0, 0, False),  # g cannot stand for a pose
+        ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3, False),  # asked for: kept
+        ({"global_source": "pose", "derotate_flow": True}, 0.0, 0.0, 0, True),  # kept, refused
+        ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None, None),
     ],
 )
 def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
-    given, teacher, epipolar, refinement
+    given, teacher, epipolar, refinement, derotate
 ):
     """The recipe teaches g the motion; a model without an encoder's pose (or without the
-    flow, for refinement) drops it unless the command line names it (and then the
-    config check says what is wrong)."""
+    flow, for refinement and the derotated flow) drops it unless the command line names it
+    (and then the config check says what is wrong)."""
     model = given.get("model", "global_local")
     model_config, weights = _main_job(model, given)
     model_config, weights = recipe.motion_where_it_applies(model, model_config, weights, given)
     assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
     assert model_config.get("pose_refinement_steps") == refinement
+    assert model_config.get("derotate_flow") == derotate
+    if derotate and model_config.get("global_source") == "pose":
+        with pytest.raises(ValueError, match="derotate_flow"):
+            registry.check_config(model, model_config)
 
 
 def test_a_relaunch_keeps_the_workdirs_architecture_for_options_not_given(tmp_path):
