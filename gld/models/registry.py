@@ -79,6 +79,23 @@ def full_config(name: str, config: dict) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
 
 
+def encoder_pose(values: dict) -> bool:
+    """Whether a global-local model of full config `values` infers g from its inputs and
+    g can stand for the camera motion (`global_params_pose`): the global module, the
+    encoder as the source, six global parameters."""
+    return bool(
+        values["use_global_module"]
+        and values["global_source"] == "encoder"
+        and values["global_dim"] == 6
+    )
+
+
+def reads_encoder_pose(values: dict) -> bool:
+    """Whether such a model can also read its pose against the flow (refine it on the
+    flow, subtract its rotation's flow): `encoder_pose`, and the flow is an input."""
+    return encoder_pose(values) and bool(values["use_flow"])
+
+
 def check_config(name: str, config: dict) -> None:
     """Raises ValueError naming the first option of `config` a registered model cannot be
     built with: unknown, a choice or bound broken, lists of mismatched length."""
@@ -106,30 +123,19 @@ def check_config(name: str, config: dict) -> None:
             f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
             f"is {values['global_dim']}"
         )
-    if values["pose_refinement_steps"] and not (
-        values["use_global_module"]
-        and values["global_source"] == "encoder"
-        and values["global_dim"] == 6
+    for option, what in (
+        ("pose_refinement_steps", "refines the encoder's pose on the flow"),
+        ("derotate_flow", "subtracts the flow of the encoder's pose's rotation from the flow"),
     ):
-        raise ValueError(
-            "pose_refinement_steps refines the encoder's pose: it needs the global module, "
-            "global_source encoder and global_dim 6"
-        )
-    if values["pose_refinement_steps"] and not values["use_flow"]:
-        raise ValueError(
-            "pose_refinement_steps refines the pose on the flow, which a model without the "
-            "flow (use_flow false) must not read"
-        )
-    if values["derotate_flow"] and not (
-        values["use_global_module"]
-        and values["use_flow"]
-        and values["global_source"] == "encoder"
-        and values["global_dim"] == 6
-    ):
-        raise ValueError(
-            "derotate_flow subtracts the flow of g's rotation: it needs the flow, the global "
-            "module, global_source encoder and global_dim 6"
-        )
+        if values[option] and not encoder_pose(values):
+            raise ValueError(
+                f"{option} {what}: it needs the global module, global_source encoder and "
+                "global_dim 6"
+            )
+        if values[option] and not reads_encoder_pose(values):
+            raise ValueError(
+                f"{option} {what}, which a model without the flow (use_flow false) must not read"
+            )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
             f"encoder_channels {values['encoder_channels']} and encoder_strides "

@@ -19,8 +19,7 @@ differently from the paper's: "+ image pair" adds the image pair the main recipe
 out, and the runs without a global module or without flow drop all three ways of
 learning the motion too (they need g, and they read the flow); the run "- epipolar term,
 teacher and refinement" measures what those alone cost (g learned from the depth loss
-alone, as the paper's). The runs
-given a pose have no encoder to teach or refine.
+alone, as the paper's). The runs given a pose have no encoder to teach or refine.
 
 A suite with the further runs (`Scale.further`; all but cpu) adds the control of one
 fixed pixel per image to the densities, and closes with the paper's remaining

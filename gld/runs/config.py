@@ -84,21 +84,19 @@ class TrainConfig(TrainerOptions):
 
 def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
     """Whether a model's global parameters are inferred from its inputs and can stand for
-    the camera motion (`gld.models.global_local.global_params_pose`): the epipolar term applies."""
-    if model != "global_local":
-        return False
-    full = registry.full_config(model, model_config)
-    return bool(
-        full["use_global_module"] and full["global_source"] == "encoder" and full["global_dim"] == 6
+    the camera motion (`gld.models.registry.encoder_pose`): the epipolar term applies."""
+    return model == "global_local" and registry.encoder_pose(
+        registry.full_config(model, model_config)
     )
 
 
 def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
-    """Whether a model could refine its encoder's pose on its flow
-    (`pose_refinement_steps`): it infers a pose (`infers_pose`) and reads the flow."""
-    if not infers_pose(model, model_config):
-        return False
-    return bool(registry.full_config(model, model_config)["use_flow"])
+    """Whether a model could read its encoder's pose against its flow: refine it
+    (`pose_refinement_steps`) and subtract its rotation's flow (`derotate_flow`)
+    (`gld.models.registry.reads_encoder_pose`)."""
+    return model == "global_local" and registry.reads_encoder_pose(
+        registry.full_config(model, model_config)
+    )
 
 
 # Stored config keys renamed since the first workdirs were written: old name -> new.
