@@ -12,7 +12,7 @@ on the CPU suite).
 The global-local runs use the main job's recipe (`gld.runs.recipe`): a
 global encoder with instance normalisation that sees the flow alone, and a global
 module that learns the motion: the epipolar term at 0.1, the classical pose teacher
-(`pose_teacher_weight`) and ten refinement steps of the encoder's pose on the flow
+(`pose_teacher_weight`) and twenty refinement steps of the encoder's pose on the flow
 (`pose_refinement_steps`), whose rotation's flow is subtracted from the local network's
 flow (`derotate_flow`; it goes with the refinement below). Two ablations therefore read
 differently from the paper's: "+ image pair" adds the image pair the main recipe leaves

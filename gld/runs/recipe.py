@@ -35,15 +35,15 @@ from gld.runs import workdir as workdir_lib
 ARCHITECTURE = {
     "encoder_norm": "instance",
     "use_image_pair": False,
-    "pose_refinement_steps": 10,
+    "pose_refinement_steps": 20,
     "border": "edge",
     "derotate_flow": True,
 }
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
 # What needs an encoder's pose and the flow (refinement, the rotation's flow subtracted
-# from the local network's), off.
-WITHOUT_A_POSE = {"pose_refinement_steps": 0, "derotate_flow": False}
+# from the local network's, the flow triangulated under it), off.
+WITHOUT_A_POSE = {"pose_refinement_steps": 0, "derotate_flow": False, "parallax_depth": False}
 # The architecture for a model without an encoder's pose to refine, or without the flow.
 ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, **WITHOUT_A_POSE}
 # The main job's training options (its other options: `TrainConfig`'s defaults).

@@ -23,7 +23,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert main.model_config == {
         "encoder_norm": "instance",
         "use_image_pair": False,
-        "pose_refinement_steps": 10,
+        "pose_refinement_steps": 20,
         "border": "edge",
         "derotate_flow": True,
     }
