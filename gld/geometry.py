@@ -315,6 +315,52 @@ def triangulate_depth(
     return xp.where(denominator > 1e-12, depth, 0.0)
 
 
+def triangulate_inverse_depth(
+    flow: Array,
+    camera_matrix1: Array,
+    camera_matrix2: Array,
+    rotation: Array,
+    translation: Array,
+    damping: float = 0.0,
+) -> Array:
+    """Per-pixel linear triangulation of view-1 inverse depth from flow and a known pose.
+
+    The reprojection of the view-1 ray's point at inverse depth rho is `x2 ~ a + rho b`
+    (a: the camera-2 image of the ray's direction, b: of the translation), so the two
+    projection equations are linear in rho and are solved in the least-squares sense,
+    with `damping` (pixels squared) added to the normal equation: a ridge that pulls rho
+    towards 0 (a point at infinity) where the parallax says little about it, near the
+    epipole. Unlike depth (`triangulate_depth`), inverse depth stays finite as the
+    parallax vanishes.
+
+    Args:
+      flow: [..., H, W, 2] pixels, I1 -> I2.
+      camera_matrix1, camera_matrix2: [..., 3, 3].
+      rotation, translation: [..., 3, 3], [..., 3]; X2 = R X1 + t (inverse depth comes
+        in the units of 1 / ||t||).
+      damping: >= 0; 0 gives the plain least-squares solution (0 where it is undefined).
+
+    Returns:
+      inverse depth [..., H, W]; negative where the flow puts the point behind camera 1.
+    """
+    xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    height, width = flow.shape[-3:-1]
+    grid = pixel_grid(height, width, xp)
+    homogeneous = xp.concatenate([grid, xp.ones_like(grid[..., :1])], axis=-1)
+    rays1 = xp.einsum("...ij,hwj->...hwi", xp.linalg.inv(camera_matrix1), homogeneous)
+    a = xp.einsum("...ij,...hwj->...hwi", camera_matrix2 @ rotation, rays1)
+    b = xp.einsum("...ij,...j->...i", camera_matrix2, translation)[..., None, None, :]
+    target = grid + flow
+    coeff_u = target[..., 0] * b[..., 2] - b[..., 0]
+    coeff_v = target[..., 1] * b[..., 2] - b[..., 1]
+    rhs_u = a[..., 0] - target[..., 0] * a[..., 2]
+    rhs_v = a[..., 1] - target[..., 1] * a[..., 2]
+    denominator = coeff_u**2 + coeff_v**2 + damping
+    safe = xp.where(denominator > 1e-12, denominator, 1.0)
+    inverse_depth = (coeff_u * rhs_u + coeff_v * rhs_v) / safe
+    return xp.where(denominator > 1e-12, inverse_depth, 0.0)
+
+
 def skew(vector: Array) -> Array:
     """[..., 3] -> the cross-product matrix [..., 3, 3] ([v]x w = v x w)."""
     xp = _xp(vector)

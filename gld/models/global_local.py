@@ -29,6 +29,7 @@ from gld.models.global_pose import (  # noqa: F401  (POSE_ROTATION_SCALE: read a
     pose_parameters,
 )
 from gld.models.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
+from gld.models.parallax import parallax_flow, parallax_inverse_depth
 from gld.options import option
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
@@ -98,19 +99,12 @@ def perturbed_pose(
     return rotation.astype(dtype), translation.astype(dtype)
 
 
-def parallax_flow(
-    flow: jax.Array, global_params: jax.Array, intrinsics1: jax.Array, intrinsics2: jax.Array
-) -> jax.Array:
-    """The flow [B, H, W, 2] (pixels) less the flow of the rotation six global parameters
-    stand for (`global_params_pose`), with the cameras' normalised intrinsics [B, 4]: the
-    parallax alone, as `GlobalLocal.derotate_flow` gives it to the local network."""
-    height, width = flow.shape[1:3]
-    camera1, camera2 = (
-        geometry.intrinsics_matrix(intrinsics.astype(flow.dtype), height, width)
-        for intrinsics in (intrinsics1, intrinsics2)
-    )
-    rotation = global_params_pose(global_params)["rotation"]
-    return flow - geometry.rotation_flow(rotation, camera1, camera2, height, width)
+def _check_cameras(what: str, intrinsics1, intrinsics2) -> None:
+    """Raises ValueError naming `what` needs the cameras when either is missing."""
+    if intrinsics1 is None or intrinsics2 is None:
+        raise ValueError(
+            f"{what}, which needs the cameras: call with intrinsics1= and intrinsics2= [B, 4]"
+        )
 
 
 class GlobalLocal(nn.Module):
@@ -178,6 +172,11 @@ class GlobalLocal(nn.Module):
         with inverse depth. The rotation's flow is quadratic in the pixel's position, which
         filters linear in g cannot subtract. The global module still sees the flow as it
         is. False (the paper's) gives the local network the flow.
+      parallax_depth: the local network also sees, as one more channel, the inverse depth
+        each pixel's flow gives under g's pose (`parallax_inverse_depth`: a damped
+        linear triangulation, the call then needs intrinsics1= and intrinsics2=), which
+        filters linear in g cannot compute from the flow (a ratio). False (the paper's)
+        does not.
     """
 
     encoder_channels: Sequence[int] = option(
@@ -238,18 +237,23 @@ class GlobalLocal(nn.Module):
     derotate_flow: bool = option(
         False, "The local network sees the flow less the flow of g's rotation (the parallax)."
     )
+    parallax_depth: bool = option(
+        False, "The local network also sees the inverse depth the flow gives under g's pose."
+    )
 
     @property
     def local_in_channels(self) -> int:
         """Channels of the local network's input."""
-        return (2 if self.use_flow else 6) + (2 if self.use_coordinates else 0)
+        flow_channels = 2 + (1 if self.parallax_depth else 0)
+        return (flow_channels if self.use_flow else 6) + (2 if self.use_coordinates else 0)
 
     @property
     def extra_inputs(self) -> tuple[str, ...]:
         """Contract keys the call reads by keyword besides the images and flow."""
         if not self.use_global_module:
             return ()
-        if self.global_source == "encoder" and (self.pose_refinement_steps or self.derotate_flow):
+        reads_pose = self.pose_refinement_steps or self.derotate_flow or self.parallax_depth
+        if self.global_source == "encoder" and reads_pose:
             return CAMERA_INPUTS
         return GIVEN_POSE_INPUTS.get(self.global_source, ())
 
@@ -375,6 +379,10 @@ class GlobalLocal(nn.Module):
             filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
         if self.derotate_flow:
             local_inputs = self._derotated(flow, global_params, intrinsics1, intrinsics2)
+        if self.parallax_depth:
+            _check_cameras("parallax_depth triangulates under g's pose", intrinsics1, intrinsics2)
+            depth_channel = parallax_inverse_depth(flow, global_params, intrinsics1, intrinsics2)
+            local_inputs = jnp.concatenate([local_inputs, depth_channel], axis=-1)
         if self.use_coordinates:
             local_inputs = layers.with_coordinates(local_inputs)
 
@@ -412,11 +420,7 @@ class GlobalLocal(nn.Module):
 
     def _derotated(self, flow, global_params, intrinsics1, intrinsics2):
         """The local network's flow less the flow of g's rotation, in its units."""
-        if intrinsics1 is None or intrinsics2 is None:
-            raise ValueError(
-                "derotate_flow subtracts the flow of g's rotation, which needs the cameras: "
-                "call with intrinsics1= and intrinsics2= [B, 4]"
-            )
+        _check_cameras("derotate_flow subtracts the flow of g's rotation", intrinsics1, intrinsics2)
         parallax = parallax_flow(flow, global_params, intrinsics1, intrinsics2)
         if self.local_flow_units == "pixels":
             return parallax
@@ -424,11 +428,11 @@ class GlobalLocal(nn.Module):
 
     def _refined(self, proposal, flow, intrinsics1, intrinsics2):
         """The global parameters of the encoder's pose refined on the flow."""
-        if intrinsics1 is None or intrinsics2 is None:
-            raise ValueError(
-                "pose_refinement_steps refines the pose on the flow's epipolar geometry, which "
-                "needs the cameras: call with intrinsics1= and intrinsics2= [B, 4]"
-            )
+        _check_cameras(
+            "pose_refinement_steps refines the pose on the flow's epipolar geometry",
+            intrinsics1,
+            intrinsics2,
+        )
         if self.global_dim != 6:
             raise ValueError(
                 f"pose_refinement_steps needs 6 global parameters (a pose); global_dim is "

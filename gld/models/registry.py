@@ -46,6 +46,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "pose_translation_error": 0.0,
         "border": "zero",
         "derotate_flow": False,
+        "parallax_depth": False,
     },
     "global_local_flow_net": {"global_local": {}},
 }
@@ -92,7 +93,8 @@ def encoder_pose(values: dict) -> bool:
 
 def reads_encoder_pose(values: dict) -> bool:
     """Whether such a model can also read its pose against the flow (refine it on the
-    flow, subtract its rotation's flow): `encoder_pose`, and the flow is an input."""
+    flow, subtract its rotation's flow, triangulate the flow under it): `encoder_pose`,
+    and the flow is an input."""
     return encoder_pose(values) and bool(values["use_flow"])
 
 
@@ -126,6 +128,7 @@ def check_config(name: str, config: dict) -> None:
     for option, what in (
         ("pose_refinement_steps", "refines the encoder's pose on the flow"),
         ("derotate_flow", "subtracts the flow of the encoder's pose's rotation from the flow"),
+        ("parallax_depth", "triangulates the flow under the encoder's pose"),
     ):
         if values[option] and not encoder_pose(values):
             raise ValueError(

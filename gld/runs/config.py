@@ -92,7 +92,8 @@ def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
 
 def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
     """Whether a model could read its encoder's pose against its flow: refine it
-    (`pose_refinement_steps`) and subtract its rotation's flow (`derotate_flow`)
+    (`pose_refinement_steps`), subtract its rotation's flow (`derotate_flow`) and
+    triangulate the flow under it (`parallax_depth`)
     (`gld.models.registry.reads_encoder_pose`)."""
     return model == "global_local" and registry.reads_encoder_pose(
         registry.full_config(model, model_config)

@@ -1,0 +1,127 @@
+"""The flow triangulated under g's pose as the local network's channel
+(`GlobalLocal.parallax_depth`, `gld.geometry.triangulate_inverse_depth`)."""
+
+import global_local_reference as reference
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gld import geometry
+from gld.models import global_local as model_lib
+from gld.models import parallax, registry
+
+HEIGHT, WIDTH = 24, 32
+INTRINSICS = np.array([[0.9, 1.2, 0.52, 0.47], [1.1, 1.4, 0.5, 0.5]], np.float32)
+
+
+def _scene(translation, rotation_vector=(0.02, -0.04, 0.01), seed=0):
+    rng = np.random.default_rng(seed)
+    camera1, camera2 = (geometry.intrinsics_matrix(k, HEIGHT, WIDTH) for k in INTRINSICS)
+    depth = rng.uniform(1.0, 5.0, (HEIGHT, WIDTH))
+    rotation = geometry.rotation_matrix(np.array(rotation_vector, np.float64))
+    translation = np.asarray(translation, np.float64)
+    flow, valid = geometry.depth_to_flow(depth, camera1, camera2, rotation, translation)
+    assert valid.all()
+    return depth, flow, camera1, camera2, rotation, translation
+
+
+@pytest.mark.parametrize("xp", [np, jnp])
+def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
+    depth, flow, camera1, camera2, rotation, translation = _scene([0.3, -0.1, 0.2])
+    arrays = [xp.asarray(a) for a in (flow, camera1, camera2, rotation, translation)]
+    inverse_depth = geometry.triangulate_inverse_depth(*arrays)
+    np.testing.assert_allclose(inverse_depth, 1 / depth, atol=1e-4)
+    # A translation twice as long gives half the inverse depth (units of 1 / ||t||).
+    doubled = geometry.triangulate_inverse_depth(*arrays[:4], 2 * arrays[4])
+    np.testing.assert_allclose(doubled, 0.5 / depth, atol=1e-4)
+
+
+def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
+    # Forward motion: the epipole is inside the image, where the parallax vanishes.
+    depth, flow, camera1, camera2, rotation, translation = _scene([0.0, 0.0, 0.3], (0, 0, 0))
+    plain = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
+    damped = geometry.triangulate_inverse_depth(
+        flow, camera1, camera2, rotation, translation, damping=1.0
+    )
+    epipole = camera2 @ translation
+    u, v = epipole[:2] / epipole[2]
+    grid = geometry.pixel_grid(HEIGHT, WIDTH)
+    distance = np.hypot(grid[..., 0] - u, grid[..., 1] - v)
+    near, far = distance < 2, distance > 12
+    assert near.any() and far.any()
+    np.testing.assert_allclose(plain, 1 / depth, rtol=1e-6)
+    assert np.all(damped[near] < 0.5 / depth[near])
+    np.testing.assert_allclose(damped[far], 1 / depth[far], rtol=0.1)
+    # No parallax at all (a pure rotation): inverse depth 0, not a division by zero.
+    still = geometry.triangulate_inverse_depth(
+        np.zeros_like(flow), camera1, camera1, np.eye(3), np.zeros(3)
+    )
+    assert np.all(still == 0)
+
+
+def test_the_channel_is_the_inverse_depth_under_gs_pose_whatever_its_translations_norm():
+    depth, flow, camera1, camera2, rotation, translation = _scene([0.6, -0.2, 0.1])
+    unit = translation / np.linalg.norm(translation)
+    intrinsics = [jnp.asarray(INTRINSICS[i : i + 1]) for i in (0, 1)]
+    flows = jnp.asarray(flow, jnp.float32)[None]
+    channels = [
+        parallax.parallax_inverse_depth(
+            flows,
+            model_lib.pose_parameters(jnp.asarray(rotation)[None], jnp.asarray(t)[None]),
+            *intrinsics,
+        )
+        for t in (unit, 3 * unit)
+    ]
+    assert channels[0].shape == (1, HEIGHT, WIDTH, 1)
+    np.testing.assert_allclose(channels[0], channels[1], atol=1e-5)
+    # In units of 1 / ||t||. The epipole is far outside the image: the ridge barely moves
+    # it (and g's rotation is first order in the angle).
+    expected = parallax.INVERSE_DEPTH_SCALE * np.linalg.norm(translation) / depth
+    np.testing.assert_allclose(channels[0][0, ..., 0], expected, rtol=0.05)
+
+
+def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinates():
+    model = model_lib.GlobalLocal(derotate_flow=True, parallax_depth=True)
+    assert model.extra_inputs == model_lib.CAMERA_INPUTS
+    assert model.local_in_channels == 5
+    rng = np.random.default_rng(0)
+    inputs = (
+        jnp.asarray(rng.uniform(-0.5, 0.5, (2, HEIGHT, WIDTH, 3)), jnp.float32),
+        jnp.asarray(rng.uniform(-0.5, 0.5, (2, HEIGHT, WIDTH, 3)), jnp.float32),
+        jnp.asarray(rng.normal(size=(2, HEIGHT, WIDTH, 2)) * 3, jnp.float32),
+    )
+    cameras = {"intrinsics1": jnp.asarray(INTRINSICS), "intrinsics2": jnp.asarray(INTRINSICS)}
+    key = jax.random.key(0, impl="rbg")
+    variables = jax.jit(lambda i, c: model.init(key, *i, **c))(inputs, cameras)
+    variables = jax.tree.map(
+        lambda x: x + 0.05 * rng.standard_normal(x.shape, np.float32), variables
+    )
+    outputs = jax.jit(model.apply)(variables, *inputs, **cameras)
+    global_params = outputs["global_params"]
+    flow_part = parallax.parallax_flow(inputs[2], global_params, *cameras.values())
+    scaled = np.asarray(flow_part, np.float64) / [WIDTH, HEIGHT] * model.flow_scale
+    channel = parallax.parallax_inverse_depth(inputs[2], global_params, *cameras.values())
+    assert np.abs(channel).max() > 0.1
+    grid = np.broadcast_to(reference.coordinates(HEIGHT, WIDTH), (2, HEIGHT, WIDTH, 2))
+    banks = [(bank.kernel, bank.bias) for bank in outputs["filter_banks"]]
+    local_inputs = np.concatenate([scaled, np.asarray(channel, np.float64), grid], axis=-1)
+    logits = reference.local_network(banks, variables["params"]["final_conv"], local_inputs)
+    np.testing.assert_allclose(outputs["inv_depth"], reference.inv_depth_of(logits), rtol=1e-4)
+    with pytest.raises(ValueError, match="parallax_depth triangulates .* needs the cameras"):
+        model_lib.GlobalLocal(parallax_depth=True).apply(variables, *inputs)
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        {"global_source": "pose"},
+        {"use_global_module": False},
+        {"global_dim": 8},
+        {"use_flow": False},
+    ],
+)
+def test_the_triangulation_needs_a_pose_from_the_encoder_and_the_flow(config):
+    with pytest.raises(ValueError, match="parallax_depth"):
+        registry.check_config("global_local", {"parallax_depth": True, **config})
+    registry.check_config("global_local", config)
