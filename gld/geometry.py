@@ -315,33 +315,30 @@ def triangulate_depth(
     return xp.where(denominator > 1e-12, depth, 0.0)
 
 
-def triangulate_inverse_depth(
+def inverse_depth_normal_equation(
     flow: Array,
     camera_matrix1: Array,
     camera_matrix2: Array,
     rotation: Array,
     translation: Array,
-    damping: float = 0.0,
-) -> Array:
-    """Per-pixel linear triangulation of view-1 inverse depth from flow and a known pose.
+) -> tuple[Array, Array]:
+    """The normal equation `lhs * rho = rhs` of each pixel's view-1 inverse depth rho,
+    given its flow and a known pose.
 
     The reprojection of the view-1 ray's point at inverse depth rho is `x2 ~ a + rho b`
     (a: the camera-2 image of the ray's direction, b: of the translation), so the two
-    projection equations are linear in rho and are solved in the least-squares sense,
-    with `damping` (pixels squared) added to the normal equation: a ridge that pulls rho
-    towards 0 (a point at infinity) where the parallax says little about it, near the
-    epipole. Unlike depth (`triangulate_depth`), inverse depth stays finite as the
-    parallax vanishes.
+    projection equations are linear in rho. `lhs` (pixels squared) is the squared length
+    of the parallax a unit of inverse depth makes there: how much the flow says about
+    rho, 0 at the epipole.
 
     Args:
       flow: [..., H, W, 2] pixels, I1 -> I2.
       camera_matrix1, camera_matrix2: [..., 3, 3].
-      rotation, translation: [..., 3, 3], [..., 3]; X2 = R X1 + t (inverse depth comes
-        in the units of 1 / ||t||).
-      damping: >= 0; 0 gives the plain least-squares solution (0 where it is undefined).
+      rotation, translation: [..., 3, 3], [..., 3]; X2 = R X1 + t (rho comes in units of
+        1 / ||t||).
 
     Returns:
-      inverse depth [..., H, W]; negative where the flow puts the point behind camera 1.
+      (lhs, rhs), each [..., H, W].
     """
     xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
     height, width = flow.shape[-3:-1]
@@ -355,10 +352,36 @@ def triangulate_inverse_depth(
     coeff_v = target[..., 1] * b[..., 2] - b[..., 1]
     rhs_u = a[..., 0] - target[..., 0] * a[..., 2]
     rhs_v = a[..., 1] - target[..., 1] * a[..., 2]
-    denominator = coeff_u**2 + coeff_v**2 + damping
-    safe = xp.where(denominator > 1e-12, denominator, 1.0)
-    inverse_depth = (coeff_u * rhs_u + coeff_v * rhs_v) / safe
-    return xp.where(denominator > 1e-12, inverse_depth, 0.0)
+    return coeff_u**2 + coeff_v**2, coeff_u * rhs_u + coeff_v * rhs_v
+
+
+def triangulate_inverse_depth(
+    flow: Array,
+    camera_matrix1: Array,
+    camera_matrix2: Array,
+    rotation: Array,
+    translation: Array,
+    damping: float = 0.0,
+) -> Array:
+    """Per-pixel linear triangulation of view-1 inverse depth from flow and a known pose:
+    the least-squares solution of `inverse_depth_normal_equation`, with `damping`
+    (pixels squared) added to its left side, a ridge that pulls rho towards 0 (a point
+    at infinity) where the parallax says little about it, near the epipole. Unlike depth
+    (`triangulate_depth`), inverse depth stays finite as the parallax vanishes.
+
+    Args: as `inverse_depth_normal_equation`, and damping >= 0 (0 gives the plain
+      least-squares solution, 0 where it is undefined).
+
+    Returns:
+      inverse depth [..., H, W]; negative where the flow puts the point behind camera 1.
+    """
+    xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    lhs, rhs = inverse_depth_normal_equation(
+        flow, camera_matrix1, camera_matrix2, rotation, translation
+    )
+    lhs = lhs + damping
+    safe = xp.where(lhs > 1e-12, lhs, 1.0)
+    return xp.where(lhs > 1e-12, rhs / safe, 0.0)
 
 
 def skew(vector: Array) -> Array:

@@ -172,11 +172,11 @@ class GlobalLocal(nn.Module):
         with inverse depth. The rotation's flow is quadratic in the pixel's position, which
         filters linear in g cannot subtract. The global module still sees the flow as it
         is. False (the paper's) gives the local network the flow.
-      parallax_depth: the local network also sees, as one more channel, the inverse depth
-        each pixel's flow gives under g's pose (`parallax_inverse_depth`: a damped
-        linear triangulation, the call then needs intrinsics1= and intrinsics2=), which
-        filters linear in g cannot compute from the flow (a ratio). False (the paper's)
-        does not.
+      parallax_depth: the local network also sees, as two more channels, the inverse depth
+        each pixel's flow gives under g's pose and its confidence
+        (`parallax_inverse_depth`: a damped linear triangulation; the call then needs
+        intrinsics1= and intrinsics2=), which filters linear in g cannot compute from
+        the flow (a ratio). False (the paper's) does not.
     """
 
     encoder_channels: Sequence[int] = option(
@@ -244,7 +244,7 @@ class GlobalLocal(nn.Module):
     @property
     def local_in_channels(self) -> int:
         """Channels of the local network's input."""
-        flow_channels = 2 + (1 if self.parallax_depth else 0)
+        flow_channels = 2 + (2 if self.parallax_depth else 0)
         return (flow_channels if self.use_flow else 6) + (2 if self.use_coordinates else 0)
 
     @property

@@ -21,7 +21,8 @@ from gld.models.global_pose import global_params_pose
 # towards 0 (4 px at 128 wide).
 DAMPING_WIDTH_FRACTION = 1 / 32
 # The local network's inverse-depth channel: the triangulated inverse depth (in units of
-# 1 / ||t||) times this, clipped to +-INVERSE_DEPTH_CLIP, on the scale of the other inputs.
+# 1 / ||t||) times this, clipped to [0, INVERSE_DEPTH_CLIP], on the scale of the other
+# inputs.
 INVERSE_DEPTH_SCALE = 10.0
 INVERSE_DEPTH_CLIP = 10.0
 
@@ -49,24 +50,23 @@ def parallax_flow(
 def parallax_inverse_depth(
     flow: jax.Array, global_params: jax.Array, intrinsics1: jax.Array, intrinsics2: jax.Array
 ) -> jax.Array:
-    """The inverse depth [B, H, W, 1] the flow (pixels) gives each pixel under the pose six
+    """What the flow (pixels) says about each pixel's inverse depth under the pose six
     global parameters stand for, its translation taken as a unit direction (the scale the
-    model predicts in: ||t|| = 1), with the cameras' normalised intrinsics [B, 4]: a
-    damped linear triangulation (`gld.geometry.triangulate_inverse_depth`), scaled and
-    clipped for the local network (`GlobalLocal.parallax_depth`)."""
+    model predicts in: ||t|| = 1), with the cameras' normalised intrinsics [B, 4]
+    (`GlobalLocal.parallax_depth`): [B, H, W, 2], the damped linear triangulation
+    (`gld.geometry.triangulate_inverse_depth`) times INVERSE_DEPTH_SCALE, clipped to
+    [0, INVERSE_DEPTH_CLIP] (a point behind the camera is noise), and its confidence in
+    [0, 1), how much of the damped solution the parallax decides (0 at the epipole, where
+    the triangulation says "far" for want of parallax and the image must say the rest)."""
     width = flow.shape[2]
     camera1, camera2 = _cameras(flow, intrinsics1, intrinsics2)
     pose = global_params_pose(global_params)
     translation = pose["translation"]
     norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
     direction = translation / jnp.maximum(norm, 1e-12)
-    inverse_depth = geometry.triangulate_inverse_depth(
-        flow,
-        camera1,
-        camera2,
-        pose["rotation"],
-        direction,
-        damping=(DAMPING_WIDTH_FRACTION * width) ** 2,
+    lhs, rhs = geometry.inverse_depth_normal_equation(
+        flow, camera1, camera2, pose["rotation"], direction
     )
-    channel = jnp.clip(INVERSE_DEPTH_SCALE * inverse_depth, -INVERSE_DEPTH_CLIP, INVERSE_DEPTH_CLIP)
-    return channel[..., None].astype(flow.dtype)
+    damped = lhs + (DAMPING_WIDTH_FRACTION * width) ** 2
+    inverse_depth = jnp.clip(INVERSE_DEPTH_SCALE * rhs / damped, 0.0, INVERSE_DEPTH_CLIP)
+    return jnp.stack([inverse_depth, lhs / damped], axis=-1).astype(flow.dtype)

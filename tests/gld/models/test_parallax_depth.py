@@ -73,18 +73,44 @@ def test_the_channel_is_the_inverse_depth_under_gs_pose_whatever_its_translation
         )
         for t in (unit, 3 * unit)
     ]
-    assert channels[0].shape == (1, HEIGHT, WIDTH, 1)
+    assert channels[0].shape == (1, HEIGHT, WIDTH, 2)
     np.testing.assert_allclose(channels[0], channels[1], atol=1e-5)
     # In units of 1 / ||t||. The epipole is far outside the image: the ridge barely moves
-    # it (and g's rotation is first order in the angle).
+    # it (and g's rotation is first order in the angle), and the confidence is near 1.
     expected = parallax.INVERSE_DEPTH_SCALE * np.linalg.norm(translation) / depth
     np.testing.assert_allclose(channels[0][0, ..., 0], expected, rtol=0.05)
+    assert np.all(channels[0][..., 1] > 0.9) and np.all(channels[0][..., 1] < 1)
+
+
+def test_near_the_epipole_the_channel_says_far_with_no_confidence_and_never_behind():
+    # Forward motion: the epipole is inside the image.
+    depth, flow, *_ = _scene([0.0, 0.0, 0.3], (0, 0, 0))
+    intrinsics = [jnp.asarray(INTRINSICS[i : i + 1]) for i in (0, 1)]
+    params = model_lib.pose_parameters(jnp.eye(3)[None], jnp.asarray([[0.0, 0.0, 1.0]]))
+    inverse_depth, confidence = np.moveaxis(
+        np.asarray(
+            parallax.parallax_inverse_depth(jnp.asarray(flow)[None], params, *intrinsics)[0]
+        ),
+        -1,
+        0,
+    )
+    centre = np.unravel_index(np.argmin(confidence), confidence.shape)
+    assert confidence[centre] < 0.2 and confidence.max() > 0.9
+    assert inverse_depth[centre] < 0.5 * parallax.INVERSE_DEPTH_SCALE * 0.3 / depth[centre]
+    # A pose whose translation is the flow's reversed puts every point behind the
+    # camera: clipped to 0, never negative.
+    _, sideways, *_ = _scene([0.3, 0.0, 0.0], (0, 0, 0))
+    backwards = model_lib.pose_parameters(jnp.eye(3)[None], jnp.asarray([[-1.0, 0.0, 0.0]]))
+    behind = parallax.parallax_inverse_depth(jnp.asarray(sideways)[None], backwards, *intrinsics)
+    forwards = parallax.parallax_inverse_depth(jnp.asarray(sideways)[None], -backwards, *intrinsics)
+    assert np.all(np.asarray(behind)[..., 0] == 0.0)
+    assert np.all(np.asarray(forwards)[..., 0] > 0.5)
 
 
 def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinates():
     model = model_lib.GlobalLocal(derotate_flow=True, parallax_depth=True)
     assert model.extra_inputs == model_lib.CAMERA_INPUTS
-    assert model.local_in_channels == 5
+    assert model.local_in_channels == 6
     rng = np.random.default_rng(0)
     inputs = (
         jnp.asarray(rng.uniform(-0.5, 0.5, (2, HEIGHT, WIDTH, 3)), jnp.float32),

@@ -44,7 +44,7 @@ def _main_job(model: str, given: dict) -> tuple[dict, dict]:
 @pytest.mark.parametrize(
     "given, teacher, epipolar, refinement, derotate",
     [
-        ({}, 1.0, 0.1, 10, True),  # the main job
+        ({}, 1.0, 0.1, recipe.ARCHITECTURE["pose_refinement_steps"], True),  # the main job
         ({"model": "small_encdec"}, 0.0, 0.0, None, None),  # no global parameters to teach
         ({"global_source": "pose"}, 0.0, 0.0, 0, False),  # a given pose: no encoder's to refine
         ({"use_global_module": False}, 0.0, 0.0, 0, False),
