@@ -175,7 +175,7 @@ def write_report(
         f"at {recipe.MOTION_WEIGHTS['pose_teacher_weight']:g}, "
         f"{recipe.ARCHITECTURE['pose_refinement_steps']} refinement steps of the "
         "encoder's pose on the flow, whose rotation's flow is subtracted from the local "
-        "network's), a global "
+        "network's and under which the flow is triangulated for it), a global "
         "encoder with instance normalisation that sees the flow alone, and the flow scaled "
         "by 10 as the model's input; the baselines see the image pair and the flow in "
         'pixels. "x mean" is Abs-Inv as a multiple of the dataset mean\'s ("paper x '

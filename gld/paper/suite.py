@@ -14,7 +14,8 @@ global encoder with instance normalisation that sees the flow alone, and a globa
 module that learns the motion: the epipolar term at 0.1, the classical pose teacher
 (`pose_teacher_weight`) and twenty refinement steps of the encoder's pose on the flow
 (`pose_refinement_steps`), whose rotation's flow is subtracted from the local network's
-flow (`derotate_flow`; it goes with the refinement below). Two ablations therefore read
+flow (`derotate_flow`) and under which the flow is triangulated for it (`parallax_depth`;
+both go with the refinement below). Two ablations therefore read
 differently from the paper's: "+ image pair" adds the image pair the main recipe leaves
 out, and the runs without a global module or without flow drop all three ways of
 learning the motion too (they need g, and they read the flow); the run "- epipolar term,

@@ -38,6 +38,7 @@ ARCHITECTURE = {
     "pose_refinement_steps": 20,
     "border": "edge",
     "derotate_flow": True,
+    "parallax_depth": True,
 }
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}

@@ -26,6 +26,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
         "pose_refinement_steps": 20,
         "border": "edge",
         "derotate_flow": True,
+        "parallax_depth": True,
     }
     assert main.epipolar_weight == 0.1 and main.pose_teacher_weight == 1.0
     assert main.gt_pixels == 1 and main.flow_source == "estimated"
@@ -49,6 +50,7 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
         "pose_teacher_weight": 0.0,
         "pose_refinement_steps": 0,
         "derotate_flow": False,
+        "parallax_depth": False,
     }
     assert differences("global_local_no_global_module") == {"use_global_module": False, **no_motion}
     assert differences("global_local_no_flow") == {"use_flow": False, **no_motion}
