@@ -17,7 +17,8 @@ onnxruntime`; checked against JAX with onnxruntime before it is written). On the
     depth = DeployedModel.load("model.gldx")(image1, image2, flow)   # jax + numpy only
 
 A model that reads a given pose or the cameras (trained with --global_source=pose or
-flow_pose, or with --pose_refinement_steps) takes them after the flow, by keyword
+flow_pose, or reading its encoder's pose on the flow: --pose_refinement_steps,
+--derotate_flow, --parallax_depth) takes them after the flow, by keyword
 (`DeployedModel.extra_inputs`); the inputs printed after the export say what each is.
 """
 

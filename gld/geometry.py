@@ -327,9 +327,9 @@ def inverse_depth_normal_equation(
 
     The reprojection of the view-1 ray's point at inverse depth rho is `x2 ~ a + rho b`
     (a: the camera-2 image of the ray's direction, b: of the translation), so the two
-    projection equations are linear in rho. `lhs` (pixels squared) is the squared length
-    of the parallax a unit of inverse depth makes there: how much the flow says about
-    rho, 0 at the epipole.
+    projection equations are linear in rho. `lhs` (pixels squared) is, to first order,
+    the squared length of the parallax a unit of inverse depth makes there: how much the
+    flow says about rho, 0 at the epipole.
 
     Args:
       flow: [..., H, W, 2] pixels, I1 -> I2.

@@ -49,7 +49,8 @@ ABLATIONS = {
 # (a robot's odometry at deployment), or the essential matrix's from the input flow.
 POSE_INPUTS = ("rotation", "translation")
 GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
-# The keys a model that refines its encoder's pose on the flow reads (`pose_refinement`).
+# The keys a model that reads its encoder's pose against the flow reads (refinement,
+# derotation, triangulation: the cameras).
 CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
 # Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
 # test pins its entries, so that a numpy release that changed the stream is noticed).
@@ -282,7 +283,7 @@ class GlobalLocal(nn.Module):
           flow_rotation, flow_translation: the same, estimated from the input flow;
             read only with global_source="flow_pose".
           intrinsics1, intrinsics2: [B, 4] normalised; read only with
-            pose_refinement_steps.
+            pose_refinement_steps, derotate_flow or parallax_depth.
           train: batch statistics (global_norm="batch") come from the batch and are
             recorded when True, from the running averages when False.
 
@@ -360,6 +361,9 @@ class GlobalLocal(nn.Module):
                 global_params = self._refined(global_params, flow, intrinsics1, intrinsics2)
         if self.global_norm not in GLOBAL_NORMS:
             raise ValueError(f"global_norm must be one of {GLOBAL_NORMS}, got {self.global_norm!r}")
+        # The pose g stands for, before any normalisation: what derotation and
+        # triangulation read.
+        pose_params = global_params if self.use_global_module else None
         if self.use_global_module:
             if self.global_norm == "batch":
                 global_params = nn.BatchNorm(
@@ -378,10 +382,10 @@ class GlobalLocal(nn.Module):
             global_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
             filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
         if self.derotate_flow:
-            local_inputs = self._derotated(flow, global_params, intrinsics1, intrinsics2)
+            local_inputs = self._derotated(flow, pose_params, intrinsics1, intrinsics2)
         if self.parallax_depth:
             _check_cameras("parallax_depth triangulates under g's pose", intrinsics1, intrinsics2)
-            depth_channel = parallax_inverse_depth(flow, global_params, intrinsics1, intrinsics2)
+            depth_channel = parallax_inverse_depth(flow, pose_params, intrinsics1, intrinsics2)
             local_inputs = jnp.concatenate([local_inputs, depth_channel], axis=-1)
         if self.use_coordinates:
             local_inputs = layers.with_coordinates(local_inputs)

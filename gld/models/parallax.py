@@ -57,10 +57,12 @@ def parallax_inverse_depth(
     (`gld.geometry.triangulate_inverse_depth`) times INVERSE_DEPTH_SCALE, clipped to
     [0, INVERSE_DEPTH_CLIP] (a point behind the camera is noise), and its confidence in
     [0, 1), how much of the damped solution the parallax decides (0 at the epipole, where
-    the triangulation says "far" for want of parallax and the image must say the rest)."""
+    the triangulation says "far" for want of parallax and the image must say the rest).
+    g enters as a constant (no gradient): the channel is an input, not a path by which
+    the depth loss moves the pose (as through the refinement)."""
     width = flow.shape[2]
     camera1, camera2 = _cameras(flow, intrinsics1, intrinsics2)
-    pose = global_params_pose(global_params)
+    pose = global_params_pose(jax.lax.stop_gradient(global_params))
     translation = pose["translation"]
     norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
     direction = translation / jnp.maximum(norm, 1e-12)

@@ -5,11 +5,12 @@
 The recipe is the best measured within the main job's CPU budget (WORKSPACE.md): Adam
 1e-3 with 100 warm-up steps and cosine decay over 2,000 steps, and a global module that
 learns the camera motion with no label: an instance-normalised encoder that sees the
-flow alone, the epipolar term at 0.1, the classical pose teacher, ten Gauss-Newton
-steps refining the encoder's pose on the flow, and a local network that repeats the
-image's edge beyond it (no rim of different depth at the border). None of it is the
-paper's (its recipe: Adam 1e-4, constant, the image pair and the flow, no motion terms,
-zero padding). The recipe is
+flow alone, the epipolar term at 0.1, the classical pose teacher, twenty Gauss-Newton
+steps refining the encoder's pose on the flow, and a local network that sees the flow
+less the flow of that pose's rotation and the inverse depth the flow gives under that
+pose, and repeats the image's edge beyond it (no rim of different depth at the border).
+None of it is the paper's (its recipe: Adam 1e-4, constant, the image pair and the
+flow, no motion terms, zero padding). The recipe is
 written here once: the train launcher's defaults, `experiments/flags/demo.flags`, the
 paper suite's main-job rows and the tests all read it.
 
@@ -79,8 +80,9 @@ def motion_where_it_applies(
     They are defaults of the global-local model whose encoder infers a pose: a model
     without one (another model, a given pose, no global module) trains without the
     epipolar term and the teacher, and one without it or without the flow without
-    refinement and without the rotation's flow subtracted (`WITHOUT_A_POSE`), unless the
-    command line gives them (`given`: the option names given).
+    refinement, the rotation's flow subtracted and the flow triangulated
+    (`WITHOUT_A_POSE`), unless the command line gives them (`given`: the option names
+    given).
 
     Args:
       model, model_config: the run's model and its constructor arguments.

@@ -62,6 +62,9 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         assert train_flags.epipolar_weight == 0  # the paper's loss
         assert train_flags.pose_teacher_weight == 0 and train_flags.pose_refinement_steps == 0
         assert train_flags.encoder_norm == "none"  # the paper's global module
+        # The paper's local network: zero padding, the flow as it is.
+        assert train_flags.border == "zero"
+        assert not train_flags.derotate_flow and not train_flags.parallax_depth
         assert train_flags.use_image_pair == (path.stem != "scenes11_ablation_no_image_pair")
     finally:
         train_flags.unparse_flags()

@@ -130,3 +130,52 @@ def test_epipolar_distance_is_zero_for_the_true_pose_and_scale_free_in_t():
 def test_skew_is_the_cross_product():
     a, b = np.array([0.3, -1.2, 2.0]), np.array([1.5, 0.4, -0.7])
     np.testing.assert_allclose(geometry.skew(a) @ b, np.cross(a, b))
+
+
+PARALLAX_INTRINSICS = np.array([[0.9, 1.2, 0.52, 0.47], [1.1, 1.4, 0.5, 0.5]], np.float32)
+
+
+def _scene(translation, rotation_vector=(0.02, -0.04, 0.01), seed=0, height=24, width=32):
+    """Depth, the flow it gives under a pose, the cameras and the pose."""
+    rng = np.random.default_rng(seed)
+    camera1, camera2 = (geometry.intrinsics_matrix(k, height, width) for k in PARALLAX_INTRINSICS)
+    depth = rng.uniform(1.0, 5.0, (height, width))
+    rotation = geometry.rotation_matrix(np.array(rotation_vector, np.float64))
+    translation = np.asarray(translation, np.float64)
+    flow, valid = geometry.depth_to_flow(depth, camera1, camera2, rotation, translation)
+    assert valid.all()
+    return depth, flow, camera1, camera2, rotation, translation
+
+
+@pytest.mark.parametrize("xp", [np, jnp])
+def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
+    depth, flow, camera1, camera2, rotation, translation = _scene([0.3, -0.1, 0.2])
+    arrays = [xp.asarray(a) for a in (flow, camera1, camera2, rotation, translation)]
+    inverse_depth = geometry.triangulate_inverse_depth(*arrays)
+    np.testing.assert_allclose(inverse_depth, 1 / depth, atol=1e-4)
+    # A translation twice as long gives half the inverse depth (units of 1 / ||t||).
+    doubled = geometry.triangulate_inverse_depth(*arrays[:4], 2 * arrays[4])
+    np.testing.assert_allclose(doubled, 0.5 / depth, atol=1e-4)
+
+
+def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
+    # Forward motion: the epipole is inside the image, where the parallax vanishes.
+    depth, flow, camera1, camera2, rotation, translation = _scene([0.0, 0.0, 0.3], (0, 0, 0))
+    plain = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
+    damped = geometry.triangulate_inverse_depth(
+        flow, camera1, camera2, rotation, translation, damping=1.0
+    )
+    epipole = camera2 @ translation
+    u, v = epipole[:2] / epipole[2]
+    grid = geometry.pixel_grid(24, 32)
+    distance = np.hypot(grid[..., 0] - u, grid[..., 1] - v)
+    near, far = distance < 2, distance > 12
+    assert near.any() and far.any()
+    np.testing.assert_allclose(plain, 1 / depth, rtol=1e-6)
+    assert np.all(damped[near] < 0.5 / depth[near])
+    np.testing.assert_allclose(damped[far], 1 / depth[far], rtol=0.1)
+    # No parallax at all (a pure rotation): inverse depth 0, not a division by zero.
+    still = geometry.triangulate_inverse_depth(
+        np.zeros_like(flow), camera1, camera1, np.eye(3), np.zeros(3)
+    )
+    assert np.all(still == 0)

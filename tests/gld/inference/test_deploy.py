@@ -219,13 +219,19 @@ def _camera(batch_size: int, focal: float) -> np.ndarray:
     return np.tile(np.float32([focal, focal * WIDTH / HEIGHT, 0.5, 0.5]), (batch_size, 1))
 
 
-def test_a_model_that_refines_its_pose_runs_given_the_cameras(tmp_path):
-    """A refinement model exports with the cameras as inputs after the flow; deployed,
-    it equals the model applied in gld, reads the cameras it is given, and names what it
-    lacks."""
+@pytest.mark.parametrize(
+    "reads",
+    [{}, {"derotate_flow": True, "parallax_depth": True}],
+    ids=["refinement", "the_main_jobs_derotated_and_triangulated_flow"],
+)
+def test_a_model_that_refines_its_pose_runs_given_the_cameras(tmp_path, reads):
+    """A refinement model (and the main job's, which derotates the flow and triangulates
+    it under the refined pose) exports with the cameras as inputs after the flow;
+    deployed, it equals the model applied in gld, reads the cameras it is given, and
+    names what it lacks."""
     import jax
 
-    model = registry.make_model("global_local", **TINY_MODEL, pose_refinement_steps=2)
+    model = registry.make_model("global_local", **TINY_MODEL, pose_refinement_steps=2, **reads)
     assert model.extra_inputs == ("intrinsics1", "intrinsics2")
     cameras = dict(intrinsics1=_camera(1, 0.9), intrinsics2=_camera(1, 0.9))
     variables = random_variables(model, HEIGHT, WIDTH, seed=3, **cameras)

@@ -41,40 +41,41 @@ def _main_job(model: str, given: dict) -> tuple[dict, dict]:
     return model_config, weights
 
 
+REFINEMENT = recipe.ARCHITECTURE["pose_refinement_steps"]
+
+
 @pytest.mark.parametrize(
-    "given, teacher, epipolar, refinement, derotate",
+    "given, teacher, epipolar, refinement, derotate, triangulate",
     [
-        ({}, 1.0, 0.1, recipe.ARCHITECTURE["pose_refinement_steps"], True),  # the main job
-        ({"model": "small_encdec"}, 0.0, 0.0, None, None),  # no global parameters to teach
-        ({"global_source": "pose"}, 0.0, 0.0, 0, False),  # a given pose: no encoder's to refine
-        ({"use_global_module": False}, 0.0, 0.0, 0, False),
-        (
-            {"use_flow": False},
-            1.0,
-            0.1,
-            0,
-            False,
-        ),  # the encoder infers g; refinement reads the flow
-        ({"global_dim": 4}, 0.0, 0.0, 0, False),  # g cannot stand for a pose
-        ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3, False),  # asked for: kept
-        ({"global_source": "pose", "derotate_flow": True}, 0.0, 0.0, 0, True),  # kept, refused
-        ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None, None),
+        ({}, 1.0, 0.1, REFINEMENT, True, True),  # the main job
+        ({"model": "small_encdec"}, 0.0, 0.0, None, None, None),  # no global parameters
+        ({"global_source": "pose"}, 0.0, 0.0, 0, False, False),  # a given pose: no encoder's
+        ({"use_global_module": False}, 0.0, 0.0, 0, False, False),
+        # The encoder infers g; refinement, derotation and triangulation read the flow.
+        ({"use_flow": False}, 1.0, 0.1, 0, False, False),
+        ({"global_dim": 4}, 0.0, 0.0, 0, False, False),  # g cannot stand for a pose
+        ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3, False, False),  # kept
+        ({"global_source": "pose", "derotate_flow": True}, 0.0, 0.0, 0, True, False),  # refused
+        ({"global_source": "pose", "parallax_depth": True}, 0.0, 0.0, 0, False, True),  # refused
+        ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None, None, None),
     ],
 )
 def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
-    given, teacher, epipolar, refinement, derotate
+    given, teacher, epipolar, refinement, derotate, triangulate
 ):
     """The recipe teaches g the motion; a model without an encoder's pose (or without the
-    flow, for refinement and the derotated flow) drops it unless the command line names it
-    (and then the config check says what is wrong)."""
+    flow, for refinement, the derotated flow and the triangulated flow) drops it unless the
+    command line names it (and then the config check says what is wrong)."""
     model = given.get("model", "global_local")
     model_config, weights = _main_job(model, given)
     model_config, weights = recipe.motion_where_it_applies(model, model_config, weights, given)
     assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
     assert model_config.get("pose_refinement_steps") == refinement
     assert model_config.get("derotate_flow") == derotate
-    if derotate and model_config.get("global_source") == "pose":
-        with pytest.raises(ValueError, match="derotate_flow"):
+    assert model_config.get("parallax_depth") == triangulate
+    kept = [name for name in ("derotate_flow", "parallax_depth") if name in given]
+    if kept and model_config.get("global_source") == "pose":
+        with pytest.raises(ValueError, match=kept[0]):
             registry.check_config(model, model_config)
 
 

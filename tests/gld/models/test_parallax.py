@@ -1,5 +1,5 @@
-"""The flow triangulated under g's pose as the local network's channel
-(`GlobalLocal.parallax_depth`, `gld.geometry.triangulate_inverse_depth`)."""
+"""What the flow says under g's pose (`gld.models.parallax`): the triangulated flow as the
+local network's channels (`GlobalLocal.parallax_depth`)."""
 
 import global_local_reference as reference
 import jax
@@ -26,40 +26,6 @@ def _scene(translation, rotation_vector=(0.02, -0.04, 0.01), seed=0):
     return depth, flow, camera1, camera2, rotation, translation
 
 
-@pytest.mark.parametrize("xp", [np, jnp])
-def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
-    depth, flow, camera1, camera2, rotation, translation = _scene([0.3, -0.1, 0.2])
-    arrays = [xp.asarray(a) for a in (flow, camera1, camera2, rotation, translation)]
-    inverse_depth = geometry.triangulate_inverse_depth(*arrays)
-    np.testing.assert_allclose(inverse_depth, 1 / depth, atol=1e-4)
-    # A translation twice as long gives half the inverse depth (units of 1 / ||t||).
-    doubled = geometry.triangulate_inverse_depth(*arrays[:4], 2 * arrays[4])
-    np.testing.assert_allclose(doubled, 0.5 / depth, atol=1e-4)
-
-
-def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
-    # Forward motion: the epipole is inside the image, where the parallax vanishes.
-    depth, flow, camera1, camera2, rotation, translation = _scene([0.0, 0.0, 0.3], (0, 0, 0))
-    plain = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
-    damped = geometry.triangulate_inverse_depth(
-        flow, camera1, camera2, rotation, translation, damping=1.0
-    )
-    epipole = camera2 @ translation
-    u, v = epipole[:2] / epipole[2]
-    grid = geometry.pixel_grid(HEIGHT, WIDTH)
-    distance = np.hypot(grid[..., 0] - u, grid[..., 1] - v)
-    near, far = distance < 2, distance > 12
-    assert near.any() and far.any()
-    np.testing.assert_allclose(plain, 1 / depth, rtol=1e-6)
-    assert np.all(damped[near] < 0.5 / depth[near])
-    np.testing.assert_allclose(damped[far], 1 / depth[far], rtol=0.1)
-    # No parallax at all (a pure rotation): inverse depth 0, not a division by zero.
-    still = geometry.triangulate_inverse_depth(
-        np.zeros_like(flow), camera1, camera1, np.eye(3), np.zeros(3)
-    )
-    assert np.all(still == 0)
-
-
 def test_the_channel_is_the_inverse_depth_under_gs_pose_whatever_its_translations_norm():
     depth, flow, camera1, camera2, rotation, translation = _scene([0.6, -0.2, 0.1])
     unit = translation / np.linalg.norm(translation)
@@ -80,6 +46,12 @@ def test_the_channel_is_the_inverse_depth_under_gs_pose_whatever_its_translation
     expected = parallax.INVERSE_DEPTH_SCALE * np.linalg.norm(translation) / depth
     np.testing.assert_allclose(channels[0][0, ..., 0], expected, rtol=0.05)
     assert np.all(channels[0][..., 1] > 0.9) and np.all(channels[0][..., 1] < 1)
+    # g enters as a constant: no gradient reaches it through the channel.
+    params = model_lib.pose_parameters(jnp.asarray(rotation)[None], jnp.asarray(unit)[None])
+    gradient = jax.grad(
+        lambda g: parallax.parallax_inverse_depth(flows, g, *intrinsics)[..., 0].sum()
+    )(params.astype(jnp.float32))
+    assert np.all(np.asarray(gradient) == 0)
 
 
 def test_near_the_epipole_the_channel_says_far_with_no_confidence_and_never_behind():
@@ -107,8 +79,13 @@ def test_near_the_epipole_the_channel_says_far_with_no_confidence_and_never_behi
     assert np.all(np.asarray(forwards)[..., 0] > 0.5)
 
 
-def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinates():
-    model = model_lib.GlobalLocal(derotate_flow=True, parallax_depth=True)
+@pytest.mark.parametrize("refinement_steps", [0, 2])
+def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinates(
+    refinement_steps,
+):
+    model = model_lib.GlobalLocal(
+        derotate_flow=True, parallax_depth=True, pose_refinement_steps=refinement_steps
+    )
     assert model.extra_inputs == model_lib.CAMERA_INPUTS
     assert model.local_in_channels == 6
     rng = np.random.default_rng(0)
@@ -136,6 +113,14 @@ def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinat
     np.testing.assert_allclose(outputs["inv_depth"], reference.inv_depth_of(logits), rtol=1e-4)
     with pytest.raises(ValueError, match="parallax_depth triangulates .* needs the cameras"):
         model_lib.GlobalLocal(parallax_depth=True).apply(variables, *inputs)
+    # The depth loss's gradient is finite.
+
+    def loss(params, model):
+        outputs = model.apply({**variables, "params": params}, *inputs, **cameras)
+        return jnp.mean(outputs["inv_depth"])
+
+    gradient = jax.jit(jax.grad(loss), static_argnums=1)(variables["params"], model)
+    assert all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves(gradient))
 
 
 @pytest.mark.parametrize(
