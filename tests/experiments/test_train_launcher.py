@@ -15,6 +15,8 @@ from conftest import REPO_ROOT, launch
 
 from gld import input_pipeline
 from gld.evaluation import stored_predictions
+from gld.models import registry
+from gld.runs import recipe
 from gld.runs import workdir as workdir_lib
 
 # A few steps of a tiny model (the recipe's warm-up shrinks to fit: recipe.warmup_that_fits).
@@ -43,7 +45,13 @@ def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
         tiny_scenes_dir,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "parameters hypernet: 30,590" in result.stdout
+    # The hypernetwork generates the 20/10/20 banks of 3x3 filters (and biases) linearly
+    # from the 6 global parameters; the first bank reads the recipe's local input.
+    channels = registry.make_model("global_local", **recipe.ARCHITECTURE).local_in_channels
+    generated = sum(
+        9 * c_in * c_out + c_out for c_in, c_out in [(channels, 20), (20, 10), (10, 20)]
+    )
+    assert f"parameters hypernet: {7 * generated:,}" in result.stdout
     assert "--steps=6: 0 warm-up steps (the recipe's 5%)" in result.stdout
     assert "--steps=6" in (workdir / "flags.txt").read_text()
     assert "--warmup_steps=0" in (workdir / "flags.txt").read_text()  # as it trained
