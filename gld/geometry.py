@@ -297,22 +297,29 @@ def triangulate_depth(
       (no parallax, or behind a camera).
     """
     xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    ray, baseline = _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    denominator = (ray**2).sum(axis=-1)
+    safe = xp.where(denominator > 1e-12, denominator, 1.0)
+    depth = (ray * baseline).sum(axis=-1) / safe
+    return xp.where(denominator > 1e-12, depth, 0.0)
+
+
+def _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translation):
+    """The two projection equations of each view-1 pixel's ray in view 2, `ray * z =
+    baseline` ([..., H, W, 2] each): the point `z * K1^-1 [u, v, 1]` reprojects to
+    `p + flow(p)` (`x2 ~ a z + b`, a: the camera-2 image of the ray's direction, b: of
+    the translation); divided by z, `baseline * rho = ray` for the inverse depth rho."""
+    xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
     height, width = flow.shape[-3:-1]
     grid = pixel_grid(height, width, xp)
     homogeneous = xp.concatenate([grid, xp.ones_like(grid[..., :1])], axis=-1)
     rays1 = xp.einsum("...ij,hwj->...hwi", xp.linalg.inv(camera_matrix1), homogeneous)
-    # Camera-2 image of the ray direction (a) and of the translation (b): x2 ~ a z + b.
     a = xp.einsum("...ij,...hwj->...hwi", camera_matrix2 @ rotation, rays1)
     b = xp.einsum("...ij,...j->...i", camera_matrix2, translation)[..., None, None, :]
     target = grid + flow
-    coeff_u = target[..., 0] * a[..., 2] - a[..., 0]
-    coeff_v = target[..., 1] * a[..., 2] - a[..., 1]
-    rhs_u = b[..., 0] - target[..., 0] * b[..., 2]
-    rhs_v = b[..., 1] - target[..., 1] * b[..., 2]
-    denominator = coeff_u**2 + coeff_v**2
-    safe = xp.where(denominator > 1e-12, denominator, 1.0)
-    depth = (coeff_u * rhs_u + coeff_v * rhs_v) / safe
-    return xp.where(denominator > 1e-12, depth, 0.0)
+    ray = target * a[..., 2:] - a[..., :2]
+    baseline = b[..., :2] - target * b[..., 2:]
+    return ray, baseline
 
 
 def inverse_depth_normal_equation(
@@ -340,19 +347,8 @@ def inverse_depth_normal_equation(
     Returns:
       (lhs, rhs), each [..., H, W].
     """
-    xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
-    height, width = flow.shape[-3:-1]
-    grid = pixel_grid(height, width, xp)
-    homogeneous = xp.concatenate([grid, xp.ones_like(grid[..., :1])], axis=-1)
-    rays1 = xp.einsum("...ij,hwj->...hwi", xp.linalg.inv(camera_matrix1), homogeneous)
-    a = xp.einsum("...ij,...hwj->...hwi", camera_matrix2 @ rotation, rays1)
-    b = xp.einsum("...ij,...j->...i", camera_matrix2, translation)[..., None, None, :]
-    target = grid + flow
-    coeff_u = target[..., 0] * b[..., 2] - b[..., 0]
-    coeff_v = target[..., 1] * b[..., 2] - b[..., 1]
-    rhs_u = a[..., 0] - target[..., 0] * a[..., 2]
-    rhs_v = a[..., 1] - target[..., 1] * a[..., 2]
-    return coeff_u**2 + coeff_v**2, coeff_u * rhs_u + coeff_v * rhs_v
+    ray, baseline = _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    return (baseline**2).sum(axis=-1), (ray * baseline).sum(axis=-1)
 
 
 def triangulate_inverse_depth(

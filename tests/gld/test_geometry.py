@@ -1,6 +1,7 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from two_view_scene import two_view_scene
 
 from gld import geometry
 
@@ -132,24 +133,9 @@ def test_skew_is_the_cross_product():
     np.testing.assert_allclose(geometry.skew(a) @ b, np.cross(a, b))
 
 
-PARALLAX_INTRINSICS = np.array([[0.9, 1.2, 0.52, 0.47], [1.1, 1.4, 0.5, 0.5]], np.float32)
-
-
-def _scene(translation, rotation_vector=(0.02, -0.04, 0.01), seed=0, height=24, width=32):
-    """Depth, the flow it gives under a pose, the cameras and the pose."""
-    rng = np.random.default_rng(seed)
-    camera1, camera2 = (geometry.intrinsics_matrix(k, height, width) for k in PARALLAX_INTRINSICS)
-    depth = rng.uniform(1.0, 5.0, (height, width))
-    rotation = geometry.rotation_matrix(np.array(rotation_vector, np.float64))
-    translation = np.asarray(translation, np.float64)
-    flow, valid = geometry.depth_to_flow(depth, camera1, camera2, rotation, translation)
-    assert valid.all()
-    return depth, flow, camera1, camera2, rotation, translation
-
-
 @pytest.mark.parametrize("xp", [np, jnp])
 def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
-    depth, flow, camera1, camera2, rotation, translation = _scene([0.3, -0.1, 0.2])
+    depth, flow, camera1, camera2, rotation, translation = two_view_scene([0.3, -0.1, 0.2])
     arrays = [xp.asarray(a) for a in (flow, camera1, camera2, rotation, translation)]
     inverse_depth = geometry.triangulate_inverse_depth(*arrays)
     np.testing.assert_allclose(inverse_depth, 1 / depth, atol=1e-4)
@@ -160,14 +146,16 @@ def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
 
 def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
     # Forward motion: the epipole is inside the image, where the parallax vanishes.
-    depth, flow, camera1, camera2, rotation, translation = _scene([0.0, 0.0, 0.3], (0, 0, 0))
+    depth, flow, camera1, camera2, rotation, translation = two_view_scene(
+        [0.0, 0.0, 0.3], (0, 0, 0)
+    )
     plain = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
     damped = geometry.triangulate_inverse_depth(
         flow, camera1, camera2, rotation, translation, damping=1.0
     )
     epipole = camera2 @ translation
     u, v = epipole[:2] / epipole[2]
-    grid = geometry.pixel_grid(24, 32)
+    grid = geometry.pixel_grid(*depth.shape)
     distance = np.hypot(grid[..., 0] - u, grid[..., 1] - v)
     near, far = distance < 2, distance > 12
     assert near.any() and far.any()
