@@ -379,7 +379,7 @@ class GlobalLocal(nn.Module):
                 **bank_kwargs, modulation_scale=self.modulation_scale, name="hypernet"
             )(global_params)
         else:
-            global_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
+            global_params = pose_params = jnp.zeros((batch_size, self.global_dim), flow.dtype)
             filter_banks = StaticFilterBanks(**bank_kwargs, name="static_filters")(batch_size)
         if self.derotate_flow:
             local_inputs = self._derotated(flow, pose_params, intrinsics1, intrinsics2)
