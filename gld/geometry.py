@@ -322,35 +322,6 @@ def _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translatio
     return ray, baseline
 
 
-def inverse_depth_normal_equation(
-    flow: Array,
-    camera_matrix1: Array,
-    camera_matrix2: Array,
-    rotation: Array,
-    translation: Array,
-) -> tuple[Array, Array]:
-    """The normal equation `lhs * rho = rhs` of each pixel's view-1 inverse depth rho,
-    given its flow and a known pose.
-
-    The reprojection of the view-1 ray's point at inverse depth rho is `x2 ~ a + rho b`
-    (a: the camera-2 image of the ray's direction, b: of the translation), so the two
-    projection equations are linear in rho. `lhs` (pixels squared) is, to first order,
-    the squared length of the parallax a unit of inverse depth makes there: how much the
-    flow says about rho, 0 at the epipole.
-
-    Args:
-      flow: [..., H, W, 2] pixels, I1 -> I2.
-      camera_matrix1, camera_matrix2: [..., 3, 3].
-      rotation, translation: [..., 3, 3], [..., 3]; X2 = R X1 + t (rho comes in units of
-        1 / ||t||).
-
-    Returns:
-      (lhs, rhs), each [..., H, W].
-    """
-    ray, baseline = _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translation)
-    return (baseline**2).sum(axis=-1), (ray * baseline).sum(axis=-1)
-
-
 def triangulate_inverse_depth(
     flow: Array,
     camera_matrix1: Array,
@@ -358,26 +329,39 @@ def triangulate_inverse_depth(
     rotation: Array,
     translation: Array,
     damping: float = 0.0,
-) -> Array:
-    """Per-pixel linear triangulation of view-1 inverse depth from flow and a known pose:
-    the least-squares solution of `inverse_depth_normal_equation`, with `damping`
-    (pixels squared) added to its left side, a ridge that pulls rho towards 0 (a point
-    at infinity) where the parallax says little about it, near the epipole. Unlike depth
-    (`triangulate_depth`), inverse depth stays finite as the parallax vanishes.
+) -> tuple[Array, Array]:
+    """Per-pixel linear triangulation of view-1 inverse depth from flow and a known pose.
 
-    Args: as `inverse_depth_normal_equation`, and damping >= 0 (0 gives the plain
-      least-squares solution, 0 where it is undefined).
+    The reprojection of the view-1 ray's point at inverse depth rho is `x2 ~ a + rho b`
+    (a: the camera-2 image of the ray's direction, b: of the translation), so the two
+    projection equations are linear in rho; their normal equation `lhs * rho = rhs` is
+    solved with `damping` (pixels squared) added to `lhs`, a ridge that pulls rho towards
+    0 (a point at infinity) where the parallax says little about it, near the epipole.
+    `lhs` is, to first order, the squared length of the parallax a unit of inverse depth
+    makes there. Unlike depth (`triangulate_depth`), inverse depth stays finite as the
+    parallax vanishes.
+
+    Args:
+      flow: [..., H, W, 2] pixels, I1 -> I2.
+      camera_matrix1, camera_matrix2: [..., 3, 3].
+      rotation, translation: [..., 3, 3], [..., 3]; X2 = R X1 + t (rho comes in units of
+        1 / ||t||).
+      damping: >= 0; 0 gives the plain least-squares solution.
 
     Returns:
-      inverse depth [..., H, W]; negative where the flow puts the point behind camera 1.
+      (inverse depth, confidence), each [..., H, W]: the inverse depth is negative where
+      the flow puts the point behind camera 1; the confidence, lhs / (lhs + damping) in
+      [0, 1], is how much of it the parallax decides (0 at the epipole). Both are 0 where
+      the pixel has no parallax at all.
     """
     xp = _xp(flow, camera_matrix1, camera_matrix2, rotation, translation)
-    lhs, rhs = inverse_depth_normal_equation(
-        flow, camera_matrix1, camera_matrix2, rotation, translation
-    )
-    lhs = lhs + damping
-    safe = xp.where(lhs > 1e-12, lhs, 1.0)
-    return xp.where(lhs > 1e-12, rhs / safe, 0.0)
+    ray, baseline = _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translation)
+    lhs = (baseline**2).sum(axis=-1)
+    damped = lhs + damping
+    solvable = damped > 1e-12
+    safe = xp.where(solvable, damped, 1.0)
+    inverse_depth = xp.where(solvable, (ray * baseline).sum(axis=-1) / safe, 0.0)
+    return inverse_depth, xp.where(solvable, lhs / safe, 0.0)
 
 
 def skew(vector: Array) -> Array:

@@ -52,6 +52,13 @@ GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
 # The keys a model that reads its encoder's pose against the flow reads (refinement,
 # derotation, triangulation: the cameras).
 CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
+# The options that read the encoder's g as a pose against the flow (they need the cameras,
+# an encoder's pose and the flow), with what each does.
+ENCODER_POSE_READERS = {
+    "pose_refinement_steps": "refines the encoder's pose on the flow",
+    "derotate_flow": "subtracts the flow of the encoder's pose's rotation from the flow",
+    "parallax_depth": "triangulates the flow under the encoder's pose",
+}
 # Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
 # test pins its entries, so that a numpy release that changed the stream is noticed).
 _PERTURBATION_MIX = np.random.default_rng(0).normal(0.0, 100.0, (12, 6)).astype(np.float32)
@@ -253,7 +260,7 @@ class GlobalLocal(nn.Module):
         """Contract keys the call reads by keyword besides the images and flow."""
         if not self.use_global_module:
             return ()
-        reads_pose = self.pose_refinement_steps or self.derotate_flow or self.parallax_depth
+        reads_pose = any(getattr(self, name) for name in ENCODER_POSE_READERS)
         if self.global_source == "encoder" and reads_pose:
             return CAMERA_INPUTS
         return GIVEN_POSE_INPUTS.get(self.global_source, ())

@@ -56,8 +56,8 @@ def parallax_inverse_depth(
     (`GlobalLocal.parallax_depth`): [B, H, W, 2], the damped linear triangulation
     (`gld.geometry.triangulate_inverse_depth`) times INVERSE_DEPTH_SCALE, clipped to
     [0, INVERSE_DEPTH_CLIP] (a point behind the camera is noise), and its confidence in
-    [0, 1), how much of the damped solution the parallax decides (0 at the epipole, where
-    the triangulation says "far" for want of parallax and the image must say the rest).
+    [0, 1), how much of it the parallax decides (0 at the epipole, where the
+    triangulation says "far" for want of parallax and the image must say the rest).
     g enters as a constant (no gradient): the channel is an input, not a path by which
     the depth loss moves the pose (as through the refinement)."""
     width = flow.shape[2]
@@ -66,9 +66,13 @@ def parallax_inverse_depth(
     translation = pose["translation"]
     norm = jnp.linalg.norm(translation, axis=-1, keepdims=True)
     direction = translation / jnp.maximum(norm, 1e-12)
-    lhs, rhs = geometry.inverse_depth_normal_equation(
-        flow, camera1, camera2, pose["rotation"], direction
+    inverse_depth, confidence = geometry.triangulate_inverse_depth(
+        flow,
+        camera1,
+        camera2,
+        pose["rotation"],
+        direction,
+        damping=(DAMPING_WIDTH_FRACTION * width) ** 2,
     )
-    damped = lhs + (DAMPING_WIDTH_FRACTION * width) ** 2
-    inverse_depth = jnp.clip(INVERSE_DEPTH_SCALE * rhs / damped, 0.0, INVERSE_DEPTH_CLIP)
-    return jnp.stack([inverse_depth, lhs / damped], axis=-1).astype(flow.dtype)
+    inverse_depth = jnp.clip(INVERSE_DEPTH_SCALE * inverse_depth, 0.0, INVERSE_DEPTH_CLIP)
+    return jnp.stack([inverse_depth, confidence], axis=-1).astype(flow.dtype)

@@ -19,7 +19,7 @@ import jax
 
 from gld.models import baselines
 from gld.models.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
-from gld.models.global_local import GIVEN_POSE_INPUTS, GlobalLocal
+from gld.models.global_local import ENCODER_POSE_READERS, GIVEN_POSE_INPUTS, GlobalLocal
 from gld.options import check_options
 
 # Every learned depth network, by name (`--model`).
@@ -125,11 +125,7 @@ def check_config(name: str, config: dict) -> None:
             f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
             f"is {values['global_dim']}"
         )
-    for option, what in (
-        ("pose_refinement_steps", "refines the encoder's pose on the flow"),
-        ("derotate_flow", "subtracts the flow of the encoder's pose's rotation from the flow"),
-        ("parallax_depth", "triangulates the flow under the encoder's pose"),
-    ):
+    for option, what in ENCODER_POSE_READERS.items():
         if values[option] and not encoder_pose(values):
             raise ValueError(
                 f"{option} {what}: it needs the global module, global_source encoder and "

@@ -28,6 +28,8 @@ from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
+from gld.models import registry
+from gld.models.global_local import ENCODER_POSE_READERS
 from gld.runs import config as config_lib
 from gld.runs import workdir as workdir_lib
 
@@ -43,9 +45,12 @@ ARCHITECTURE = {
 }
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
-# What needs an encoder's pose and the flow (refinement, the rotation's flow subtracted
-# from the local network's, the flow triangulated under it), off.
-WITHOUT_A_POSE = {"pose_refinement_steps": 0, "derotate_flow": False, "parallax_depth": False}
+# What needs an encoder's pose and the flow (`ENCODER_POSE_READERS`: refinement, the
+# rotation's flow subtracted from the local network's, the flow triangulated under it),
+# off: the model's defaults.
+WITHOUT_A_POSE = {
+    name: registry.full_config("global_local", {})[name] for name in ENCODER_POSE_READERS
+}
 # The architecture for a model without an encoder's pose to refine, or without the flow.
 ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, **WITHOUT_A_POSE}
 # The main job's training options (its other options: `TrainConfig`'s defaults).

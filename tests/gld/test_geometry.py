@@ -137,10 +137,11 @@ def test_skew_is_the_cross_product():
 def test_the_flow_of_a_known_pose_triangulates_to_the_inverse_depth(xp):
     depth, flow, camera1, camera2, rotation, translation = two_view_scene([0.3, -0.1, 0.2])
     arrays = [xp.asarray(a) for a in (flow, camera1, camera2, rotation, translation)]
-    inverse_depth = geometry.triangulate_inverse_depth(*arrays)
+    inverse_depth, confidence = geometry.triangulate_inverse_depth(*arrays)
     np.testing.assert_allclose(inverse_depth, 1 / depth, atol=1e-4)
+    np.testing.assert_allclose(confidence, 1.0)  # undamped: the parallax decides all
     # A translation twice as long gives half the inverse depth (units of 1 / ||t||).
-    doubled = geometry.triangulate_inverse_depth(*arrays[:4], 2 * arrays[4])
+    doubled, _ = geometry.triangulate_inverse_depth(*arrays[:4], 2 * arrays[4])
     np.testing.assert_allclose(doubled, 0.5 / depth, atol=1e-4)
 
 
@@ -149,8 +150,8 @@ def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
     depth, flow, camera1, camera2, rotation, translation = two_view_scene(
         [0.0, 0.0, 0.3], (0, 0, 0)
     )
-    plain = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
-    damped = geometry.triangulate_inverse_depth(
+    plain, _ = geometry.triangulate_inverse_depth(flow, camera1, camera2, rotation, translation)
+    damped, confidence = geometry.triangulate_inverse_depth(
         flow, camera1, camera2, rotation, translation, damping=1.0
     )
     epipole = camera2 @ translation
@@ -161,9 +162,10 @@ def test_damping_pulls_towards_infinity_where_the_parallax_says_little():
     assert near.any() and far.any()
     np.testing.assert_allclose(plain, 1 / depth, rtol=1e-6)
     assert np.all(damped[near] < 0.5 / depth[near])
+    assert np.all(confidence[near] < 0.5) and np.all(confidence[far] > 0.9)
     np.testing.assert_allclose(damped[far], 1 / depth[far], rtol=0.1)
     # No parallax at all (a pure rotation): inverse depth 0, not a division by zero.
     still = geometry.triangulate_inverse_depth(
         np.zeros_like(flow), camera1, camera1, np.eye(3), np.zeros(3)
     )
-    assert np.all(still == 0)
+    assert np.all(still[0] == 0) and np.all(still[1] == 0)
