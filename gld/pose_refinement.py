@@ -31,6 +31,25 @@ DEFAULT_STRIDE = 4
 DEFAULT_SIGMA_PIXELS = 1.0
 # Levenberg-Marquardt damping, relative to the mean diagonal of the normal matrix.
 _DAMPING = 1e-3
+# The search around a proposal (`search_pose`): the starting translation directions'
+# angle from the proposal's, and each start's coarse refinement.
+SEARCH_ANGLE_DEGREES = 20.0
+SEARCH_ITERATIONS = 10
+SEARCH_STRIDE = 8
+# The robust scales (pixels) of the refinement after a search: a third of its steps at the
+# first, the rest at the second.
+ANNEALED_SIGMAS = (0.5, 0.2)
+
+
+def _cameras(flow, intrinsics1, intrinsics2):
+    """Inverse camera matrices [B, 3, 3] of both views and view 1's focal length [B], pixels."""
+    dtype = flow.dtype
+    height, width = flow.shape[1:3]
+    inverse_k1, inverse_k2 = (
+        jnp.linalg.inv(geometry.intrinsics_matrix(intrinsics.astype(dtype), height, width))
+        for intrinsics in (intrinsics1, intrinsics2)
+    )
+    return inverse_k1, inverse_k2, intrinsics1[:, 0].astype(dtype) * width
 
 
 def _signed_distances(flow, rotation, translation, inverse_k1, inverse_k2, focal, stride):
@@ -132,16 +151,130 @@ def refine_pose(
             f"{sigma}"
         )
     dtype = flow.dtype
-    height, width = flow.shape[1:3]
-    inverse_k1, inverse_k2 = (
-        jnp.linalg.inv(geometry.intrinsics_matrix(intrinsics.astype(dtype), height, width))
-        for intrinsics in (intrinsics1, intrinsics2)
-    )
-    focal = intrinsics1[:, 0].astype(dtype) * width
 
     def one(*arguments):
         return _refine_one(*arguments, iterations, stride, sigma)
 
     return jax.vmap(one)(
-        flow, rotation.astype(dtype), translation.astype(dtype), inverse_k1, inverse_k2, focal
+        flow,
+        rotation.astype(dtype),
+        translation.astype(dtype),
+        *_cameras(flow, intrinsics1, intrinsics2),
     )
+
+
+def robust_cost(
+    flow: jax.Array,
+    rotation: jax.Array,
+    translation: jax.Array,
+    intrinsics1: jax.Array,
+    intrinsics2: jax.Array,
+    *,
+    stride: int = DEFAULT_STRIDE,
+    sigma: float = DEFAULT_SIGMA_PIXELS,
+) -> jax.Array:
+    """[B] what the refinement lowers: the Cauchy cost, sum log(1 + (d / sigma)^2), of each
+    pair's signed Sampson distances d (pixels) over its correspondences inside image 2."""
+    dtype = flow.dtype
+
+    def one(flow, rotation, translation, inverse_k1, inverse_k2, focal):
+        translation = translation / jnp.maximum(jnp.linalg.norm(translation), 1e-12)
+        distances, inside = _signed_distances(
+            flow, rotation, translation, inverse_k1, inverse_k2, focal, stride
+        )
+        return jnp.sum(jnp.where(inside, jnp.log1p((distances / sigma) ** 2), 0.0))
+
+    return jax.vmap(one)(
+        flow,
+        rotation.astype(dtype),
+        translation.astype(dtype),
+        *_cameras(flow, intrinsics1, intrinsics2),
+    )
+
+
+def search_pose(
+    flow: jax.Array,
+    rotation: jax.Array,
+    translation: jax.Array,
+    intrinsics1: jax.Array,
+    intrinsics2: jax.Array,
+    *,
+    starts: int,
+    angle_degrees: float = SEARCH_ANGLE_DEGREES,
+    iterations: int = SEARCH_ITERATIONS,
+    stride: int = SEARCH_STRIDE,
+) -> tuple[jax.Array, jax.Array]:
+    """The best of several coarse refinements around a proposal.
+
+    The starts are the proposal and `starts - 1` poses with its rotation and the
+    translation direction turned `angle_degrees` away from its own, evenly around it;
+    each is refined `iterations` steps on every `stride`-th pixel (1 px scale) and the one
+    of least `robust_cost` is kept. The translation direction is where a single start
+    most often stops in a wrong minimum.
+
+    Args:
+      flow, rotation, translation, intrinsics1, intrinsics2: as `refine_pose`.
+      starts: how many (1 = the proposal's coarse refinement alone).
+
+    Returns:
+      (rotation [B, 3, 3], unit translation [B, 3]).
+    """
+    if starts < 1:
+        raise ValueError(f"starts must be >= 1, got {starts}")
+    dtype = flow.dtype
+    rotation = rotation.astype(dtype)
+    direction = translation.astype(dtype)
+    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+    first, second = jax.vmap(_tangent_basis)(direction)
+    angle = jnp.deg2rad(jnp.asarray(angle_degrees, dtype))
+    directions = [direction]
+    for index in range(starts - 1):
+        around = 2.0 * jnp.pi * index / (starts - 1)
+        away = jnp.cos(around) * first + jnp.sin(around) * second
+        directions.append(jnp.cos(angle) * direction + jnp.sin(angle) * away)
+    candidates = [
+        refine_pose(
+            flow, rotation, start, intrinsics1, intrinsics2, iterations=iterations, stride=stride
+        )
+        for start in directions
+    ]
+    costs = jnp.stack(
+        [robust_cost(flow, *pose, intrinsics1, intrinsics2) for pose in candidates], axis=-1
+    )
+    best = jnp.argmin(costs, axis=-1)
+    rotations = jnp.stack([pose[0] for pose in candidates], axis=1)
+    translations = jnp.stack([pose[1] for pose in candidates], axis=1)
+    pairs = jnp.arange(flow.shape[0])
+    return rotations[pairs, best], translations[pairs, best]
+
+
+def pose_from_proposal(
+    flow: jax.Array,
+    rotation: jax.Array,
+    translation: jax.Array,
+    intrinsics1: jax.Array,
+    intrinsics2: jax.Array,
+    *,
+    iterations: int,
+    starts: int = 1,
+) -> tuple[jax.Array, jax.Array]:
+    """The pose a proposal leads to on the flow: `refine_pose`'s `iterations` steps at
+    1 px with one start; with more, `search_pose` over `starts` first, then the steps
+    with the robust scale annealed (`ANNEALED_SIGMAS`: the first third at 0.5 px, the rest
+    at 0.2 px), which a narrower basin allows once the search has found it.
+
+    Args and returns: as `refine_pose`.
+    """
+    if starts == 1:
+        return refine_pose(
+            flow, rotation, translation, intrinsics1, intrinsics2, iterations=iterations
+        )
+    rotation, translation = search_pose(
+        flow, rotation, translation, intrinsics1, intrinsics2, starts=starts
+    )
+    coarse = iterations // 3
+    for steps, sigma in zip((coarse, iterations - coarse), ANNEALED_SIGMAS, strict=True):
+        rotation, translation = refine_pose(
+            flow, rotation, translation, intrinsics1, intrinsics2, iterations=steps, sigma=sigma
+        )
+    return rotation, translation

@@ -49,15 +49,20 @@ ABLATIONS = {
 # (a robot's odometry at deployment), or the essential matrix's from the input flow.
 POSE_INPUTS = ("rotation", "translation")
 GIVEN_POSE_INPUTS = {"pose": POSE_INPUTS, "flow_pose": FLOW_POSE_KEYS}
-# The keys a model that reads its encoder's pose against the flow reads (refinement,
-# derotation, triangulation: the cameras).
+# The keys a model that reads its pose against the flow reads (refinement, derotation,
+# triangulation: the cameras).
 CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
-# The options that read the encoder's g as a pose against the flow (they need the cameras,
-# an encoder's pose and the flow), with what each does.
+# The options that read g as a pose against the flow (they need the cameras, six global
+# parameters that stand for a pose, and the flow), with what each does. Those that refine
+# the encoder's proposal need the encoder as g's source; the others read any pose g: the
+# encoder's, or a given one (odometry, the essential matrix's).
 ENCODER_POSE_READERS = {
     "pose_refinement_steps": "refines the encoder's pose on the flow",
-    "derotate_flow": "subtracts the flow of the encoder's pose's rotation from the flow",
-    "parallax_depth": "triangulates the flow under the encoder's pose",
+    "pose_refinement_starts": "searches around the encoder's pose on the flow",
+}
+POSE_READERS = {
+    "derotate_flow": "subtracts the flow of g's rotation from the flow",
+    "parallax_depth": "triangulates the flow under g's pose",
 }
 # Fixed mixing of a pose into the directions of its given error (`perturbed_pose`; a
 # test pins its entries, so that a numpy release that changed the stream is noticed).
@@ -161,6 +166,10 @@ class GlobalLocal(nn.Module):
         proposes and geometry refines; no gradient flows through the refinement, so the
         encoder's proposal ("encoder_params") is trained by the epipolar term or the
         pose teacher. 0 (the paper's) uses the encoder's output as g.
+      pose_refinement_starts: more than 1 refines not the proposal alone but the best
+        of this many translation directions around it, each refined coarsely, then
+        anneals the robust scale (`gld.pose_refinement.pose_from_proposal`): a proposal
+        in a wrong basin of the translation direction still lands near the motion.
       global_norm: "batch" standardises each global parameter over the batch (running
         statistics at test time), so that g varies across pairs from the first step
         (the pooled encoder output varies by ~0.005 at initialisation); "none" (the
@@ -179,7 +188,8 @@ class GlobalLocal(nn.Module):
         intrinsics2=): the parallax alone, which lies along the epipolar lines and scales
         with inverse depth. The rotation's flow is quadratic in the pixel's position, which
         filters linear in g cannot subtract. The global module still sees the flow as it
-        is. False (the paper's) gives the local network the flow.
+        is. g's pose is the encoder's or a given one (global_source pose, flow_pose).
+        False (the paper's) gives the local network the flow.
       parallax_depth: the local network also sees, as two more channels, the inverse depth
         each pixel's flow gives under g's pose and its confidence
         (`parallax_inverse_depth`: a damped linear triangulation; the call then needs
@@ -234,6 +244,12 @@ class GlobalLocal(nn.Module):
         "g (0 = the encoder's output is g).",
         at_least=0,
     )
+    pose_refinement_starts: int = option(
+        1,
+        "With more than 1, the refinement first searches this many translation directions "
+        "around the encoder's, then anneals its robust scale.",
+        at_least=1,
+    )
     global_norm: str = option("none", "Normalisation of g.", GLOBAL_NORMS)
     modulation_scale: float = option(
         MODULATION_SCALE, "Initial modulation of the filters by g.", at_least=0
@@ -260,10 +276,9 @@ class GlobalLocal(nn.Module):
         """Contract keys the call reads by keyword besides the images and flow."""
         if not self.use_global_module:
             return ()
-        reads_pose = any(getattr(self, name) for name in ENCODER_POSE_READERS)
-        if self.global_source == "encoder" and reads_pose:
-            return CAMERA_INPUTS
-        return GIVEN_POSE_INPUTS.get(self.global_source, ())
+        reads_pose = self.pose_refinement_steps or any(getattr(self, name) for name in POSE_READERS)
+        given = GIVEN_POSE_INPUTS.get(self.global_source, ())
+        return tuple(given) + (CAMERA_INPUTS if reads_pose else ())
 
     @nn.compact
     def __call__(
@@ -450,13 +465,14 @@ class GlobalLocal(nn.Module):
                 f"{self.global_dim}"
             )
         pose = global_params_pose(jax.lax.stop_gradient(proposal))
-        rotation, translation = pose_refinement.refine_pose(
+        rotation, translation = pose_refinement.pose_from_proposal(
             jax.lax.stop_gradient(flow),
             pose["rotation"],
             pose["translation"],
             intrinsics1,
             intrinsics2,
             iterations=self.pose_refinement_steps,
+            starts=self.pose_refinement_starts,
         )
         return jax.lax.stop_gradient(pose_parameters(rotation, translation)).astype(flow.dtype)
 

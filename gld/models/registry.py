@@ -19,7 +19,12 @@ import jax
 
 from gld.models import baselines
 from gld.models.flow_depth import FlowNetHead, GlobalLocalFlowNet, check_flow_net_workdir
-from gld.models.global_local import ENCODER_POSE_READERS, GIVEN_POSE_INPUTS, GlobalLocal
+from gld.models.global_local import (
+    ENCODER_POSE_READERS,
+    GIVEN_POSE_INPUTS,
+    POSE_READERS,
+    GlobalLocal,
+)
 from gld.options import check_options
 
 # Every learned depth network, by name (`--model`).
@@ -42,6 +47,7 @@ FIELDS_ADDED_LATER: dict[str, dict[str, object]] = {
         "encoder_norm": "none",
         "encoder_coordinates": False,
         "pose_refinement_steps": 0,
+        "pose_refinement_starts": 1,
         "pose_rotation_error": 0.0,
         "pose_translation_error": 0.0,
         "border": "zero",
@@ -92,10 +98,16 @@ def encoder_pose(values: dict) -> bool:
 
 
 def reads_encoder_pose(values: dict) -> bool:
-    """Whether such a model can also read its pose against the flow (refine it on the
-    flow, subtract its rotation's flow, triangulate the flow under it): `encoder_pose`,
-    and the flow is an input."""
+    """Whether such a model can also refine its encoder's pose on the flow:
+    `encoder_pose`, and the flow is an input."""
     return encoder_pose(values) and bool(values["use_flow"])
+
+
+def reads_pose(values: dict) -> bool:
+    """Whether a global-local model of full config `values` has a pose as g (six global
+    parameters, from its encoder or given) and the flow, and so can subtract the flow of
+    g's rotation and triangulate the flow under g."""
+    return bool(values["use_global_module"] and values["global_dim"] == 6 and values["use_flow"])
 
 
 def check_config(name: str, config: dict) -> None:
@@ -125,16 +137,25 @@ def check_config(name: str, config: dict) -> None:
             f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
             f"is {values['global_dim']}"
         )
+    if values["pose_refinement_starts"] > 1 and not values["pose_refinement_steps"]:
+        raise ValueError(
+            "pose_refinement_starts searches around the encoder's pose before its refinement: "
+            "it needs pose_refinement_steps"
+        )
+    defaults = full_config(name, {})
     for option, what in ENCODER_POSE_READERS.items():
-        if values[option] and not encoder_pose(values):
+        if values[option] != defaults[option] and not encoder_pose(values):
             raise ValueError(
                 f"{option} {what}: it needs the global module, global_source encoder and "
                 "global_dim 6"
             )
-        if values[option] and not reads_encoder_pose(values):
+    for option, what in {**ENCODER_POSE_READERS, **POSE_READERS}.items():
+        if values[option] != defaults[option] and not values["use_flow"]:
             raise ValueError(
                 f"{option} {what}, which a model without the flow (use_flow false) must not read"
             )
+        if values[option] != defaults[option] and not reads_pose(values):
+            raise ValueError(f"{option} {what}: it needs the global module and global_dim 6")
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
             f"encoder_channels {values['encoder_channels']} and encoder_strides "

@@ -12,10 +12,11 @@ on the CPU suite).
 The global-local runs use the main job's recipe (`gld.runs.recipe`): a
 global encoder with instance normalisation that sees the flow alone, and a global
 module that learns the motion: the epipolar term at 0.1, the classical pose teacher
-(`pose_teacher_weight`) and twenty refinement steps of the encoder's pose on the flow
-(`pose_refinement_steps`), whose rotation's flow is subtracted from the local network's
-flow (`derotate_flow`) and under which the flow is triangulated for it (`parallax_depth`;
-both go with the refinement below). Two ablations therefore read
+(`pose_teacher_weight`) and a search and fifteen refinement steps of the encoder's pose
+on the flow (`pose_refinement_starts`, `pose_refinement_steps`), whose rotation's flow is
+subtracted from the local network's flow (`derotate_flow`) and under which the flow is
+triangulated for it (`parallax_depth`; a given pose, true or the essential matrix's, is
+read so too). Two ablations therefore read
 differently from the paper's: "+ image pair" adds the image pair the main recipe leaves
 out, and the runs without a global module or without flow drop all three ways of
 learning the motion too (they need g, and they read the flow); the run "- epipolar term,
@@ -212,13 +213,13 @@ def suite_runs(scale: Scale) -> list[Run]:
             "global_local_gt_pose",
             "global-local, true pose given (Ours-GT Pose)",
             motion=False,
-            model_config={"global_source": "pose"},
+            model_config={**recipe.ARCHITECTURE_GIVEN_POSE, "global_source": "pose"},
         ),
         _global_local(
             "global_local_flow_pose",
             "global-local, its flow's essential-matrix pose given",
             motion=False,
-            model_config={"global_source": "flow_pose"},
+            model_config={**recipe.ARCHITECTURE_GIVEN_POSE, "global_source": "flow_pose"},
         ),
     ]
     runs += [

@@ -91,11 +91,18 @@ def infers_pose(model: str, model_config: dict[str, Any]) -> bool:
 
 
 def refines_pose(model: str, model_config: dict[str, Any]) -> bool:
-    """Whether a model could read its encoder's pose against its flow: refine it
-    (`pose_refinement_steps`), subtract its rotation's flow (`derotate_flow`) and
-    triangulate the flow under it (`parallax_depth`)
-    (`gld.models.registry.reads_encoder_pose`)."""
+    """Whether a model could refine its encoder's pose on its flow
+    (`pose_refinement_steps`; `gld.models.registry.reads_encoder_pose`)."""
     return model == "global_local" and registry.reads_encoder_pose(
+        registry.full_config(model, model_config)
+    )
+
+
+def reads_pose(model: str, model_config: dict[str, Any]) -> bool:
+    """Whether a model could read a pose g (its encoder's or a given one) against its
+    flow: subtract its rotation's flow (`derotate_flow`) and triangulate the flow under it
+    (`parallax_depth`) (`gld.models.registry.reads_pose`)."""
+    return model == "global_local" and registry.reads_pose(
         registry.full_config(model, model_config)
     )
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from gld.models import registry
-from gld.models.global_local import ENCODER_POSE_READERS
+from gld.models.global_local import ENCODER_POSE_READERS, POSE_READERS
 from gld.runs import config as config_lib
 from gld.runs import workdir as workdir_lib
 
@@ -38,20 +38,25 @@ from gld.runs import workdir as workdir_lib
 ARCHITECTURE = {
     "encoder_norm": "instance",
     "use_image_pair": False,
-    "pose_refinement_steps": 20,
+    "pose_refinement_steps": 15,
+    "pose_refinement_starts": 5,
     "border": "edge",
     "derotate_flow": True,
     "parallax_depth": True,
 }
 # The loss weights by which the main job's global module learns the motion.
 MOTION_WEIGHTS = {"epipolar_weight": 0.1, "pose_teacher_weight": 1.0}
-# What needs an encoder's pose and the flow (`ENCODER_POSE_READERS`: refinement, the
-# rotation's flow subtracted from the local network's, the flow triangulated under it),
-# off: the model's defaults.
-WITHOUT_A_POSE = {
-    name: registry.full_config("global_local", {})[name] for name in ENCODER_POSE_READERS
-}
-# The architecture for a model without an encoder's pose to refine, or without the flow.
+_DEFAULTS = registry.full_config("global_local", {})
+# What refines an encoder's pose on the flow (`ENCODER_POSE_READERS`), off: the model's
+# defaults.
+WITHOUT_AN_ENCODER_POSE = {name: _DEFAULTS[name] for name in ENCODER_POSE_READERS}
+# What reads a pose against the flow (refinement, the rotation's flow subtracted from the
+# local network's, the flow triangulated under it), off.
+WITHOUT_A_POSE = {**WITHOUT_AN_ENCODER_POSE, **{name: _DEFAULTS[name] for name in POSE_READERS}}
+# The architecture for a model given its pose (odometry, the essential matrix's): it reads
+# that pose against the flow as the main job reads its encoder's.
+ARCHITECTURE_GIVEN_POSE = {**ARCHITECTURE, **WITHOUT_AN_ENCODER_POSE}
+# The architecture for a model without a pose, or without the flow.
 ARCHITECTURE_WITHOUT_MOTION = {**ARCHITECTURE, **WITHOUT_A_POSE}
 # The main job's training options (its other options: `TrainConfig`'s defaults).
 TRAINING = {
@@ -84,10 +89,11 @@ def motion_where_it_applies(
 
     They are defaults of the global-local model whose encoder infers a pose: a model
     without one (another model, a given pose, no global module) trains without the
-    epipolar term and the teacher, and one without it or without the flow without
-    refinement, the rotation's flow subtracted and the flow triangulated
-    (`WITHOUT_A_POSE`), unless the command line gives them (`given`: the option names
-    given).
+    epipolar term and the teacher, and without the refinement and search of the
+    encoder's pose (`WITHOUT_AN_ENCODER_POSE`); one without a pose as g or without the
+    flow also without the rotation's flow subtracted and the flow triangulated
+    (`WITHOUT_A_POSE`). A given pose keeps those: it is read as the encoder's would be.
+    The command line's options (`given`: the option names given) are kept.
 
     Args:
       model, model_config: the run's model and its constructor arguments.
@@ -99,9 +105,13 @@ def motion_where_it_applies(
     """
     infers = config_lib.infers_pose(model, model_config)
     weights = {name: value if infers or name in given else 0.0 for name, value in weights.items()}
-    refines = config_lib.refines_pose(model, model_config)
-    if model == "global_local" and not refines:
-        off = {name: value for name, value in WITHOUT_A_POSE.items() if name not in given}
+    if model == "global_local":
+        off = {}
+        if not config_lib.refines_pose(model, model_config):
+            off |= WITHOUT_AN_ENCODER_POSE
+        if not config_lib.reads_pose(model, model_config):
+            off |= WITHOUT_A_POSE
+        off = {name: value for name, value in off.items() if name not in given}
         model_config = {**model_config, **off}
     return model_config, weights
 

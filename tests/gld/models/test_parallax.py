@@ -208,25 +208,47 @@ def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinat
     assert all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves(gradient))
 
 
+def test_a_model_given_its_pose_derotates_and_triangulates_the_flow_under_that_pose():
+    model = model_lib.GlobalLocal(global_source="pose", derotate_flow=True, parallax_depth=True)
+    assert model.extra_inputs == (*model_lib.POSE_INPUTS, *model_lib.CAMERA_INPUTS)
+    inputs = _inputs()
+    poses = [
+        _pose([0.01, -0.02, 0.005], [0.2, 0.1, 1.0]),
+        _pose([0.0, 0.01, 0.0], [-1.0, 0.0, 0.3]),
+    ]
+    pose = {
+        "rotation": jnp.asarray(np.stack([rotation for rotation, _ in poses])),
+        "translation": jnp.asarray(np.stack([translation for _, translation in poses])),
+    }
+    key = jax.random.key(0, impl="rbg")
+    variables = model.init(key, *inputs, **pose, **CAMERAS)
+    outputs = jax.jit(model.apply)(variables, *inputs, **pose, **CAMERAS)
+    given = model_lib.pose_parameters(pose["rotation"], pose["translation"])
+    np.testing.assert_allclose(outputs["global_params"], given, atol=1e-6)
+    flow_part = parallax.parallax_flow(inputs[2], given, *CAMERAS.values())
+    channel = parallax.parallax_inverse_depth(inputs[2], given, *CAMERAS.values())
+    channels = [_scaled(model, flow_part), np.asarray(channel, np.float64)]
+    expected = _reference_inv_depth(outputs, variables, channels)
+    np.testing.assert_allclose(outputs["inv_depth"], expected, rtol=1e-4)
+    # Another pose given, another depth: the local network reads the pose given.
+    turned = {**pose, "translation": pose["translation"][::-1]}
+    other = jax.jit(model.apply)(variables, *inputs, **turned, **CAMERAS)
+    assert np.abs(other["inv_depth"] - outputs["inv_depth"]).max() > 1e-4
+
+
 @pytest.mark.parametrize(
-    "config",
-    [
-        {"global_source": "pose"},
-        {"use_global_module": False},
-        {"global_dim": 8},
-        {"use_flow": False},
-    ],
+    "config", [{"use_global_module": False}, {"global_dim": 8}, {"use_flow": False}]
 )
-def test_the_triangulation_needs_a_pose_from_the_encoder_and_the_flow(config):
+def test_the_triangulation_needs_a_pose_as_g_and_the_flow(config):
     with pytest.raises(ValueError, match="parallax_depth"):
         registry.check_config("global_local", {"parallax_depth": True, **config})
     registry.check_config("global_local", config)
 
 
 @pytest.mark.parametrize(
-    "config", [{"global_source": "pose"}, {"use_global_module": False}, {"global_dim": 8}]
+    "config", [{"use_global_module": False}, {"global_dim": 8}, {"use_flow": False}]
 )
-def test_derotation_needs_a_pose_from_the_encoder(config):
+def test_derotation_needs_a_pose_as_g_and_the_flow(config):
     with pytest.raises(ValueError, match="derotate_flow"):
         registry.check_config("global_local", {"derotate_flow": True, **config})
     registry.check_config("global_local", config)

@@ -23,7 +23,8 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert main.model_config == {
         "encoder_norm": "instance",
         "use_image_pair": False,
-        "pose_refinement_steps": 20,
+        "pose_refinement_steps": 15,
+        "pose_refinement_starts": 5,
         "border": "edge",
         "derotate_flow": True,
         "parallax_depth": True,
@@ -45,19 +46,23 @@ def test_the_ablations_change_one_switch_of_the_main_recipe():
     assert differences("global_local_image_pair") == {"use_image_pair": True}
     assert differences("global_local_no_coordconv") == {"use_coordinates": False}
     # Without g from the encoder, or without the flow, nothing teaches g the motion.
-    no_motion = {
+    no_encoder_pose = {
         "epipolar_weight": 0.0,
         "pose_teacher_weight": 0.0,
         "pose_refinement_steps": 0,
-        "derotate_flow": False,
-        "parallax_depth": False,
+        "pose_refinement_starts": 1,
     }
+    no_motion = {**no_encoder_pose, "derotate_flow": False, "parallax_depth": False}
     assert differences("global_local_no_global_module") == {"use_global_module": False, **no_motion}
     assert differences("global_local_no_flow") == {"use_flow": False, **no_motion}
     assert differences("global_local_no_epipolar") == no_motion
     assert differences("global_local_gt_flow") == {"flow_source": "gt"}
-    assert differences("global_local_gt_pose") == {"global_source": "pose", **no_motion}
-    assert differences("global_local_flow_pose") == {"global_source": "flow_pose", **no_motion}
+    # A given pose is read against the flow as the encoder's is.
+    assert differences("global_local_gt_pose") == {"global_source": "pose", **no_encoder_pose}
+    assert differences("global_local_flow_pose") == {
+        "global_source": "flow_pose",
+        **no_encoder_pose,
+    }
     assert differences("global_local_varying") == {"dataset": "gld_scenes/small_varying"}
     for gt_pixels in (4, 16, 64, 0):
         name = f"global_local_{paper_suite.density_name(gt_pixels)}"

@@ -49,14 +49,16 @@ REFINEMENT = recipe.ARCHITECTURE["pose_refinement_steps"]
     [
         ({}, 1.0, 0.1, REFINEMENT, True, True),  # the main job
         ({"model": "small_encdec"}, 0.0, 0.0, None, None, None),  # no global parameters
-        ({"global_source": "pose"}, 0.0, 0.0, 0, False, False),  # a given pose: no encoder's
+        # A given pose: no encoder's to teach or refine; read against the flow as g.
+        ({"global_source": "pose"}, 0.0, 0.0, 0, True, True),
+        ({"global_source": "flow_pose"}, 0.0, 0.0, 0, True, True),
         ({"use_global_module": False}, 0.0, 0.0, 0, False, False),
         # The encoder infers g; refinement, derotation and triangulation read the flow.
         ({"use_flow": False}, 1.0, 0.1, 0, False, False),
         ({"global_dim": 4}, 0.0, 0.0, 0, False, False),  # g cannot stand for a pose
         ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3, False, False),  # kept
-        ({"global_source": "pose", "derotate_flow": True}, 0.0, 0.0, 0, True, False),  # refused
-        ({"global_source": "pose", "parallax_depth": True}, 0.0, 0.0, 0, False, True),  # refused
+        ({"use_global_module": False, "derotate_flow": True}, 0.0, 0.0, 0, True, False),  # refused
+        ({"global_dim": 4, "parallax_depth": True}, 0.0, 0.0, 0, False, True),  # refused
         ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None, None, None),
     ],
 )
@@ -64,17 +66,21 @@ def test_the_main_jobs_motion_terms_apply_where_the_model_has_their_parts(
     given, teacher, epipolar, refinement, derotate, triangulate
 ):
     """The recipe teaches g the motion; a model without an encoder's pose (or without the
-    flow, for refinement, the derotated flow and the triangulated flow) drops it unless the
-    command line names it (and then the config check says what is wrong)."""
+    flow) drops the teaching and the refinement, one without a pose as g (or without the
+    flow) also the derotated and the triangulated flow, unless the command line names
+    them (and then the config check says what is wrong)."""
     model = given.get("model", "global_local")
     model_config, weights = _main_job(model, given)
     model_config, weights = recipe.motion_where_it_applies(model, model_config, weights, given)
     assert weights == {"epipolar_weight": epipolar, "pose_teacher_weight": teacher}
     assert model_config.get("pose_refinement_steps") == refinement
+    if refinement is not None:
+        searches = recipe.ARCHITECTURE["pose_refinement_starts"] if refinement == REFINEMENT else 1
+        assert model_config["pose_refinement_starts"] == searches
     assert model_config.get("derotate_flow") == derotate
     assert model_config.get("parallax_depth") == triangulate
     kept = [name for name in ("derotate_flow", "parallax_depth") if name in given]
-    if kept and model_config.get("global_source") == "pose":
+    if kept and not config.reads_pose(model, model_config):
         with pytest.raises(ValueError, match=kept[0]):
             registry.check_config(model, model_config)
 
