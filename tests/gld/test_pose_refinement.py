@@ -92,6 +92,31 @@ def test_refinement_brings_a_proposal_off_by_degrees_to_the_true_motion():
         )
 
 
+def test_the_closed_form_jacobian_is_the_derivative_of_the_distances():
+    flow, rotations, translations = _pairs()
+    rotation, translation = _turned(rotations, translations, 2.0, 20.0)
+    translation = translation[0] / np.linalg.norm(translation[0])
+    inverse_k = np.linalg.inv(geometry.intrinsics_matrix(INTRINSICS[0], HEIGHT, WIDTH))
+    x1, x2, _ = pose_refinement._rays(jnp.asarray(flow[0]), inverse_k, inverse_k, 4)
+    basis = pose_refinement._tangent_basis(jnp.asarray(translation))
+    focal = INTRINSICS[0, 0] * WIDTH
+
+    def distances(step):
+        moved = pose_refinement._moved(jnp.asarray(rotation[0]), translation, step, basis)
+        return pose_refinement._distances_and_jacobian(x1, x2, *moved, basis, focal)[0]
+
+    distance, jacobian = pose_refinement._distances_and_jacobian(
+        x1, x2, jnp.asarray(rotation[0]), jnp.asarray(translation), basis, focal
+    )
+    automatic = jax.jacfwd(distances)(jnp.zeros(5, jnp.float32))
+    assert np.abs(distance).max() > 0.5  # off the motion: the distances are not zero
+    signed, _ = pose_refinement._signed_distances(
+        jnp.asarray(flow[0]), rotation[0], translation, inverse_k, inverse_k, focal, 4
+    )
+    np.testing.assert_allclose(distance, signed, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(jacobian, automatic, rtol=1e-3, atol=1e-3 * np.abs(automatic).max())
+
+
 def test_a_search_around_the_proposal_finds_the_motion_where_one_start_stops_in_a_wrong_basin():
     flow, rotations, translations = _pairs()
     cameras = (jnp.asarray(INTRINSICS), jnp.asarray(INTRINSICS))
