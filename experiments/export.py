@@ -17,9 +17,10 @@ onnxruntime`; checked against JAX with onnxruntime before it is written). On the
     depth = DeployedModel.load("model.gldx")(image1, image2, flow)   # jax + numpy only
 
 A model that reads a given pose or the cameras (trained with --global_source=pose or
-flow_pose, or reading its encoder's pose on the flow: --pose_refinement_steps,
---derotate_flow, --parallax_depth) takes them after the flow, by keyword
-(`DeployedModel.extra_inputs`); the inputs printed after the export say what each is.
+flow_pose, or reading a pose against the flow: --pose_refinement_steps, --derotate_flow,
+--parallax_depth) takes them after the flow, by keyword (`DeployedModel.extra_inputs`);
+a model given the pose that reads it against the flow takes the pose, then the cameras.
+The inputs printed after the export say what each is.
 """
 
 from __future__ import annotations
@@ -94,13 +95,14 @@ def main(argv: list[str]) -> None:
     print(f"  depth units: {metadata['depth_units']}")
     flow = metadata["flow"]
     print(f"  flow: {', '.join(f'{key} {value}' for key, value in flow.items())}")
+    # OpenCV computes a classical flow and the essential matrix's pose of a flow_pose model
+    # (`DepthRuntime.needs_opencv`).
+    needs_opencv = flow["estimator"] not in ("flow_net", "model") or (
+        "flow_rotation" in metadata.get("extra_inputs", ())
+    )
     print(
         f"  frames to metric depth: gld.inference.runtime.DepthRuntime.load({FLAGS.output!r})"
-        + (
-            "; needs opencv-python-headless"
-            if flow["estimator"] not in ("flow_net", "model")
-            else ""
-        )
+        + ("; needs opencv-python-headless" if needs_opencv else "")
     )
     if "onnx" in metadata:
         onnx = metadata["onnx"]

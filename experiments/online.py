@@ -208,10 +208,11 @@ def _model(height: int, width: int):
         model = registry.make_model(FLAGS.model)
         weights = SelfSupervisedWeights()
     elif FLAGS.global_source != "encoder":
-        # A given pose: no encoder to teach, nothing to refine.
+        # A given pose: no encoder to teach, nothing to refine; read against the flow as
+        # the encoder's would be.
         model = registry.make_model(
             "global_local",
-            **recipe.ARCHITECTURE_WITHOUT_MOTION,
+            **recipe.ARCHITECTURE_GIVEN_POSE,
             global_source=FLAGS.global_source,
         )
         weights = LossWeights(epipolar=0.0, pose_teacher=0.0)

@@ -25,7 +25,8 @@ between its frames' positions, and a model trained given the relative pose
 (`--global_source=pose`) is given the pair's relative pose from the trajectory (it
 needs `--poses`); a model trained on the pose from its flow (`--global_source=flow_pose`)
 needs `--intrinsics`, as does one that refines its encoder's pose on the flow
-(`--pose_refinement_steps`), derotates the flow or triangulates it under that pose.
+(`--pose_refinement_steps`), derotates the flow or triangulates it under a pose (its
+encoder's or a given one: a model given the relative pose that does needs both).
 Pairs without a reading on the first frame, or with a baseline not above
 `--min_baseline`, are skipped and counted. With neither,
 depth is in units of the (unknown) baseline and written as .npy.

@@ -152,9 +152,9 @@ def _measurements(runtime, pair: dict) -> dict[str, Any]:
 
     pixel, distance = _range_reading(pair["depth1"])
     given: dict[str, Any] = {"ranges": [[*pixel, distance]]}
-    if runtime.reads == "odometry":
+    if runtime.needs_odometry:
         given.update(rotation=pair["rotation"], translation=pair["translation"])
-    if runtime.reads == "camera":
+    if runtime.needs_camera:
         height, width = pair["depth1"].shape
         scale = np.array([width, height, width, height], np.float64)
         fx, fy, cx, cy = np.asarray(pair["intrinsics1"], np.float64) * scale

@@ -17,10 +17,11 @@ resolution; nothing is resized here): images uint8 [0, 255] or float32 in [0, 1]
 (uint8 / 255; a float outside [0, 1] is refused), [B, H, W, 3] or one pair [H, W, 3];
 flow float32 pixels, image1 -> image2, [B, H, W, 2] or [H, W, 2]. A model trained to
 read more (`extra_inputs`: the odometry's relative pose, the flow's essential-matrix
-pose, or the cameras, normalised at the exported resolution, for a model that refines
-its pose on the flow) takes them by keyword, float32, with or without the batch axis as
-the images; the metadata's "inputs" say what each is. Depth is in units of the pair's
-baseline (the distance between the camera centres): metric depth = depth * baseline.
+pose, the cameras, normalised at the exported resolution, for a model that reads a pose
+against the flow, or a given pose and then the cameras) takes them by keyword, float32,
+with or without the batch axis as the images; the metadata's "inputs" say what each is.
+Depth is in units of the pair's baseline (the distance between the camera centres):
+metric depth = depth * baseline.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ The file is a zip archive of three members:
 
     metadata.json   what a user needs: inputs (names, shapes, dtypes, normalisation;
                     after the flow, "extra_inputs": the odometry pose, the flow's
-                    essential-matrix pose or the normalised cameras for models that
+                    essential-matrix pose and/or the normalised cameras for models that
                     read them), outputs, the training resolution, depth units, the model and its
                     configuration, the gld and JAX versions, the source workdir and step,
                     and "flow": how the model's input flow is computed from the frames

@@ -36,7 +36,6 @@ import numpy as np
 
 from gld import flow as flow_lib
 from gld import flow_pose, geometry
-from gld.flow_pose import FLOW_POSE_KEYS
 from gld.inference import frame_pairs, resampling
 from gld.inference.inputs import (
     ASPECT_MODES,
@@ -64,15 +63,21 @@ class DepthPredictor:
         if aspect not in ASPECT_MODES:
             raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
         extra_inputs = tuple(getattr(model, "extra_inputs", ()))
-        given = {keys: source for source, keys in GIVEN_POSE_INPUTS.items()}
-        if extra_inputs and extra_inputs not in given and extra_inputs != CAMERA_INPUTS:
+        # A given pose (its keys whole) and/or the cameras; any other key is refused.
+        given = [
+            source for source, keys in GIVEN_POSE_INPUTS.items() if set(keys) <= set(extra_inputs)
+        ]
+        self._reads_cameras = set(CAMERA_INPUTS) <= set(extra_inputs)
+        known = {key for source in given for key in GIVEN_POSE_INPUTS[source]}
+        known |= set(CAMERA_INPUTS) if self._reads_cameras else set()
+        if set(extra_inputs) - known or len(given) > 1:
             raise ValueError(f"the model also reads {list(extra_inputs)}, which a predictor lacks")
         # "pose": the model was trained given the true relative pose (odometry here);
         # "flow_pose": the essential matrix's pose from its input flow; None: neither.
-        self.given_pose = given.get(extra_inputs)
-        # Models that take the motion from the flow's geometry need the camera.
-        self.needs_camera = extra_inputs in (FLOW_POSE_KEYS, CAMERA_INPUTS)
-        self._reads_cameras = extra_inputs == CAMERA_INPUTS
+        self.given_pose = given[0] if given else None
+        # Models that take the motion from the flow's geometry (the essential matrix's
+        # pose, or reading a pose against the flow) need the camera.
+        self.needs_camera = self.given_pose == "flow_pose" or self._reads_cameras
         self.model, self.variables = model, variables
         self.height, self.width = height, width
         self.flow_method = flow_method
@@ -103,8 +108,9 @@ class DepthPredictor:
         baseline: Any,
         ranges: Any,
     ) -> tuple[dict[str, np.ndarray], Any]:
-        """The model's pose inputs by keyword, and the baseline (||t|| of a given
-        odometry when no other scale was given)."""
+        """The model's inputs besides the images and flow, by keyword (its given pose,
+        the cameras, or both), and the baseline (||t|| of a given odometry when no other
+        scale was given)."""
         batch_size = len(model_flow)
         if self.given_pose != "pose":
             if rotation is not None or translation is not None:
@@ -112,35 +118,37 @@ class DepthPredictor:
                     "rotation= and translation= are for models trained given the relative "
                     f"pose; this one takes {self.given_pose or 'its global encoder'}'s"
                 )
-        if not self.needs_camera and self.given_pose is None:
-            return {}, baseline
-        if self.needs_camera:
-            if camera_matrix is None:
+        extra: dict[str, np.ndarray] = {}
+        if self.given_pose == "pose":
+            if rotation is None or translation is None:
                 raise ValueError(
-                    "the model takes the camera motion from its flow's geometry, which needs "
-                    "the camera: give intrinsics="
+                    "the model was trained given the relative pose (global_source pose): give "
+                    "the pair's odometry as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
                 )
-            camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
-            normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
-            normalised = normalised.astype(np.float32)
-        if self._reads_cameras:
-            cameras = np.tile(normalised, (batch_size, 1))
-            return {"intrinsics1": cameras, "intrinsics2": cameras}, baseline
+            rotation, translation, norms = odometry(rotation, translation, batch_size, single)
+            if baseline is None and ranges is None:
+                baseline = norms if not single else float(norms[0])
+            extra.update(rotation=rotation, translation=translation)
+        if not self.needs_camera:
+            return extra, baseline
+        if camera_matrix is None:
+            raise ValueError(
+                "the model takes the camera motion from its flow's geometry, which needs "
+                "the camera: give intrinsics="
+            )
+        camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
+        normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
+        normalised = normalised.astype(np.float32)
         if self.given_pose == "flow_pose":
             poses = [flow_pose.pose_of_example(flow, normalised, normalised) for flow in model_flow]
-            return {
-                "flow_rotation": np.stack([pose[0] for pose in poses]),
-                "flow_translation": np.stack([pose[1] for pose in poses]),
-            }, baseline
-        if rotation is None or translation is None:
-            raise ValueError(
-                "the model was trained given the relative pose (global_source pose): give "
-                "the pair's odometry as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
+            extra.update(
+                flow_rotation=np.stack([pose[0] for pose in poses]),
+                flow_translation=np.stack([pose[1] for pose in poses]),
             )
-        rotation, translation, norms = odometry(rotation, translation, batch_size, single)
-        if baseline is None and ranges is None:
-            baseline = norms if not single else float(norms[0])
-        return {"rotation": rotation, "translation": translation}, baseline
+        if self._reads_cameras:
+            cameras = np.tile(normalised, (batch_size, 1))
+            extra.update(intrinsics1=cameras, intrinsics2=cameras)
+        return extra, baseline
 
     def predict(
         self,
@@ -165,7 +173,9 @@ class DepthPredictor:
             [N, 3] array for one pair, a sequence of B such arrays for a batch.
           intrinsics: the input camera's (fx, fy, cx, cy) in pixels or a 3x3 K. A model
             that takes the motion from its flow's geometry (`needs_camera`: trained on
-            the pose from its flow, or refining its encoder's pose on it) needs them.
+            the pose from its flow, or reading a pose, its encoder's or a given one,
+            against the flow: pose refinement, derotation, triangulation) needs them; a
+            model given the odometry that reads it against the flow needs both.
           rotation, translation: the relative pose of the pair, [3, 3] and [3] (or [B, 3, 3]
             and [B, 3]), X2 = R X1 + t in the camera frame (x right, y down, z forward;
             `relative_pose` makes it from two camera-to-world poses): the odometry a

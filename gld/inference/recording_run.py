@@ -240,11 +240,12 @@ def predict_recording_run(
         camera_to_world = camera_poses(
             files, poses, image_paths, frames.names, max_time_difference, match_frames
         )
-    # What the model reads besides the images and flow: a given pose, or the cameras.
+    # What the model reads besides the images and flow: a given pose, the cameras, or
+    # both (a given pose read against the flow).
     model_inputs = tuple(
         getattr(registry.make_model(config.model, **config.model_config), "extra_inputs", ())
     )
-    if model_inputs == POSE_INPUTS and camera_to_world is None:
+    if set(POSE_INPUTS) <= set(model_inputs) and camera_to_world is None:
         raise _argument(
             "poses",
             ValueError(

@@ -22,7 +22,9 @@ resizing, `gld.inference.resampling`):
   network exported in the same file (JAX only), or the model's own flow network;
 * the network (`gld.inference.deploy.DeployedModel`); a model trained given the pose
   takes the odometry (`rotation`, `translation`), one on its flow's essential matrix or
-  refining its pose on the flow takes the camera (`intrinsics`);
+  reading a pose against the flow (refining it, derotating or triangulating the flow)
+  takes the camera (`intrinsics`), and one given the odometry that reads it against the
+  flow takes both;
 * depth resized back to the frames' size, and scaled to metres by the baseline
   (`baseline=`, or ||translation|| of the odometry) or range readings (`ranges=`, (u, v,
   camera-z metres) in the frames' pixels; `gld.inference.metric_scale`). Without either
@@ -57,6 +59,12 @@ from gld.inference.inputs import (
 _POSE = ("rotation", "translation")
 _FLOW_POSE = flow_pose.FLOW_POSE_KEYS
 _CAMERAS = ("intrinsics1", "intrinsics2")
+# What a model may read besides the frames (`GlobalLocal.extra_inputs`): nothing, a given
+# pose, the cameras, or a given pose that it reads against the flow with the cameras.
+_READABLE = tuple(
+    frozenset(keys)
+    for keys in ((), _POSE, _FLOW_POSE, _CAMERAS, _POSE + _CAMERAS, _FLOW_POSE + _CAMERAS)
+)
 
 
 class DepthRuntime:
@@ -68,8 +76,13 @@ class DepthRuntime:
       flow: how the flow is computed (the metadata's "flow": "estimator" is a
         `gld.flow` name, "flow_net" or "model").
       needs_opencv: whether a call needs OpenCV (classical flow or the essential matrix).
+      needs_odometry: whether a call needs rotation= and translation= (a model trained
+        given the relative pose).
+      needs_camera: whether a call needs intrinsics= (a model on its flow's essential
+        matrix, or reading a pose against the flow).
       reads: what the model needs besides the frames: "odometry" (rotation, translation),
-        "camera" (intrinsics) or nothing.
+        "camera" (intrinsics), "odometry and camera" (a model given the odometry that
+        reads it against the flow) or None.
     """
 
     def __init__(self, model: DeployedModel, aspect: str = "resize"):
@@ -95,11 +108,22 @@ class DepthRuntime:
             raise ValueError("the file records a flow network's flow but holds no network")
         elif estimator not in ("flow_net", "model"):
             raise ValueError(f"the file's flow estimator {estimator!r} is unknown to this gld")
-        extra = model.extra_inputs
-        if extra not in ((), _POSE, _FLOW_POSE, _CAMERAS):
+        extra = tuple(model.extra_inputs)
+        # A given pose (the odometry's or the flow's essential matrix's), the cameras, or
+        # a given pose and the cameras (by keyword: the file's order is the deployed model's).
+        if len(set(extra)) != len(extra) or frozenset(extra) not in _READABLE:
             raise ValueError(f"the model reads {list(extra)}, which this runtime cannot give")
-        self.reads = {(): None, _POSE: "odometry", _FLOW_POSE: "camera", _CAMERAS: "camera"}[extra]
-        self.needs_opencv = estimator in flow_lib.RUNTIME_SETTINGS or extra == _FLOW_POSE
+        self.needs_odometry = set(_POSE) <= set(extra)
+        self._flow_pose = set(_FLOW_POSE) <= set(extra)
+        self._cameras = set(_CAMERAS) <= set(extra)
+        self.needs_camera = self._flow_pose or self._cameras
+        self.reads = {
+            (False, False): None,
+            (True, False): "odometry",
+            (False, True): "camera",
+            (True, True): "odometry and camera",
+        }[self.needs_odometry, self.needs_camera]
+        self.needs_opencv = estimator in flow_lib.RUNTIME_SETTINGS or self._flow_pose
         if self.needs_opencv and importlib.util.find_spec("cv2") is None:
             raise ImportError(
                 "this model's flow (or its essential-matrix pose) is computed with OpenCV: "
@@ -133,21 +157,23 @@ class DepthRuntime:
     ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """The model's inputs besides images and flow, and ||t|| of given odometry."""
         batch_size = len(flow)
-        if self.reads != "odometry" and (rotation is not None or translation is not None):
+        if not self.needs_odometry and (rotation is not None or translation is not None):
             raise ValueError(
                 "rotation= and translation= are for models trained given the relative pose; "
                 "this one takes the motion from the images"
             )
-        if self.reads == "odometry":
+        extra: dict[str, np.ndarray] = {}
+        norms = None
+        if self.needs_odometry:
             if rotation is None or translation is None:
                 raise ValueError(
                     "the model was trained given the relative pose: give the pair's odometry "
                     "as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
                 )
             rotation, unit, norms = odometry(rotation, translation, batch_size, single)
-            return {"rotation": rotation, "translation": unit}, norms
-        if self.reads is None:
-            return {}, None
+            extra.update(rotation=rotation, translation=unit)
+        if not self.needs_camera:
+            return extra, norms
         if camera is None:
             raise ValueError(
                 "the model takes the camera motion from its flow's geometry, which needs the "
@@ -155,14 +181,16 @@ class DepthRuntime:
             )
         normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
         normalised = np.asarray(normalised, np.float32)
-        if self.model.extra_inputs == _CAMERAS:
+        if self._flow_pose:
+            poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
+            extra.update(
+                flow_rotation=np.stack([pose[0] for pose in poses]).astype(np.float32),
+                flow_translation=np.stack([pose[1] for pose in poses]).astype(np.float32),
+            )
+        if self._cameras:
             cameras = np.tile(normalised, (batch_size, 1))
-            return {"intrinsics1": cameras, "intrinsics2": cameras}, None
-        poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
-        return {
-            "flow_rotation": np.stack([pose[0] for pose in poses]).astype(np.float32),
-            "flow_translation": np.stack([pose[1] for pose in poses]).astype(np.float32),
-        }, None
+            extra.update(intrinsics1=cameras, intrinsics2=cameras)
+        return extra, norms
 
     def predict(
         self,
@@ -182,12 +210,12 @@ class DepthRuntime:
             float in [0, 1], any size, both alike.
           intrinsics: the frames' camera (fx, fy, cx, cy) in pixels ((0, 0) the centre of
             the top-left pixel) or a 3x3 K: gives "points", and is needed by models that
-            take the motion from the flow's geometry (`reads == "camera"`).
+            take the motion from the flow's geometry (`needs_camera`).
           baseline: metres between the camera centres, one number or [B].
           ranges: range readings (u, v, camera-z metres) in the frames' pixels, [N, 3] for
             one pair, a sequence of B such arrays for a batch.
           rotation, translation: the odometry's relative pose ([3, 3], [3], or batched),
-            X2 = R X1 + t, for a model trained given the pose (`reads == "odometry"`);
+            X2 = R X1 + t, for a model trained given the pose (`needs_odometry`);
             without baseline= or ranges=, ||t|| in metres scales the depth.
 
         Returns:

@@ -300,3 +300,80 @@ def test_a_model_of_the_images_and_flow_refuses_extra_inputs(exported):
     assert deployed.extra_inputs == ()
     with pytest.raises(ValueError, match=r"does not read \['intrinsics1'\]"):
         deployed(*_pairs(1, seed=9), intrinsics1=_camera(1, 0.9))
+
+
+@pytest.mark.parametrize("global_source", ["pose", "flow_pose"])
+def test_a_model_reading_its_given_pose_against_the_flow_runs_given_both(tmp_path, global_source):
+    """A model given the pose (odometry, or its flow's essential matrix's) that derotates
+    and triangulates the flow under it exports with the pose and then the cameras as
+    inputs after the flow; deployed, it equals the model applied in gld, reads both, and
+    names what it lacks."""
+    import jax
+
+    model = registry.make_model(
+        "global_local",
+        **TINY_MODEL,
+        global_source=global_source,
+        derotate_flow=True,
+        parallax_depth=True,
+    )
+    keys = {"pose": ["rotation", "translation"], "flow_pose": ["flow_rotation", "flow_translation"]}
+    extra = [*keys[global_source], "intrinsics1", "intrinsics2"]
+    assert list(model.extra_inputs) == extra
+
+    def inputs(batch_size, angle, focal):
+        rotation = np.eye(3, dtype=np.float32)
+        rotation[0, 2], rotation[2, 0] = np.sin(angle), -np.sin(angle)
+        rotation[0, 0] = rotation[2, 2] = np.cos(angle)
+        translation = np.float32([0.6, 0.0, 0.8])
+        values = [
+            np.tile(rotation, (batch_size, 1, 1)),
+            np.tile(translation, (batch_size, 1)),
+            _camera(batch_size, focal),
+            _camera(batch_size, focal),
+        ]
+        return dict(zip(extra, values, strict=True))
+
+    variables = random_variables(model, HEIGHT, WIDTH, seed=4, **inputs(1, 0.0, 0.9))
+    path = tmp_path / "given_pose.gldx"
+    metadata = export.export_model(model, variables, path, height=HEIGHT, width=WIDTH)
+    assert metadata["extra_inputs"] == extra
+    assert [entry["name"] for entry in metadata["inputs"]][3:] == extra
+    assert [entry["shape"] for entry in metadata["inputs"]][3:] == [
+        ["batch", 3, 3],
+        ["batch", 3],
+        ["batch", 4],
+        ["batch", 4],
+    ]
+
+    deployed = DeployedModel.load(path)
+    assert deployed.extra_inputs == tuple(extra)
+    image1, image2, flow = _pairs(2, seed=10)
+    given = inputs(2, 0.05, 0.9)
+    outputs = deployed.predict(image1, image2, flow, **given)
+    as_float = [image / np.float32(255) - np.float32(0.5) for image in (image1, image2)]
+    apply = jax.jit(model.apply)
+    expected = apply(variables, *as_float, flow, **given)
+    np.testing.assert_allclose(outputs["depth"], expected["depth"], rtol=1e-4)
+    # Both reach the depth: another focal length, or another rotation, another depth.
+    for other in (inputs(2, 0.05, 0.4), inputs(2, -0.05, 0.9)):
+        changed = deployed(image1, image2, flow, **other)
+        np.testing.assert_allclose(
+            changed, apply(variables, *as_float, flow, **other)["depth"], rtol=1e-4
+        )
+        assert not np.allclose(changed, outputs["depth"], rtol=1e-3)
+    # One pair without the batch axis.
+    single = deployed(image1[0], image2[0], flow[0], **{k: v[0] for k, v in given.items()})
+    np.testing.assert_allclose(single, outputs["depth"][0], rtol=1e-4)
+
+    cameras = {key: given[key] for key in ("intrinsics1", "intrinsics2")}
+    pose = {key: given[key] for key in keys[global_source]}
+    with pytest.raises(ValueError, match=r"also reads \['intrinsics1', 'intrinsics2'\]"):
+        deployed(image1, image2, flow, **pose)
+    with pytest.raises(
+        ValueError, match=rf"also reads \[{', '.join(map(repr, keys[global_source]))}\]"
+    ):
+        deployed(image1, image2, flow, **cameras)
+    other_pose = "flow_rotation" if global_source == "pose" else "rotation"
+    with pytest.raises(ValueError, match=rf"does not read \['{other_pose}'\]"):
+        deployed(image1, image2, flow, **given, **{other_pose: given[extra[0]]})

@@ -540,3 +540,172 @@ def test_a_model_refining_its_pose_on_the_flow_is_given_the_camera_it_saw():
     assert np.isfinite(outputs["depth"]).all()
     # The model saw the camera of its own resolution: half the focal length here.
     np.testing.assert_allclose(outputs["model_camera_matrix"][0, 0], 55.0)
+
+
+def _halved(images):
+    """[B, 2h, 2w, C] -> [B, h, w, C]: the area resize of an exact factor 2, the mean of
+    each 2x2 block."""
+    batch, height, width, channels = images.shape
+    blocks = np.asarray(images, np.float64).reshape(batch, height // 2, 2, width // 2, 2, -1)
+    return blocks.mean(axis=(2, 4))
+
+
+@pytest.mark.parametrize("global_source", ["pose", "flow_pose"])
+def test_a_model_reading_its_given_pose_against_the_flow_is_given_the_pose_and_camera(
+    global_source,
+):
+    """A model given the pose (the odometry, or the essential matrix's of its flow) that
+    derotates and triangulates the flow under it reads the pose and the cameras: the
+    predictor gives it the odometry as the pose (unit t) and the normalised intrinsics of
+    the camera resized to the model's resolution, as applying the model by hand does, and
+    refuses a call without either in one line."""
+    from gld import flow_pose, geometry
+
+    predictor = _given_pose_predictor(global_source, derotate_flow=True, parallax_depth=True)
+    model = predictor.model
+    given = model_lib.GIVEN_POSE_INPUTS[global_source]
+    assert model.extra_inputs == (*given, "intrinsics1", "intrinsics2")
+    assert predictor.given_pose == global_source and predictor.needs_camera
+    # Two pairs at twice the model's size, their flow that of a scene seen moving.
+    height, width = 2 * HEIGHT, 2 * WIDTH
+    camera_matrix = np.array([[110.0, 0, 63.5], [0, 112.0, 47.5], [0, 0, 1]])
+    grid = geometry.pixel_grid(height, width).astype(np.float64)
+    depth = 3.0 + 0.01 * grid[..., 0] + 0.4 * np.sin(grid[..., 1] / 9.0)
+    rotations = np.stack(
+        [geometry.rotation_matrix(np.array(v)) for v in ([0.01, 0.03, -0.01], [-0.02, 0.01, 0.0])]
+    )
+    translations = np.array([[0.3, 0.05, 0.1], [-0.1, 0.2, 0.05]])
+    flows = np.stack(
+        [
+            geometry.depth_to_flow(depth, camera_matrix, camera_matrix, r, t)[0]
+            for r, t in zip(rotations, translations, strict=True)
+        ]
+    ).astype(np.float32)
+    pairs = [_pair(height, width, seed) for seed in (0, 1)]
+    image1 = np.stack([pair[0] for pair in pairs])
+    image2 = np.stack([pair[1] for pair in pairs])
+    odometry = dict(rotation=rotations, translation=translations)
+    if global_source != "pose":
+        odometry = {}
+
+    # By hand: frames and flow halved (the flow's pixels too); the camera halved keeps
+    # its normalised intrinsics, (fx / W, fy / H, (cx + 0.5) / W, (cy + 0.5) / H).
+    model_images = [_halved(image / 255.0) - 0.5 for image in (image1, image2)]
+    model_flow = (_halved(flows) / 2).astype(np.float32)
+    normalised = np.float32([110.0 / width, 112.0 / height, 64.0 / width, 48.0 / height])
+    cameras = np.tile(normalised, (2, 1))
+    if global_source == "pose":
+        norms = np.linalg.norm(translations, axis=-1)
+        pose = dict(rotation=rotations, translation=translations / norms[:, None])
+    else:
+        poses = [flow_pose.pose_of_example(flow, normalised, normalised) for flow in model_flow]
+        pose = dict(
+            flow_rotation=np.stack([p[0] for p in poses]),
+            flow_translation=np.stack([p[1] for p in poses]),
+        )
+        assert all(p[2] for p in poses)
+    pose = {key: np.asarray(value, np.float32) for key, value in pose.items()}
+
+    def by_hand(**inputs):
+        images = [np.asarray(image, np.float32) for image in model_images]
+        return np.asarray(
+            model.apply(predictor.variables, *images, model_flow, **inputs)["inv_depth"]
+        )
+
+    expected = by_hand(**pose, intrinsics1=cameras, intrinsics2=cameras)
+    outputs = predictor.predict(image1, image2, flows, intrinsics=camera_matrix, **odometry)
+    np.testing.assert_allclose(outputs["inv_depth"], expected, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(outputs["model_camera_matrix"][0, 0], 55.0)
+    if global_source == "pose":
+        # The odometry's metres scale the depth.
+        assert outputs["scale_source"] == "baseline"
+        np.testing.assert_allclose(outputs["scale"], norms, rtol=1e-5)
+    # The cameras and the pose both reach the depth: the camera of the input's size
+    # normalised at the model's, or another pose, give another depth.
+    unresized = 2 * cameras  # (fx / w, ...) at the model's w: twice the normalised
+    wrong_camera = by_hand(**pose, intrinsics1=unresized, intrinsics2=unresized)
+    assert not np.allclose(wrong_camera, expected, rtol=1e-3)
+    other_pose = {key: value[::-1] for key, value in pose.items()}
+    wrong_pose = by_hand(**other_pose, intrinsics1=cameras, intrinsics2=cameras)
+    assert not np.allclose(wrong_pose, expected, rtol=1e-3)
+
+    # What it lacks is named, in one line.
+    messages = []
+    with pytest.raises(ValueError, match="give intrinsics=") as refused:
+        predictor.predict(image1, image2, flows, **odometry)
+    messages.append(str(refused.value))
+    if global_source == "pose":
+        with pytest.raises(ValueError, match="give the pair's odometry") as refused:
+            predictor.predict(image1, image2, flows, intrinsics=camera_matrix)
+        messages.append(str(refused.value))
+    else:
+        with pytest.raises(ValueError, match="are for models trained given") as refused:
+            predictor.predict(
+                image1,
+                image2,
+                flows,
+                intrinsics=camera_matrix,
+                rotation=rotations,
+                translation=translations,
+            )
+        messages.append(str(refused.value))
+    assert all("\n" not in message for message in messages)
+
+
+def test_a_recording_gives_a_model_reading_its_odometry_against_the_flow_both(tmp_path):
+    """A recording's run gives a model given the odometry that reads it against the flow
+    each pair's odometry and the camera, and refuses to start without the camera."""
+    predictor = _given_pose_predictor("pose", derotate_flow=True, parallax_depth=True)
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    image, _ = _pair(HEIGHT, WIDTH)
+    paths = [frames_dir / f"f{index}.png" for index in range(3)]
+    for index, path in enumerate(paths):
+        cv2.imwrite(str(path), np.roll(image, 2 * index, axis=1))
+    camera_to_world = np.tile(np.eye(4), (3, 1, 1))
+    camera_to_world[:, 0, 3] = [0.0, 0.2, 0.5]
+    plan = recordings.plan_recording(recordings.frame_pairs(3), camera_to_world=camera_to_world)
+    camera_matrix = np.array([[55.0, 0, 31.5], [0, 56.0, 23.5], [0, 0, 1]])
+    with pytest.raises(ValueError, match="give the camera's intrinsics"):
+        recordings.predict_recording(
+            predictor,
+            frames_lib.ImageFolderFrames(paths),
+            plan,
+            tmp_path / "refused",
+            depth_format="npy",
+        )
+    out = tmp_path / "out"
+    recordings.predict_recording(
+        predictor,
+        frames_lib.ImageFolderFrames(paths),
+        plan,
+        out,
+        depth_format="npy",
+        camera_matrix=camera_matrix,
+    )
+    read = lambda path: cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)  # noqa: E731
+    expected = predictor(
+        read(paths[1]),
+        read(paths[2]),
+        rotation=np.eye(3),
+        translation=[-0.3, 0.0, 0.0],
+        intrinsics=camera_matrix,
+    )
+    np.testing.assert_allclose(np.load(out / "depth" / "f1__f2.npy"), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "extra_inputs",
+    [
+        ("rotation",),
+        ("rotation", "translation", "flow_rotation", "flow_translation"),
+        ("rotation", "translation", "intrinsics1", "intrinsics2", "depth"),
+    ],
+    ids=["half_a_pose", "two_poses", "an_unknown_key"],
+)
+def test_a_model_reading_what_a_predictor_cannot_give_is_refused(extra_inputs):
+    import types
+
+    model = types.SimpleNamespace(extra_inputs=extra_inputs)
+    with pytest.raises(ValueError, match="which a predictor lacks"):
+        DepthPredictor(model, {}, HEIGHT, WIDTH)

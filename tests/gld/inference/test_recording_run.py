@@ -157,3 +157,21 @@ def test_match_frames_refusals_are_one_line_naming_the_flag(tmp_path):
             ranges=str(ranges),
             match_frames="order",
         )
+
+
+def test_a_model_reading_its_given_odometry_against_the_flow_needs_poses_and_camera(tmp_path):
+    """A model given the odometry that derotates and triangulates the flow under it reads
+    the pose and the cameras: a run needs --poses and --intrinsics, each named."""
+    frames = _frames(tmp_path)
+    poses = _trajectory(tmp_path / "poses.txt", [(0, 0, 0), (1, 0, 0), (3, 0, 0)])
+    out = tmp_path / "out"
+    workdir = _workdir(tmp_path, global_source="pose", derotate_flow=True, parallax_depth=True)
+    with pytest.raises(ArgumentError, match="--poses: the model was trained given the relative"):
+        recording_run.predict_recording_run(
+            workdir, out, files=recordings, images=str(frames), intrinsics="30,30,15.5,11.5"
+        )
+    with pytest.raises(ArgumentError, match="--intrinsics: the model takes the camera motion"):
+        recording_run.predict_recording_run(
+            workdir, out, files=recordings, images=str(frames), poses=str(poses)
+        )
+    assert not out.exists()

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT, TINY_MODEL, random_variables, run_isolated
 
-from gld.inference import export, resampling
+from gld import geometry
+from gld.inference import export, export_interface, resampling
+from gld.inference import inputs as inputs_lib
 from gld.inference.predict import DepthPredictor
 from gld.inference.runtime import DepthRuntime
 from gld.models import registry
@@ -74,6 +76,24 @@ def flow_net_model(tmp_path_factory):
         flow_network=(network, network_variables),
     )
     return model, variables, network, network_variables, path
+
+
+def _moving_frames(size, camera_matrix, rotation, translation):
+    """One uint8 pair [H, W, 3]: a smooth random texture, and the view after the relative
+    pose (X2 = R X1 + t) of a scene whose depth varies across the image (backward-warped
+    by the rigid flow, as its smoothness allows)."""
+    import cv2
+
+    first = _frames(1, seed=7, size=size)[0][0]
+    first = cv2.GaussianBlur(first, (5, 5), 0)
+    grid = geometry.pixel_grid(*size).astype(np.float64)
+    depth = 2.0 + 0.02 * grid[..., 0] + 0.5 * np.sin(grid[..., 1] / 7.0)
+    flow, _ = geometry.depth_to_flow(depth, camera_matrix, camera_matrix, rotation, translation)
+    source = (grid - flow).astype(np.float32)
+    second = cv2.remap(
+        first, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+    )
+    return first, second
 
 
 def _predictor_outputs(model, variables, frames, **measurements):
@@ -297,3 +317,119 @@ def test_runs_with_only_the_runtime_requirements(dis_model, flow_net_model, tmp_
     got, _ = _isolated(path, frames, measurements, False, tmp_path)
     want = _flow_net_reference(model, variables, network, network_variables, frames, 0.3)
     np.testing.assert_allclose(got["depth"], want["depth"], rtol=1e-4)
+
+
+@pytest.mark.parametrize("global_source", ["pose", "flow_pose"])
+def test_a_model_reading_its_given_pose_against_the_flow_takes_the_pose_and_camera(
+    tmp_path, global_source
+):
+    """An exported model given the pose (the odometry, or its flow's essential matrix's)
+    that derotates and triangulates the flow under it: the runtime gives it the pose and
+    the normalised intrinsics of the camera resized to its resolution, as applying the
+    model by hand does, and names what a call lacks in one line."""
+    from gld import flow_pose
+    from gld.models import global_local as model_lib
+
+    model = registry.make_model(
+        "global_local",
+        **TINY_MODEL,
+        global_source=global_source,
+        derotate_flow=True,
+        parallax_depth=True,
+    )
+    given = model_lib.GIVEN_POSE_INPUTS[global_source]
+    assert model.extra_inputs == (*given, "intrinsics1", "intrinsics2")
+    shapes = {key: (1, *export_interface.EXTRA_INPUTS[key][0]) for key in model.extra_inputs}
+    inputs = {key: np.ones(shape, np.float32) for key, shape in shapes.items()}
+    variables = random_variables(model, HEIGHT, WIDTH, seed=6, **inputs)
+    path = tmp_path / f"{global_source}.gldx"
+    export.export_model(model, variables, path, height=HEIGHT, width=WIDTH)
+    runtime = DepthRuntime.load(path)
+    assert runtime.model.extra_inputs == model.extra_inputs
+    assert runtime.needs_camera and runtime.needs_odometry == (global_source == "pose")
+    assert runtime.reads == ("odometry and camera" if global_source == "pose" else "camera")
+    assert runtime.needs_opencv
+
+    # Frames at twice the model's size, the second the first seen after the odometry's
+    # motion over a scene of varying depth; their camera halved keeps its normalised
+    # intrinsics (fx / W, fy / H, (cx + 0.5) / W, (cy + 0.5) / H).
+    size = (2 * HEIGHT, 2 * WIDTH)
+    camera = (80.0, 84.0, 47.5, 31.5)
+    normalised = np.float32([80.0 / size[1], 84.0 / size[0], 48.0 / size[1], 32.0 / size[0]])
+    rotation = geometry.rotation_matrix(np.array([0.01, -0.02, 0.005]))
+    translation = np.array([0.3, 0.0, 0.4])
+    frames = _moving_frames(size, inputs_lib.camera_matrix_from(camera), rotation, translation)
+    odometry = dict(rotation=rotation, translation=translation) if global_source == "pose" else {}
+    got = runtime.predict(*frames, intrinsics=camera, **odometry)
+
+    images = [
+        (frame / 255.0).reshape(HEIGHT, 2, WIDTH, 2, 3).mean(axis=(1, 3))[None] - 0.5
+        for frame in frames
+    ]
+    images = [image.astype(np.float32) for image in images]
+    flow = got["flow"][None]  # the runtime's DIS flow at the model's size
+    if global_source == "pose":
+        pose = dict(rotation=rotation[None], translation=translation[None] / 0.5)
+    else:
+        flow_rotation, flow_translation, found = flow_pose.pose_of_example(
+            flow[0], normalised, normalised
+        )
+        assert found
+        pose = dict(flow_rotation=flow_rotation[None], flow_translation=flow_translation[None])
+    pose = {key: np.asarray(value, np.float32) for key, value in pose.items()}
+
+    def by_hand(cameras, pose=pose):
+        cameras = np.asarray(cameras, np.float32)[None]
+        outputs = model.apply(
+            variables, *images, flow, **pose, intrinsics1=cameras, intrinsics2=cameras
+        )
+        return np.asarray(outputs["inv_depth"][0])
+
+    expected = by_hand(normalised)
+    np.testing.assert_allclose(got["inv_depth"], expected, rtol=1e-4, atol=1e-6)
+    # The camera and the pose reach the depth: the camera normalised at the model's size
+    # without the resize, or the pose transposed, give another.
+    assert not np.allclose(by_hand(2 * normalised), expected, rtol=1e-3)
+    transposed = {
+        key: np.swapaxes(value, 1, 2) if value.ndim == 3 else value for key, value in pose.items()
+    }
+    assert not np.allclose(by_hand(normalised, transposed), expected, rtol=1e-3)
+    if global_source == "pose":
+        assert got["scale_source"] == "baseline" and float(got["scale"]) == pytest.approx(0.5)
+
+    messages = []
+    with pytest.raises(ValueError, match="give intrinsics=") as refused:
+        runtime(*frames, **odometry)
+    messages.append(str(refused.value))
+    if global_source == "pose":
+        with pytest.raises(ValueError, match="give the pair's odometry") as refused:
+            runtime(*frames, intrinsics=camera)
+    else:
+        with pytest.raises(ValueError, match="rotation= and translation= are for") as refused:
+            runtime(*frames, intrinsics=camera, rotation=rotation, translation=translation)
+    messages.append(str(refused.value))
+    assert all("\n" not in message for message in messages)
+
+
+@pytest.mark.parametrize(
+    "extra_inputs",
+    [
+        ("rotation",),
+        ("rotation", "translation", "flow_rotation", "flow_translation"),
+        ("flow_rotation", "flow_translation", "intrinsics1", "intrinsics2", "depth"),
+    ],
+    ids=["half_a_pose", "two_poses", "an_unknown_key"],
+)
+def test_a_file_reading_what_the_runtime_cannot_give_is_refused(extra_inputs):
+    import types
+
+    model = types.SimpleNamespace(
+        flow={"estimator": "model"},
+        height=HEIGHT,
+        width=WIDTH,
+        flow_network=None,
+        metadata={},
+        extra_inputs=extra_inputs,
+    )
+    with pytest.raises(ValueError, match="which this runtime cannot give"):
+        DepthRuntime(model)
