@@ -202,6 +202,7 @@ def _model(height: int, width: int):
                 f"stream is {height}x{width}: give --size={config.height}x{config.width}"
             )
         return model, variables, config.loss_weights(), f"{config.model} from {FLAGS.pretrained}"
+    architecture: dict[str, object] = {}
     if FLAGS.model != "global_local":
         from gld.losses.photometric import SelfSupervisedWeights
 
@@ -210,21 +211,27 @@ def _model(height: int, width: int):
     elif FLAGS.global_source != "encoder":
         # A given pose: no encoder to teach, nothing to refine; read against the flow as
         # the encoder's would be.
-        model = registry.make_model(
-            "global_local",
-            **recipe.ARCHITECTURE_GIVEN_POSE,
-            global_source=FLAGS.global_source,
-        )
+        architecture = {**recipe.ARCHITECTURE_GIVEN_POSE, "global_source": FLAGS.global_source}
+        model = registry.make_model("global_local", **architecture)
         weights = LossWeights(epipolar=0.0, pose_teacher=0.0)
     else:
-        model = registry.make_model("global_local", **recipe.ARCHITECTURE)
+        architecture = recipe.ARCHITECTURE
+        model = registry.make_model("global_local", **architecture)
         weights = LossWeights(
             epipolar=recipe.MOTION_WEIGHTS["epipolar_weight"],
             pose_teacher=recipe.MOTION_WEIGHTS["pose_teacher_weight"],
         )
     variables = state.init_variables(model, height, width, FLAGS.seed)
     source = "" if FLAGS.global_source == "encoder" else f", g from {FLAGS.global_source}"
-    return model, variables, weights, f"{FLAGS.model} from scratch{source}"
+    # The architecture is part of the description, which a resumed run must share: a run
+    # begun under another recipe is refused, not continued with other options.
+    options = ", ".join(f"{name}={value}" for name, value in sorted(architecture.items()))
+    return (
+        model,
+        variables,
+        weights,
+        f"{FLAGS.model} from scratch{source}" + (f" ({options})" if options else ""),
+    )
 
 
 def _offline_reference(stream, model, variables, settings, size, weights, learner) -> None:

@@ -19,10 +19,11 @@ DIS flow of gld_scenes/small. The Jacobian is in closed form (`_distances_and_ja
 A proposal further off stops, most often, in a wrong basin of the translation direction;
 `pose_from_proposal` with several starts first searches (`search_pose`: the best of
 several translation directions around the proposal, each refined coarsely), then refines
-with the robust scale annealed. On the main job's test pairs, from its encoder's
-proposals (1.59 deg / 17.9 deg): twenty steps from the proposal alone 0.62 / 7.4 deg;
-five starts and fifteen annealed steps 0.45 / 5.3 deg, as the essential matrix
-(0.44 / 5.0 deg).
+with the robust scale annealed. On the 200 test pairs of gld_scenes/small 2.0.0, from
+the main job's encoder's proposals (1.59 deg / 17.9 deg; the translation direction's
+error taken up to its sign, as everywhere in this paragraph): twenty steps from the
+proposal alone 0.62 / 7.4 deg; five starts and fifteen annealed steps 0.45 / 5.3 deg, as
+the essential matrix from the same flow (0.44 / 5.0 deg).
 
 The translation keeps its sign (the constraint does not fix it) and unit norm.
 """
@@ -290,6 +291,8 @@ def search_pose(
     costs = robust_cost(
         tiled(flow), rotations, translations, tiled(intrinsics1), tiled(intrinsics2)
     )
+    # A start whose refinement failed (not finite) is never the best.
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
     best = jnp.argmin(costs.reshape(starts, -1), axis=0)
     pairs = jnp.arange(flow.shape[0])
     rotations = rotations.reshape(starts, -1, 3, 3)[best, pairs]
@@ -308,19 +311,20 @@ def pose_from_proposal(
 ) -> tuple[jax.Array, jax.Array]:
     """The pose a proposal leads to on the flow: `refine_pose`'s `iterations` steps at
     1 px with one start; with more, `search_pose` over `starts` first, then the steps
-    with the robust scale annealed (`ANNEALED_SIGMAS`: the first third at 0.5 px, the rest
-    at 0.2 px), which a narrower basin allows once the search has found it.
+    with the robust scale annealed (`ANNEALED_SIGMAS`: the first third, at least one step,
+    at 0.5 px, the rest at 0.2 px; a single step at 0.2 px), which a narrower basin allows
+    once the search has found it. No steps return the proposal (no search).
 
     Args and returns: as `refine_pose`.
     """
-    if starts == 1:
+    if starts == 1 or iterations == 0:
         return refine_pose(
             flow, rotation, translation, intrinsics1, intrinsics2, iterations=iterations
         )
     rotation, translation = search_pose(
         flow, rotation, translation, intrinsics1, intrinsics2, starts=starts
     )
-    coarse = iterations // 3
+    coarse = max(1, iterations // 3) if iterations > 1 else 0
     for steps, sigma in zip((coarse, iterations - coarse), ANNEALED_SIGMAS, strict=True):
         rotation, translation = refine_pose(
             flow, rotation, translation, intrinsics1, intrinsics2, iterations=steps, sigma=sigma

@@ -137,11 +137,6 @@ def check_config(name: str, config: dict) -> None:
             f'global_source="{values["global_source"]}" gives 6 global parameters; global_dim '
             f"is {values['global_dim']}"
         )
-    if values["pose_refinement_starts"] > 1 and not values["pose_refinement_steps"]:
-        raise ValueError(
-            "pose_refinement_starts searches around the encoder's pose before its refinement: "
-            "it needs pose_refinement_steps"
-        )
     defaults = full_config(name, {})
     for option, what in ENCODER_POSE_READERS.items():
         if values[option] != defaults[option] and not encoder_pose(values):
@@ -156,6 +151,11 @@ def check_config(name: str, config: dict) -> None:
             )
         if values[option] != defaults[option] and not reads_pose(values):
             raise ValueError(f"{option} {what}: it needs the global module and global_dim 6")
+    if values["pose_refinement_starts"] > 1 and not values["pose_refinement_steps"]:
+        raise ValueError(
+            "pose_refinement_starts searches around the encoder's pose before its refinement: "
+            "it needs pose_refinement_steps"
+        )
     if len(values["encoder_channels"]) != len(values["encoder_strides"]):
         raise ValueError(
             f"encoder_channels {values['encoder_channels']} and encoder_strides "

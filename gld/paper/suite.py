@@ -20,8 +20,10 @@ read so too). Two ablations therefore read
 differently from the paper's: "+ image pair" adds the image pair the main recipe leaves
 out, and the runs without a global module or without flow drop all three ways of
 learning the motion too (they need g, and they read the flow); the run "- epipolar term,
-teacher and refinement" measures what those alone cost (g learned from the depth loss
-alone, as the paper's). The runs given a pose have no encoder to teach or refine.
+teacher and refinement" measures what those cost (g learned from the depth loss
+alone, as the paper's; with them go the search, the derotated flow and the triangulated
+flow, which read the pose they teach). The runs given a pose have no encoder to teach
+or refine.
 
 A suite with the further runs (`Scale.further`; all but cpu) adds the control of one
 fixed pixel per image to the densities, and closes with the paper's remaining

@@ -5,8 +5,9 @@
 The recipe is the best measured within the main job's CPU budget (WORKSPACE.md): Adam
 1e-3 with 100 warm-up steps and cosine decay over 2,000 steps, and a global module that
 learns the camera motion with no label: an instance-normalised encoder that sees the
-flow alone, the epipolar term at 0.1, the classical pose teacher, twenty Gauss-Newton
-steps refining the encoder's pose on the flow, and a local network that sees the flow
+flow alone, the epipolar term at 0.1, the classical pose teacher, a search of five
+translation directions around the encoder's pose and fifteen Gauss-Newton steps refining
+it on the flow, and a local network that sees the flow
 less the flow of that pose's rotation and the inverse depth the flow gives under that
 pose, and repeats the image's edge beyond it (no rim of different depth at the border).
 None of it is the paper's (its recipe: Adam 1e-4, constant, the image pair and the
@@ -16,7 +17,8 @@ paper suite's main-job rows and the tests all read it.
 
 A launch applies two rules (`experiments.train`, the comparison and the paper runner):
 the motion terms and the refinement are dropped where the model has no encoder's pose
-to teach or refine (unless asked for), and a relaunch of a workdir keeps the
+to teach or refine, the derotated and triangulated flow where it has no pose as g (each
+unless asked for), the search where it does not refine, and a relaunch of a workdir keeps the
 architecture it was trained with for every option the command line does not give. And
 the train launcher's warm-up fits any run (`warmup_that_fits`): a run too short for the
 recipe's 100 steps warms up for the same 5% of its steps, unless --warmup_steps is given.
@@ -113,6 +115,14 @@ def motion_where_it_applies(
             off |= WITHOUT_A_POSE
         off = {name: value for name, value in off.items() if name not in given}
         model_config = {**model_config, **off}
+        # No refinement (asked for), no search of where to start it.
+        if (
+            not model_config.get("pose_refinement_steps", 1)
+            and "pose_refinement_starts" not in given
+        ):
+            model_config["pose_refinement_starts"] = WITHOUT_AN_ENCODER_POSE[
+                "pose_refinement_starts"
+            ]
     return model_config, weights
 
 

@@ -52,7 +52,7 @@ def dummy_batch(batch_size: int, height: int, width: int) -> dict[str, np.ndarra
             np.eye(3, dtype=np.float32), (batch_size, 3, 3)
         ).copy()
         batch[translation_key] = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (batch_size, 1))
-    # The cameras, for models that refine their pose on the flow.
+    # The cameras, for models that read a pose against the flow.
     for key in model_lib.CAMERA_INPUTS:
         batch[key] = np.tile(np.array([0.9, 1.2, 0.5, 0.5], np.float32), (batch_size, 1))
     return batch

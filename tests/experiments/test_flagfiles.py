@@ -7,7 +7,9 @@ from absl import flags
 from conftest import REPO_ROOT, run_python
 
 import data
+from experiments import common
 from gld import options
+from gld.models import registry
 from gld.models.global_local import ABLATIONS, GlobalLocal
 from gld.runs import recipe
 
@@ -37,6 +39,17 @@ def test_flagfile_parses_and_documents_itself(train_flags, path: Path):
         train_flags(["train", f"--flagfile={path}"])
         data.parse_name(train_flags.dataset)
         assert train_flags.workdir.startswith("runs/")
+        # The model the launcher would build from it passes the config check.
+        given = {name for name in train_flags if train_flags[name].present}
+        weights = {name: train_flags[name].value for name in recipe.MOTION_WEIGHTS}
+        model_config, _ = recipe.motion_where_it_applies(
+            train_flags.model, common.model_options(train_flags.model), weights, given
+        )
+        if "flow_net_workdir" in model_config:  # needs a trained flow network to check
+            model_config = {"global_local": {}, **model_config}
+            registry.check_config("global_local", model_config["global_local"])
+        else:
+            registry.check_config(train_flags.model, model_config)
     finally:
         train_flags.unparse_flags()
 
@@ -61,6 +74,7 @@ def test_paper_flagfiles_train_with_the_papers_optimiser(train_flags, path: Path
         assert train_flags.lr_schedule == "constant"
         assert train_flags.epipolar_weight == 0  # the paper's loss
         assert train_flags.pose_teacher_weight == 0 and train_flags.pose_refinement_steps == 0
+        assert train_flags.pose_refinement_starts == 1
         assert train_flags.encoder_norm == "none"  # the paper's global module
         # The paper's local network: zero padding, the flow as it is.
         assert train_flags.border == "zero"
@@ -121,6 +135,7 @@ FLOW_PARSE = """
 import sys
 from absl import flags
 import data
+from experiments import common
 from gld.models import global_local as model_lib
 import experiments.train_flow  # noqa: F401  (defines the flow trainer's flags)
 flags.FLAGS(["train_flow", "--flagfile=" + sys.argv[1]])

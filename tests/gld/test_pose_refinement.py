@@ -145,6 +145,33 @@ def test_a_search_around_the_proposal_finds_the_motion_where_one_start_stops_in_
         single[1],
         pose_refinement.refine_pose(jnp.asarray(flow), *proposal, *cameras, iterations=15)[1],
     )
+    # No steps: the proposal, with no search.
+    unmoved = pose_refinement.pose_from_proposal(
+        jnp.asarray(flow), *proposal, *cameras, iterations=0, starts=5
+    )
+    np.testing.assert_allclose(unmoved[0], proposal[0], atol=1e-6)
+    # The model's g is the searched pose.
+    model = model_lib.GlobalLocal(
+        encoder_channels=(4, 8, 8, 8, 8), pose_refinement_steps=15, pose_refinement_starts=5
+    )
+    variables = state.init_variables(model, HEIGHT, WIDTH, seed=0)
+    params = jax.tree_util.tree_map(lambda x: x, variables["params"])
+    to_global = params["global_encoder"]["to_global"]
+    to_global["kernel"] = jnp.zeros_like(to_global["kernel"])
+    to_global["bias"] = model_lib.pose_parameters(*proposal)[0]
+    images = jnp.zeros((2, HEIGHT, WIDTH, 3))
+    outputs = model.apply(
+        {"params": params},
+        images,
+        images,
+        jnp.asarray(flow),
+        **dict(zip(("intrinsics1", "intrinsics2"), cameras, strict=True)),
+    )
+    pose = outputs["global_pose"]
+    model_errors = _errors(
+        pose["rotation"][0], pose["translation"][0], rotations[0], translations[0]
+    )
+    assert model_errors[0] < 0.1 and model_errors[1] < 0.1, model_errors
     with pytest.raises(ValueError, match="starts must be >= 1"):
         pose_refinement.search_pose(jnp.asarray(flow), *proposal, *cameras, starts=0)
     with pytest.raises(ValueError, match="needs pose_refinement_steps"):

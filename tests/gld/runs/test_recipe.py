@@ -57,6 +57,7 @@ REFINEMENT = recipe.ARCHITECTURE["pose_refinement_steps"]
         ({"use_flow": False}, 1.0, 0.1, 0, False, False),
         ({"global_dim": 4}, 0.0, 0.0, 0, False, False),  # g cannot stand for a pose
         ({"use_flow": False, "pose_refinement_steps": 3}, 1.0, 0.1, 3, False, False),  # kept
+        ({"pose_refinement_steps": 0}, 1.0, 0.1, 0, True, True),  # no refinement, no search
         ({"use_global_module": False, "derotate_flow": True}, 0.0, 0.0, 0, True, False),  # refused
         ({"global_dim": 4, "parallax_depth": True}, 0.0, 0.0, 0, False, True),  # refused
         ({"model": "small_encdec", "pose_teacher_weight": 2.0}, 2.0, 0.0, None, None, None),
