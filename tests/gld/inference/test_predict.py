@@ -496,8 +496,9 @@ def test_a_model_on_the_pose_from_its_flow_gets_the_motion_at_its_own_resolution
     assert geometry.translation_error_degrees(np.asarray(pose["translation"][0]), translation) < 2.0
 
 
-def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_path):
-    predictor = _given_pose_predictor("pose")
+def _frames_moving_sideways(tmp_path):
+    """Three frames of a camera moving 0.2 m then 0.3 m along x, and the plan of their
+    consecutive pairs from those camera poses."""
     frames_dir = tmp_path / "frames"
     frames_dir.mkdir()
     image, _ = _pair(HEIGHT, WIDTH)
@@ -507,13 +508,19 @@ def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_
     camera_to_world = np.tile(np.eye(4), (3, 1, 1))
     camera_to_world[:, 0, 3] = [0.0, 0.2, 0.5]
     plan = recordings.plan_recording(recordings.frame_pairs(3), camera_to_world=camera_to_world)
+    return paths, plan
+
+
+def test_a_recording_planned_from_camera_poses_gives_each_pair_its_odometry(tmp_path):
+    predictor = _given_pose_predictor("pose")
+    paths, plan = _frames_moving_sideways(tmp_path)
     assert plan.baselines == pytest.approx([0.2, 0.3])
     with pytest.raises(ValueError, match="with camera poses"):
         recordings.predict_recording(
             predictor,
             frames_lib.ImageFolderFrames(paths),
             recordings.plan_recording(
-                recordings.frame_pairs(3), positions=camera_to_world[:, :3, 3]
+                recordings.frame_pairs(3), positions=[[0.0, 0, 0], [0.2, 0, 0], [0.5, 0, 0]]
             ),
             tmp_path / "refused",
             depth_format="npy",
@@ -656,15 +663,7 @@ def test_a_recording_gives_a_model_reading_its_odometry_against_the_flow_both(tm
     """A recording's run gives a model given the odometry that reads it against the flow
     each pair's odometry and the camera, and refuses to start without the camera."""
     predictor = _given_pose_predictor("pose", derotate_flow=True, parallax_depth=True)
-    frames_dir = tmp_path / "frames"
-    frames_dir.mkdir()
-    image, _ = _pair(HEIGHT, WIDTH)
-    paths = [frames_dir / f"f{index}.png" for index in range(3)]
-    for index, path in enumerate(paths):
-        cv2.imwrite(str(path), np.roll(image, 2 * index, axis=1))
-    camera_to_world = np.tile(np.eye(4), (3, 1, 1))
-    camera_to_world[:, 0, 3] = [0.0, 0.2, 0.5]
-    plan = recordings.plan_recording(recordings.frame_pairs(3), camera_to_world=camera_to_world)
+    paths, plan = _frames_moving_sideways(tmp_path)
     camera_matrix = np.array([[55.0, 0, 31.5], [0, 56.0, 23.5], [0, 0, 1]])
     with pytest.raises(ValueError, match="give the camera's intrinsics"):
         recordings.predict_recording(
