@@ -23,10 +23,13 @@ Inputs, by rule:
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Any
 
 import numpy as np
+
+from gld import flow_pose, geometry
 
 ASPECT_MODES = ("resize", "crop")
 
@@ -219,3 +222,102 @@ def warn_if_stretched(
             UserWarning,
             stacklevel=stacklevel + 1,
         )
+
+
+# The keyword inputs a model may read besides the images and flow
+# (`GlobalLocal.extra_inputs`): the odometry's relative pose, the essential matrix's pose
+# from its flow, the cameras (named here: the runtime does not import the models).
+ODOMETRY_INPUTS = ("rotation", "translation")
+CAMERA_INPUTS = ("intrinsics1", "intrinsics2")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseInputs:
+    """What a model reads besides the images and flow: a given pose (the odometry's or
+    its flow's essential matrix's, not both), the cameras, or a given pose and the
+    cameras (a model that reads it against the flow)."""
+
+    odometry: bool
+    flow_pose: bool
+    cameras: bool
+
+    @property
+    def needs_camera(self) -> bool:
+        """Whether a call needs intrinsics= (the essential matrix, or the cameras)."""
+        return self.flow_pose or self.cameras
+
+    @classmethod
+    def of(cls, extra_inputs: Any, refusal: str) -> PoseInputs:
+        """What `extra_inputs` (a model's keys) ask for; ValueError "the model reads
+        [...], which <refusal>" for any other key, half a pose or two poses."""
+        extra = tuple(extra_inputs)
+        reads = cls(
+            odometry=set(ODOMETRY_INPUTS) <= set(extra),
+            flow_pose=set(flow_pose.FLOW_POSE_KEYS) <= set(extra),
+            cameras=set(CAMERA_INPUTS) <= set(extra),
+        )
+        known = (
+            set(ODOMETRY_INPUTS if reads.odometry else ())
+            | set(flow_pose.FLOW_POSE_KEYS if reads.flow_pose else ())
+            | set(CAMERA_INPUTS if reads.cameras else ())
+        )
+        if (
+            len(set(extra)) != len(extra)
+            or set(extra) != known
+            or (reads.odometry and reads.flow_pose)
+        ):
+            raise ValueError(f"the model reads {list(extra)}, which {refusal}")
+        return reads
+
+    def keywords(
+        self,
+        flow: np.ndarray,
+        camera_matrix: np.ndarray | None,
+        rotation: Any,
+        translation: Any,
+        single: bool,
+    ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """The model's keyword inputs for a batch, and ||t|| of the odometry (None without).
+
+        Args:
+          flow: [B, h, w, 2] the model's flow, at its resolution.
+          camera_matrix: [3, 3] pixel-index K at the model's resolution, or None.
+          rotation, translation: the odometry (`odometry`), or None.
+          single: the odometry is one pair's, without the batch axis.
+        """
+        batch_size, height, width = flow.shape[:3]
+        if not self.odometry and (rotation is not None or translation is not None):
+            raise ValueError(
+                "rotation= and translation= are for models trained given the relative pose; "
+                "this one takes the motion from the images"
+            )
+        keywords: dict[str, np.ndarray] = {}
+        norms = None
+        if self.odometry:
+            if rotation is None or translation is None:
+                raise ValueError(
+                    "the model was trained given the relative pose: give the pair's odometry "
+                    "as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
+                )
+            rotation, unit, norms = odometry(rotation, translation, batch_size, single)
+            keywords.update(rotation=rotation, translation=unit)
+        if not self.needs_camera:
+            return keywords, norms
+        if camera_matrix is None:
+            raise ValueError(
+                "the model takes the camera motion from its flow's geometry, which needs the "
+                "camera: give intrinsics="
+            )
+        normalised = np.asarray(
+            geometry.normalised_intrinsics(camera_matrix, height, width), np.float32
+        )
+        if self.flow_pose:
+            poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
+            keywords.update(
+                flow_rotation=np.stack([pose[0] for pose in poses]).astype(np.float32),
+                flow_translation=np.stack([pose[1] for pose in poses]).astype(np.float32),
+            )
+        if self.cameras:
+            cameras = np.tile(normalised, (batch_size, 1))
+            keywords.update(intrinsics1=cameras, intrinsics2=cameras)
+        return keywords, norms

@@ -35,15 +35,13 @@ import jax
 import numpy as np
 
 from gld import flow as flow_lib
-from gld import flow_pose, geometry
 from gld.inference import frame_pairs, resampling
 from gld.inference.inputs import (
     ASPECT_MODES,
+    PoseInputs,
     camera_matrix_from,
-    odometry,
     resize_camera_matrix,
 )
-from gld.models.global_local import CAMERA_INPUTS, GIVEN_POSE_INPUTS
 from gld.runs import trained_flow
 from gld.runs import workdir as workdir_lib
 
@@ -63,21 +61,15 @@ class DepthPredictor:
         if aspect not in ASPECT_MODES:
             raise ValueError(f"aspect must be one of {ASPECT_MODES}, got {aspect!r}")
         extra_inputs = tuple(getattr(model, "extra_inputs", ()))
-        # A given pose (its keys whole) and/or the cameras; any other key is refused.
-        given = [
-            source for source, keys in GIVEN_POSE_INPUTS.items() if set(keys) <= set(extra_inputs)
-        ]
-        self._reads_cameras = set(CAMERA_INPUTS) <= set(extra_inputs)
-        known = {key for source in given for key in GIVEN_POSE_INPUTS[source]}
-        known |= set(CAMERA_INPUTS) if self._reads_cameras else set()
-        if set(extra_inputs) - known or len(given) > 1:
-            raise ValueError(f"the model also reads {list(extra_inputs)}, which a predictor lacks")
+        self._reads = PoseInputs.of(extra_inputs, "a predictor lacks")
         # "pose": the model was trained given the true relative pose (odometry here);
         # "flow_pose": the essential matrix's pose from its input flow; None: neither.
-        self.given_pose = given[0] if given else None
+        self.given_pose = (
+            "pose" if self._reads.odometry else "flow_pose" if self._reads.flow_pose else None
+        )
         # Models that take the motion from the flow's geometry (the essential matrix's
         # pose, or reading a pose against the flow) need the camera.
-        self.needs_camera = self.given_pose == "flow_pose" or self._reads_cameras
+        self.needs_camera = self._reads.needs_camera
         self.model, self.variables = model, variables
         self.height, self.width = height, width
         self.flow_method = flow_method
@@ -111,43 +103,12 @@ class DepthPredictor:
         """The model's inputs besides the images and flow, by keyword (its given pose,
         the cameras, or both), and the baseline (||t|| of a given odometry when no other
         scale was given)."""
-        batch_size = len(model_flow)
-        if self.given_pose != "pose":
-            if rotation is not None or translation is not None:
-                raise ValueError(
-                    "rotation= and translation= are for models trained given the relative "
-                    f"pose; this one takes {self.given_pose or 'its global encoder'}'s"
-                )
-        extra: dict[str, np.ndarray] = {}
-        if self.given_pose == "pose":
-            if rotation is None or translation is None:
-                raise ValueError(
-                    "the model was trained given the relative pose (global_source pose): give "
-                    "the pair's odometry as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
-                )
-            rotation, translation, norms = odometry(rotation, translation, batch_size, single)
-            if baseline is None and ranges is None:
-                baseline = norms if not single else float(norms[0])
-            extra.update(rotation=rotation, translation=translation)
-        if not self.needs_camera:
-            return extra, baseline
-        if camera_matrix is None:
-            raise ValueError(
-                "the model takes the camera motion from its flow's geometry, which needs "
-                "the camera: give intrinsics="
-            )
-        camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
-        normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
-        normalised = normalised.astype(np.float32)
-        if self.given_pose == "flow_pose":
-            poses = [flow_pose.pose_of_example(flow, normalised, normalised) for flow in model_flow]
-            extra.update(
-                flow_rotation=np.stack([pose[0] for pose in poses]),
-                flow_translation=np.stack([pose[1] for pose in poses]),
-            )
-        if self._reads_cameras:
-            cameras = np.tile(normalised, (batch_size, 1))
-            extra.update(intrinsics1=cameras, intrinsics2=cameras)
+        camera = None
+        if self.needs_camera and camera_matrix is not None:
+            camera = resize_camera_matrix(camera_matrix, box, self.height, self.width)
+        extra, norms = self._reads.keywords(model_flow, camera, rotation, translation, single)
+        if norms is not None and baseline is None and ranges is None:
+            baseline = norms if not single else float(norms[0])
         return extra, baseline
 
     def predict(

@@ -46,24 +46,13 @@ from typing import Any
 import numpy as np
 
 from gld import flow as flow_lib
-from gld import flow_pose, geometry
 from gld.inference import frame_pairs
 from gld.inference.deploy import DeployedModel
 from gld.inference.inputs import (
     ASPECT_MODES,
+    PoseInputs,
     camera_matrix_from,
-    odometry,
     resize_camera_matrix,
-)
-
-_POSE = ("rotation", "translation")
-_FLOW_POSE = flow_pose.FLOW_POSE_KEYS
-_CAMERAS = ("intrinsics1", "intrinsics2")
-# What a model may read besides the frames (`GlobalLocal.extra_inputs`): nothing, a given
-# pose, the cameras, or a given pose that it reads against the flow with the cameras.
-_READABLE = tuple(
-    frozenset(keys)
-    for keys in ((), _POSE, _FLOW_POSE, _CAMERAS, _POSE + _CAMERAS, _FLOW_POSE + _CAMERAS)
 )
 
 
@@ -108,22 +97,16 @@ class DepthRuntime:
             raise ValueError("the file records a flow network's flow but holds no network")
         elif estimator not in ("flow_net", "model"):
             raise ValueError(f"the file's flow estimator {estimator!r} is unknown to this gld")
-        extra = tuple(model.extra_inputs)
-        # A given pose (the odometry's or the flow's essential matrix's), the cameras, or
-        # a given pose and the cameras (by keyword: the file's order is the deployed model's).
-        if len(set(extra)) != len(extra) or frozenset(extra) not in _READABLE:
-            raise ValueError(f"the model reads {list(extra)}, which this runtime cannot give")
-        self.needs_odometry = set(_POSE) <= set(extra)
-        self._flow_pose = set(_FLOW_POSE) <= set(extra)
-        self._cameras = set(_CAMERAS) <= set(extra)
-        self.needs_camera = self._flow_pose or self._cameras
+        self._reads = PoseInputs.of(model.extra_inputs, "this runtime cannot give")
+        self.needs_odometry = self._reads.odometry
+        self.needs_camera = self._reads.needs_camera
         self.reads = {
             (False, False): None,
             (True, False): "odometry",
             (False, True): "camera",
             (True, True): "odometry and camera",
         }[self.needs_odometry, self.needs_camera]
-        self.needs_opencv = estimator in flow_lib.RUNTIME_SETTINGS or self._flow_pose
+        self.needs_opencv = estimator in flow_lib.RUNTIME_SETTINGS or self._reads.flow_pose
         if self.needs_opencv and importlib.util.find_spec("cv2") is None:
             raise ImportError(
                 "this model's flow (or its essential-matrix pose) is computed with OpenCV: "
@@ -156,41 +139,7 @@ class DepthRuntime:
         single: bool,
     ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """The model's inputs besides images and flow, and ||t|| of given odometry."""
-        batch_size = len(flow)
-        if not self.needs_odometry and (rotation is not None or translation is not None):
-            raise ValueError(
-                "rotation= and translation= are for models trained given the relative pose; "
-                "this one takes the motion from the images"
-            )
-        extra: dict[str, np.ndarray] = {}
-        norms = None
-        if self.needs_odometry:
-            if rotation is None or translation is None:
-                raise ValueError(
-                    "the model was trained given the relative pose: give the pair's odometry "
-                    "as rotation= [3, 3] and translation= [3] (X2 = R X1 + t)"
-                )
-            rotation, unit, norms = odometry(rotation, translation, batch_size, single)
-            extra.update(rotation=rotation, translation=unit)
-        if not self.needs_camera:
-            return extra, norms
-        if camera is None:
-            raise ValueError(
-                "the model takes the camera motion from its flow's geometry, which needs the "
-                "camera: give intrinsics="
-            )
-        normalised = geometry.normalised_intrinsics(camera, self.height, self.width)
-        normalised = np.asarray(normalised, np.float32)
-        if self._flow_pose:
-            poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
-            extra.update(
-                flow_rotation=np.stack([pose[0] for pose in poses]).astype(np.float32),
-                flow_translation=np.stack([pose[1] for pose in poses]).astype(np.float32),
-            )
-        if self._cameras:
-            cameras = np.tile(normalised, (batch_size, 1))
-            extra.update(intrinsics1=cameras, intrinsics2=cameras)
-        return extra, norms
+        return self._reads.keywords(flow, camera, rotation, translation, single)
 
     def predict(
         self,
