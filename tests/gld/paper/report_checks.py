@@ -4,6 +4,7 @@ report written from them, its targets' verdicts and sections, the targets' names
 from __future__ import annotations
 
 import dataclasses
+import re
 
 from gld.paper import report as paper_report
 from gld.paper import suite as paper_suite
@@ -109,3 +110,21 @@ def write_readme(tmp_path, results):
 
 def readme_section(readme: str, number: int) -> str:
     return readme.split(f"## {number}.")[1].split("\n## ")[0]
+
+
+def committed_reports() -> list[tuple[str, str]]:
+    """Each report committed under `report/` as (its folder, the suite that made it), read
+    from the line that says how it was made."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    reports = []
+    for readme in sorted((root / "report").rglob("README.md")):
+        made = re.search(
+            r"^Made by `python -m experiments\.paper --suite=(\w+)`",
+            readme.read_text(),
+            flags=re.MULTILINE,
+        )
+        if made:
+            reports.append((str(readme.parent.relative_to(root)), made.group(1)))
+    return reports

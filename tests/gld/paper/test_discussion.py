@@ -11,6 +11,7 @@ from report_checks import (
     DENSITY,
     LOW_RATE,
     MAIN,
+    committed_reports,
     suite_results,
     target_verdicts,
     write_readme,
@@ -131,8 +132,8 @@ def test_a_discussion_number_that_would_not_follow_the_results_is_an_error(tmp_p
     assert [p.name for p in (tmp_path / "report").iterdir()] == [DISCUSSION]
 
 
-@pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
-def test_the_committed_discussions_agree_with_their_results(report_dir):
+@pytest.mark.parametrize("report_dir, suite", committed_reports())
+def test_the_committed_discussions_agree_with_their_results(report_dir, suite):
     """Each discussion of the repository's reports fills in from the results beside it,
     and the README there carries it as the report writes it now."""
     import json
@@ -143,7 +144,7 @@ def test_the_committed_discussions_agree_with_their_results(report_dir):
     for path in (root / "results").glob("*.json"):
         result = json.loads(path.read_text())
         results[result["task"]] = result
-    scale = SUITES["cpu" if report_dir == "report" else "cpu_full"]
+    scale = SUITES[suite]
     report = ReportResults(scale, results, root / "results")
     discussion = read_discussion(root / DISCUSSION)
     filled = fill_discussion(report, discussion, root / DISCUSSION)

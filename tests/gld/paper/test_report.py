@@ -19,6 +19,7 @@ from report_checks import (
     POSE,
     SCALE,
     VARYING,
+    committed_reports,
     readme_section,
     suite_results,
     target_verdicts,
@@ -559,8 +560,8 @@ def test_results_made_by_uncommitted_code_are_listed_for_a_re_run_not_reported(t
     assert target_verdicts(readme)[DENSITY] == "**holds**" and "uncommitted" not in readme
 
 
-@pytest.mark.parametrize("report_dir", ["report", "report/cpu_full"])
-def test_the_committed_reports_were_made_at_a_clean_commit(report_dir):
+@pytest.mark.parametrize("report_dir, suite", committed_reports())
+def test_the_committed_reports_were_made_at_a_clean_commit(report_dir, suite):
     """A report made at a clean commit reports no result of uncommitted code."""
     from pathlib import Path
 
