@@ -68,6 +68,7 @@ def main(argv):
     common.initialise()
     import jax
 
+    from data.gld_scenes import redraw
     from gld.paper import report as paper_report
     from gld.paper import runner as paper_runner
     from gld.paper import training_runs as paper_training_runs
@@ -91,6 +92,7 @@ def main(argv):
             test=common.data_source(builder, "test"),
             height=height,
             width=width,
+            texture=redraw.texture_reader(builder),
         )
 
     results_dir = Path(FLAGS.results_dir or report_dir / "results")

@@ -356,6 +356,8 @@ def draw_regimes(
       categories: [N] each pair's texture kind, or None.
     """
     plt = reports.pyplot()
+    from matplotlib import ticker
+
     ratios = np.asarray(ratios, np.float64)
     panels = len(properties) + (categories is not None)
     columns = min(3, panels)
@@ -370,6 +372,9 @@ def draw_regimes(
         axis.set_xlabel(PROPERTIES.get(name, name))
         if name in LOG_SCALE_PROPERTIES and np.nanmin(values) > 0:
             axis.set_xscale("log")
+            # Only the decades labelled: minor labels overlap on a narrow range.
+            axis.xaxis.set_minor_formatter(ticker.NullFormatter())
+            axis.xaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
     if categories is not None:
         axis = axes[len(properties)]
         kinds = sorted(set(categories))
@@ -380,8 +385,11 @@ def draw_regimes(
         axis.set_xlabel("dominant texture kind")
     for axis in axes[:panels]:
         axis.set_yscale("log")
+        axis.yaxis.set_major_locator(ticker.LogLocator(base=2))
+        axis.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        axis.yaxis.set_minor_formatter(ticker.NullFormatter())
         axis.axhline(1.0, color="black", linewidth=1)
-        axis.set_ylabel(f"Abs-Inv {model} / {reference}")
+        axis.set_ylabel(f"Abs-Inv {model} /\n{reference}")
     for axis in axes[panels:]:
         axis.axis("off")
     figure.suptitle(f"per pair: {model} / {reference} (below 1: {model} better)")

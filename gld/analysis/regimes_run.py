@@ -12,8 +12,9 @@ layer, which the library does not import).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,110 @@ def find_evaluation(
             f"{eval_dir} evaluates {evaluated or 'an unnamed dataset'}, not --dataset={dataset}"
         )
     return eval_dir, evaluated, metrics
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    """A model against a reference, pair by pair (`compare_pairs`).
+
+    Attributes:
+      rows: one per pair, sorted by id: its id, both Abs-Inv, its properties
+        (`regimes.PROPERTIES`, sfm_failed; texture_kind and texture_share where the
+        dataset tells) and the ratio model / reference.
+      tables: property -> its bins' `regimes.BinSummary` rows.
+      correlations: property -> Spearman correlation with log(model / reference).
+      edges: property -> its bins' edges.
+      categories: each pair's texture kind (None where the dataset cannot tell).
+    """
+
+    rows: list[dict[str, Any]]
+    tables: dict[str, list[regimes.BinSummary]]
+    correlations: dict[str, float]
+    edges: dict[str, np.ndarray]
+    categories: list[str] | None
+
+    def draw(self, path: str | Path, *, model: str, reference: str) -> None:
+        """The per-pair ratio against each property (`regimes.draw_regimes`)."""
+        regimes.draw_regimes(
+            path,
+            {key: np.array([row[key] for row in self.rows]) for key in regimes.PROPERTIES},
+            np.array([row["ratio"] for row in self.rows]),
+            edges=self.edges,
+            categories=self.categories,
+            model=model,
+            reference=reference,
+        )
+
+
+def compare_pairs(
+    examples: Iterable[Mapping[str, Any]],
+    model_abs_inv: Mapping[str, float],
+    reference_abs_inv: Mapping[str, float],
+    *,
+    model: str,
+    reference: str,
+    read_texture: TextureReader | None = None,
+    num_bins: int = 3,
+) -> Comparison:
+    """Each scored pair's properties, the per-pair ratio of the two methods' Abs-Inv, and
+    their summary by property bin.
+
+    Args:
+      examples: decoded examples (`gld.contract.decode_example`, before scale
+        normalisation); those whose id is not scored are skipped.
+      model_abs_inv, reference_abs_inv: id -> the pair's Abs-Inv, over the same ids.
+      model, reference: their names (the rows' column names).
+      read_texture: the dataset's `TextureReader` (None: no texture property).
+      num_bins: quantile bins per property.
+
+    Raises:
+      ValueError: the two score other pairs, a scored pair is not among the examples, or
+        the texture reader refuses a pair.
+    """
+    if set(model_abs_inv) != set(reference_abs_inv):
+        raise ValueError(f"{model} and {reference} were scored on other pairs")
+    rows = []
+    for example in examples:
+        if example["id"] not in model_abs_inv:
+            continue
+        properties = regimes.pair_properties(example, regimes.sfm_flow_pose(example))
+        row = {
+            "id": example["id"],
+            f"{model}_abs_inv": float(model_abs_inv[example["id"]]),
+            f"{reference}_abs_inv": float(reference_abs_inv[example["id"]]),
+            **properties,
+        }
+        if read_texture is not None:
+            texture_kind, names = read_texture(example)
+            kind, share = regimes.dominant_texture(texture_kind, example["depth_valid"], names)
+            row.update(texture_kind=kind, texture_share=share)
+        rows.append(row)
+    missing = set(model_abs_inv) - {row["id"] for row in rows}
+    if missing:
+        raise ValueError(
+            f"{len(missing)} scored pairs (e.g. {sorted(missing)[0]}) are not among the "
+            "examples: they were scored on another dataset"
+        )
+    rows.sort(key=lambda row: row["id"])
+
+    model_values = np.array([row[f"{model}_abs_inv"] for row in rows])
+    reference_values = np.array([row[f"{reference}_abs_inv"] for row in rows])
+    ratios = model_values / reference_values
+    for row, ratio in zip(rows, ratios, strict=True):
+        row["ratio"] = float(ratio)
+    tables, edges, correlations = {}, {}, {}
+    for key in regimes.PROPERTIES:
+        values = np.array([row[key] for row in rows])
+        labels, edges[key] = regimes.quantile_bins(values, num_bins)
+        tables[key] = regimes.summarise_bins(labels, model_values, reference_values)
+        correlations[key] = regimes.rank_correlation(values, np.log(ratios))
+    categories = None
+    if read_texture is not None:
+        categories = [row["texture_kind"] for row in rows]
+        tables[regimes.TEXTURE_PROPERTY] = regimes.summarise_bins(
+            categories, model_values, reference_values
+        )
+    return Comparison(rows, tables, correlations, edges, categories)
 
 
 def write_regimes(
@@ -137,55 +242,26 @@ def write_regimes(
     split = str(metrics.get("split", "test"))
     flow_source = str(metrics.get("flow_source", "estimated"))
     source = builder.as_data_source(split, decoders=input_pipeline.source_decoders())
-    read_texture = texture_reader(builder)
 
-    rows = []
-    for index in tqdm(range(len(source)), desc="pairs", unit="pair"):
-        example = contract.decode_example(
+    examples = (
+        contract.decode_example(
             source[index], flow_source=flow_source, where=f"{name} {split}[{index}]"
         )
-        if example["id"] not in model_abs_inv:
-            continue
-        properties = regimes.pair_properties(example, regimes.sfm_flow_pose(example))
-        row = {
-            "id": example["id"],
-            f"{model}_abs_inv": model_abs_inv[example["id"]],
-            f"{reference}_abs_inv": reference_abs_inv[example["id"]],
-            **properties,
-        }
-        if read_texture is not None:
-            try:
-                texture_kind, names = read_texture(example)
-            except ValueError as error:
-                raise ArgumentError(str(error)) from None
-            kind, share = regimes.dominant_texture(texture_kind, example["depth_valid"], names)
-            row.update(texture_kind=kind, texture_share=share)
-        rows.append(row)
-    missing = set(model_abs_inv) - {row["id"] for row in rows}
-    if missing:
-        raise ArgumentError(
-            f"{len(missing)} evaluated pairs (e.g. {sorted(missing)[0]}) are not in "
-            f"{evaluated} {split}: the evaluation is of another dataset"
+        for index in tqdm(range(len(source)), desc="pairs", unit="pair")
+    )
+    try:
+        compared = compare_pairs(
+            examples,
+            model_abs_inv,
+            reference_abs_inv,
+            model=model,
+            reference=reference,
+            read_texture=texture_reader(builder),
+            num_bins=num_bins,
         )
-    rows.sort(key=lambda row: row["id"])
-
-    model_values = np.array([row[f"{model}_abs_inv"] for row in rows])
-    reference_values = np.array([row[f"{reference}_abs_inv"] for row in rows])
-    ratios = model_values / reference_values
-    for row, ratio in zip(rows, ratios, strict=True):
-        row["ratio"] = float(ratio)
-    properties = {key: np.array([row[key] for row in rows]) for key in regimes.PROPERTIES}
-    tables, edges, correlations = {}, {}, {}
-    for key, values in properties.items():
-        labels, edges[key] = regimes.quantile_bins(values, num_bins)
-        tables[key] = regimes.summarise_bins(labels, model_values, reference_values)
-        correlations[key] = regimes.rank_correlation(values, np.log(ratios))
-    categories = None
-    if read_texture is not None:
-        categories = [row["texture_kind"] for row in rows]
-        tables[regimes.TEXTURE_PROPERTY] = regimes.summarise_bins(
-            categories, model_values, reference_values
-        )
+    except ValueError as error:
+        raise ArgumentError(f"{eval_dir}: {error}") from None
+    rows, tables, correlations = compared.rows, compared.tables, compared.correlations
     failed = int(sum(row["sfm_failed"] for row in rows))
     if reference == "sfm_flow" and "failed" in next(iter(reference_rows.values())):
         # The pose scored here is estimated again: it must fail where the evaluation's did.
@@ -214,13 +290,5 @@ def write_regimes(
         writer.writeheader()
         writer.writerows(rows)
     (output_dir / "regimes.md").write_text(summary)
-    regimes.draw_regimes(
-        output_dir / "regimes.png",
-        properties,
-        ratios,
-        edges=edges,
-        categories=categories,
-        model=model,
-        reference=reference,
-    )
+    compared.draw(output_dir / "regimes.png", model=model, reference=reference)
     return summary

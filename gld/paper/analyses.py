@@ -9,6 +9,7 @@ depth training. Arrays a later task or the report reads go to <results>/<task>.n
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import time
 from collections.abc import Callable, Sequence
@@ -17,9 +18,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from gld import contract
 from gld import files as files_lib
 from gld import flow as flow_lib
-from gld.analysis import encoder_pose
+from gld.analysis import encoder_pose, regimes_run
 from gld.analysis import filter_inspection as inspect_lib
 from gld.analysis import flow_error as flow_error_lib
 from gld.evaluation import evaluate as evaluation
@@ -29,6 +31,7 @@ from gld.models.baselines import classical as classical_lib
 from gld.models.flow_net import FlowNet
 from gld.paper import run_configs
 from gld.paper import suite as paper_suite
+from gld.paper.result_files import read_result
 from gld.paper.scales import Scale
 from gld.runs import metrics_log
 
@@ -68,6 +71,10 @@ DIS_TIMED_PAIRS = 20
 # The qualitative grid's columns (besides image and truth), in order: each model at the
 # rate of its learning-rate check that its comparisons use.
 QUALITATIVE_RUNS = ("small_encdec_1px", "dispnet_1px", "global_local_1px")
+# The per-pair comparison sets the main run (at its compared rate) against the classical
+# pipeline on the same flow, by property tercile.
+REGIMES_REFERENCE = "sfm_flow"
+REGIMES_BINS = 3
 
 
 def write_npz(path: Path, **arrays: np.ndarray) -> None:
@@ -282,3 +289,53 @@ def filters(runner: Runner) -> dict[str, Any]:
         )
         paths.append(path.name)
     return {"correlation": inspected["correlation"], "figures": paths, "pairs": count}
+
+
+def regimes(runner: Runner) -> dict[str, Any]:
+    """Where the main run (at its compared rate) beats the classical pipeline on the same
+    flow, pair by pair: each test pair's properties (`gld.analysis.regimes`), both
+    methods' Abs-Inv from their results, and the summary by property tercile."""
+
+    run = runner.compared_run(MAIN_RUN)
+    model = read_result(runner.results_dir, f"train/{run}")
+    data = runner.data(runner.scale.dataset)
+    classical_task = f"classical/{runner.scale.dataset.split('/')[-1]}"
+    reference = read_result(runner.results_dir, classical_task)["methods"][REGIMES_REFERENCE]
+    model_values = model["abs_inv_per_example"]
+    reference_values = reference["abs_inv_per_example"]
+    if not len(model_values) == len(reference_values) == len(data.test):
+        raise RuntimeError(
+            f"train/{run} scores {len(model_values)} test pairs and {classical_task} "
+            f"{len(reference_values)}; {data.name} has {len(data.test)}"
+        )
+    config = model["config"]
+    # Each result's per-pair values follow the test split's order (the evaluation's).
+    examples = [
+        contract.decode_example(
+            data.test[index],
+            flow_source=config["flow_source"],
+            where=f"{data.name} test[{index}]",
+        )
+        for index in range(len(data.test))
+    ]
+    ids = [example["id"] for example in examples]
+    compared = regimes_run.compare_pairs(
+        examples,
+        dict(zip(ids, model_values, strict=True)),
+        dict(zip(ids, reference_values, strict=True)),
+        model="model",
+        reference="reference",
+        read_texture=data.texture,
+        num_bins=REGIMES_BINS,
+    )
+    return {
+        "run": run,
+        "reference": REGIMES_REFERENCE,
+        "rows": compared.rows,
+        "tables": {
+            key: [dataclasses.asdict(summary) for summary in rows]
+            for key, rows in compared.tables.items()
+        },
+        "correlations": compared.correlations,
+        "edges": compared.edges,
+    }

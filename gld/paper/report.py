@@ -3,7 +3,8 @@ section with our numbers beside the paper's, the orderings it claims checked, an
 figures as PNG.
 
     <report_dir>/README.md     the tables, targets, budgets, protocol, commit
-    <report_dir>/*.png         density, flow errors, over-fitting, qualitative grid, filters
+    <report_dir>/*.png         density, flow errors, over-fitting, qualitative grid, filters,
+                               the pair-by-pair comparison with sfm_flow
 
 The paper's numbers all come from `gld.paper.numbers` (its Scenes11 column, by table of
 the paper), and each column of them names its table: the paper gives its own model
@@ -41,6 +42,7 @@ from gld.paper.sections.flow import flow_error, flow_finetuning, learned_flow
 from gld.paper.sections.given_flow_and_pose import given_flow_and_pose
 from gld.paper.sections.main_table import main_table
 from gld.paper.sections.pose_probe import pose_probe
+from gld.paper.sections.regimes import regimes
 from gld.paper.sections.varying_intrinsics import varying_intrinsics
 from gld.paper.tasks import step_seconds
 from gld.runs import recipe
@@ -96,6 +98,7 @@ def write_report(
         qualitative(report, report_dir),
         learned_flow(report, report_dir),
         flow_finetuning(report),
+        regimes(report, report_dir),
     ]
     finished = sum(1 for k in results if k.startswith("train/"))
     # A large baseline's step and the suite's whole budget of it, from the runner's times.

@@ -7,7 +7,8 @@ the paper's main experiments (`train/<run>`: train or resume, then evaluate on t
 split) in the order of `gld.paper.suite.suite_runs`, each analysis as soon as the runs it
 reads have finished: the generated filters (`filters`), the qualitative predictions
 (`qualitative`), the pose probe (`pose_probe`), triangulation with the probe's pose
-(`triangulation_predicted_pose`), the flow-error curves (`flow_error`); then the paper's
+(`triangulation_predicted_pose`), the flow-error curves (`flow_error`), where the main
+run beats the classical pipeline pair by pair (`regimes`); then the paper's
 remaining comparisons: the learned flow network (`flow_net`: trained on the exact flow,
 its end-point error and speed against DIS), the runner-supervised and flow experiment's
 runs, and the flow networks' end-point error after depth training (`flow_finetuning`).
@@ -165,6 +166,16 @@ def suite_tasks(runner: TrainingRuns) -> list[Task]:
             {"pose_of": analyses.PREDICTED_POSE},
             60,
             [f"train/{analyses.MAIN_RUN}", "pose_probe"],
+        ),
+        (
+            "regimes",
+            functools.partial(analyses.regimes, runner),
+            {"reference": analyses.REGIMES_REFERENCE, "bins": analyses.REGIMES_BINS},
+            60,
+            [
+                f"classical/{runner.scale.dataset.split('/')[-1]}",
+                *(f"train/{run}" for run in rate_check.rate_runs(runner.scale, analyses.MAIN_RUN)),
+            ],
         ),
     ]
     if runner.scale.further:

@@ -48,6 +48,9 @@ class Data:
     test: Any
     height: int
     width: int
+    # decoded example -> the texture kind of each pixel of view 1 and the kinds' names
+    # (`gld.analysis.regimes_run.TextureReader`); None where the dataset cannot tell.
+    texture: Any = None
 
 
 def _other_configuration(run_dir: Path, config) -> dict[str, Any]:
