@@ -150,6 +150,7 @@ def test_the_committed_discussions_agree_with_their_results(report_dir, suite):
     filled = fill_discussion(report, discussion, root / DISCUSSION)
     readme = (root / "README.md").read_text()
     shown = re.findall(r"^\*\*.*\*\* \(`(\w+)`\)\. (.*)$", readme, flags=re.MULTILINE)
-    assert shown, "the README shows no discussion"
+    # A report whose orderings all hold shows no discussion.
+    assert bool(shown) == ("### What we think explains" in readme)
     for key, paragraph in shown:
         assert paragraph == filled[key].split("\n")[0], key
