@@ -69,9 +69,12 @@ def main(argv):
     import jax
 
     from data.gld_scenes import redraw
+    from gld.arguments import ArgumentError
+    from gld.paper import discussion as paper_discussion
     from gld.paper import report as paper_report
     from gld.paper import runner as paper_runner
     from gld.paper import training_runs as paper_training_runs
+    from gld.paper.report_results import ReportResults
 
     scale = paper_scales.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")
@@ -110,6 +113,17 @@ def main(argv):
         runner.selected(FLAGS.only)
     except ValueError as error:
         raise app.UsageError(f"--only: {error}") from None
+    # The hand-written discussion is checked before any task runs: a number written by
+    # hand or an unknown placeholder in it would otherwise stop the report at the end.
+    discussion_path = report_dir / paper_discussion.DISCUSSION
+    try:
+        paper_discussion.fill_discussion(
+            ReportResults(scale, runner.finished(), results_dir),
+            paper_discussion.read_discussion(discussion_path),
+            discussion_path,
+        )
+    except ValueError as error:
+        raise ArgumentError(str(error)) from None
     commit = common.commit_stamp(report_dir, results_dir)
     failures = [] if FLAGS.report_only else runner.run(FLAGS.only, commit=commit)
     if jax.process_index() == 0:

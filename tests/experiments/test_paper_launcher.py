@@ -157,3 +157,24 @@ def test_commit_stamp_ignores_the_suites_own_outputs(tmp_path, monkeypatch):
     # A changed source file is not.
     (tmp_path / "code.py").write_text("1\n")
     assert common.commit_stamp(*outputs) == clean + "+changes"
+
+
+def test_a_discussion_with_a_number_written_by_hand_is_refused_before_any_task(tmp_path):
+    from conftest import launch
+
+    report_dir = tmp_path / "report"
+    report_dir.mkdir()
+    (report_dir / "discussion.md").write_text("## ablations\nIt is 12.5% worse.\n")
+    result = launch(
+        "experiments.paper",
+        "--suite=tiny",
+        f"--workdir={tmp_path / 'runs'}",
+        f"--report_dir={report_dir}",
+        "--noprogress",
+    )
+    assert result.returncode != 0
+    last = result.stderr.strip().splitlines()[-1]
+    assert "discussion.md: '12.5%' written by hand (## ablations)" in last, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr
+    assert sorted(p.name for p in report_dir.iterdir()) == ["discussion.md"]
+    assert not (tmp_path / "runs").exists()
