@@ -130,17 +130,6 @@ class DepthRuntime:
             [flow_lib.estimate(a, b, estimator) for a, b in zip(image1, image2, strict=True)]
         )
 
-    def _extra(
-        self,
-        flow: np.ndarray,
-        camera: np.ndarray | None,
-        rotation: Any,
-        translation: Any,
-        single: bool,
-    ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
-        """The model's inputs besides images and flow, and ||t|| of given odometry."""
-        return self._reads.keywords(flow, camera, rotation, translation, single)
-
     def predict(
         self,
         image1: Any,
@@ -180,7 +169,9 @@ class DepthRuntime:
         model_camera = None
         if camera is not None:
             model_camera = resize_camera_matrix(camera, frames.box, self.height, self.width)
-        extra, norms = self._extra(flow, model_camera, rotation, translation, frames.single)
+        extra, norms = self._reads.keywords(
+            flow, model_camera, rotation, translation, frames.single
+        )
         if norms is not None and baseline is None and ranges is None:
             baseline = float(norms[0]) if frames.single else norms
         outputs = self.model.predict(frames.image1, frames.image2, flow, **extra)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from gld.analysis import regimes as regimes_lib
+from gld.analysis import regimes_run
 from gld.paper.report_results import ReportResults
 
 
@@ -28,15 +29,13 @@ def regimes(report: ReportResults, figure_dir: Path) -> str:
     )
     path = figure_dir / "regimes.png"
     textured = all("texture_kind" in row for row in rows)
-    regimes_lib.draw_regimes(
-        path,
-        {key: np.array([row[key] for row in rows]) for key in regimes_lib.PROPERTIES},
-        np.array([row["ratio"] for row in rows]),
+    regimes_run.Comparison(
+        rows=rows,
+        tables=tables,
+        correlations=result["correlations"],
         edges={key: np.asarray(edges) for key, edges in result["edges"].items()},
         categories=[row["texture_kind"] for row in rows] if textured else None,
-        model=run,
-        reference=reference,
-    )
+    ).draw(path, model=run, reference=reference)
     failed = int(sum(row["sfm_failed"] for row in rows))
     return text + (
         f"\n\n![the per-pair ratio against each property]({path.name})\n\n"
