@@ -78,6 +78,13 @@ flags.DEFINE_float(
     "zoom", 0.5, "Replayed pairs are random crops of at least this much of each side (1: none)."
 )
 flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
+flags.DEFINE_float(
+    "anchor",
+    0.0,
+    "Each update also takes this fraction of every parameter's distance from its starting "
+    "(pretrained) value back (L2-SP); 0: none.",
+    lower_bound=0,
+)
 flags.DEFINE_integer(
     "reading_memory",
     0,
@@ -295,6 +302,7 @@ def main(argv: list[str]) -> None:
             capacity=FLAGS.capacity,
             zoom=FLAGS.zoom,
             learning_rate=FLAGS.learning_rate,
+            anchor=FLAGS.anchor,
             reading_memory=FLAGS.reading_memory,
             learn=FLAGS.learn,
             asynchronous=FLAGS.asynchronous,

@@ -40,6 +40,7 @@ from typing import Any
 import flax.linen as nn
 import jax
 import numpy as np
+import optax
 
 from gld import flow as flow_lib
 from gld import flow_pose, geometry
@@ -67,6 +68,9 @@ class OnlineSettings:
         holding its labelled pixel, resized back (`ReplayBuffer.batch`): a sensor that
         reads one fixed pixel then labels the whole image; 1 = no crop.
       learning_rate: Adam's, constant.
+      anchor: each update also takes this fraction of every parameter's distance from
+        its starting value (a pretrained model's) back (L2-SP, decoupled:
+        `optimizer.toward_start`); 0 = none.
       reading_memory: the range readings of up to this many earlier frames also label
         each new frame: each reading's point, placed in the world by its frame's
         odometry, is projected into the new frame by the new frame's odometry
@@ -86,6 +90,7 @@ class OnlineSettings:
     capacity: int = 256
     zoom: float = 0.5
     learning_rate: float = 5e-4
+    anchor: float = 0.0
     reading_memory: int = 0
     learn: bool = True
     asynchronous: bool = True
@@ -105,6 +110,8 @@ class OnlineSettings:
             raise ValueError(f"zoom must be in (0, 1], got {self.zoom}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+        if not 0 <= self.anchor < 1:
+            raise ValueError(f"anchor must be in [0, 1), got {self.anchor}")
 
 
 class OnlineLearner:
@@ -126,6 +133,8 @@ class OnlineLearner:
         self.self_supervised = trainer.loss_name(model) == "self_supervised"
         self.keys = trainer.batch_keys(model, loss_weights)
         optimizer = optimizer_lib.make_optimizer(settings.learning_rate, "constant")
+        if settings.anchor:
+            optimizer = optax.chain(optimizer, optimizer_lib.toward_start(settings.anchor))
         self._state = state_lib.state_of(variables, optimizer, settings.seed)
         step = trainer.make_train_step(model=model, optimizer=optimizer, loss_weights=loss_weights)
         self._train_step = jax.jit(step)

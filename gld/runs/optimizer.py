@@ -10,7 +10,9 @@ the flow runs (`gld.runs.trainer_options.TrainerOptions`).
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
+import jax
 import optax
 
 from gld.options import option
@@ -54,6 +56,35 @@ def make_optimizer(
     """Adam (the paper's optimiser) with the given schedule; the rate is logged."""
     rate = learning_rate_schedule(learning_rate, schedule, steps=steps, warmup_steps=warmup_steps)
     return optax.inject_hyperparams(optax.adam)(learning_rate=rate)
+
+
+class StartState(NamedTuple):
+    """`toward_start`'s state: the parameters the optimiser was initialised with."""
+
+    start: optax.Params
+
+
+def toward_start(rate: float) -> optax.GradientTransformation:
+    """Pulls the parameters back toward their values at `init` (L2-SP, decoupled).
+
+    Chained after Adam: each update also moves every parameter by `-rate * (θ - θ₀)`, θ₀
+    its value when the optimiser was initialised (a pretrained model's, kept in the
+    optimiser state, so a checkpoint holds it). Decoupled from Adam's normalisation as
+    AdamW's decay is: `rate` is the fraction of the distance from θ₀ taken back per step.
+    """
+
+    def init(params: optax.Params) -> StartState:
+        return StartState(start=jax.tree.map(lambda leaf: leaf.copy(), params))
+
+    def update(updates, state: StartState, params=None):
+        if params is None:
+            raise ValueError("toward_start needs the parameters in update()")
+        pulled = jax.tree.map(
+            lambda step, now, start: step - rate * (now - start), updates, params, state.start
+        )
+        return pulled, state
+
+    return optax.GradientTransformation(init, update)
 
 
 @dataclasses.dataclass

@@ -189,6 +189,25 @@ def test_bad_settings_are_refused():
         OnlineSettings(batch_size=0)
     with pytest.raises(ValueError, match="reading_memory must be >= 0"):
         OnlineSettings(reading_memory=-1)
+    with pytest.raises(ValueError, match="anchor must be in"):
+        OnlineSettings(anchor=1.0)
+
+
+def _distance(variables, start):
+    moved = jax.tree.map(
+        lambda a, b: np.sum((np.asarray(a) - np.asarray(b)) ** 2), variables, start
+    )
+    return float(np.sqrt(sum(jax.tree.leaves(moved["params"]))))
+
+
+def test_an_anchored_learner_stays_nearer_its_starting_parameters(model_and_variables, frames):
+    start = model_and_variables[1]
+    free = _learner(model_and_variables, asynchronous=False)
+    anchored = _learner(model_and_variables, asynchronous=False, anchor=0.5)
+    _observe_all(free, frames[:12])
+    _observe_all(anchored, frames[:12])
+    assert anchored.updates == free.updates > 0
+    assert 0 < _distance(anchored.published, start) < 0.7 * _distance(free.published, start)
 
 
 def _frame(index, translation, reading=None):

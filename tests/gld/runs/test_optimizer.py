@@ -32,3 +32,19 @@ def test_the_optimiser_follows_the_schedule_and_logs_it():
     # inject_hyperparams records the rate of the step just taken: 0 (warm-up start), 5e-4, 1e-3.
     assert rates[:3] == pytest.approx([0.0, 5e-4, 1e-3])
     assert rates[3] < 1e-3
+
+
+def test_toward_start_pulls_the_parameters_back_to_their_starting_values():
+    optimizer = optimizer_lib.toward_start(0.1)
+    start = {"w": np.array([1.0, -2.0], np.float32)}
+    opt_state = optimizer.init(start)
+    params = {"w": np.array([3.0, -2.0], np.float32)}
+    updates, _ = optimizer.update({"w": np.zeros(2, np.float32)}, opt_state, params)
+    # A tenth of the distance back, only where the parameter has moved.
+    np.testing.assert_allclose(updates["w"], [-0.2, 0.0])
+    # The starting values are a copy: moving the params in place does not move them.
+    start["w"][0] = 5.0
+    updates, _ = optimizer.update({"w": np.ones(2, np.float32)}, opt_state, params)
+    np.testing.assert_allclose(updates["w"], [0.8, 1.0])
+    with pytest.raises(ValueError, match="parameters"):
+        optimizer.update({"w": np.zeros(2, np.float32)}, opt_state)
