@@ -4,7 +4,8 @@ Each function takes the suite's runner (its data, its trained runs, its results
 directory) and returns the analysis's result: the classical references, the pose probe
 and triangulation with its pose, the flow-error curves, the qualitative predictions, the
 generated filters, the learned flow network against DIS, the flow networks after depth
-training, and where the main run beats the classical pipeline pair by pair. Arrays a later task or the report reads go to <results>/<task>.npz.
+training, and where the main run beats the classical pipeline pair by pair. Arrays a
+later task or the report reads go to <results>/<task>.npz.
 """
 
 from __future__ import annotations
