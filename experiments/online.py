@@ -78,6 +78,9 @@ flags.DEFINE_float(
     "zoom", 0.5, "Replayed pairs are random crops of at least this much of each side (1: none)."
 )
 flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
+flags.DEFINE_integer(
+    "warmup", 0, "Updates over which the rate rises linearly from 0 (0: none).", lower_bound=0
+)
 flags.DEFINE_float(
     "anchor",
     0.0,
@@ -302,6 +305,7 @@ def main(argv: list[str]) -> None:
             capacity=FLAGS.capacity,
             zoom=FLAGS.zoom,
             learning_rate=FLAGS.learning_rate,
+            warmup=FLAGS.warmup,
             anchor=FLAGS.anchor,
             reading_memory=FLAGS.reading_memory,
             learn=FLAGS.learn,

@@ -67,7 +67,11 @@ class OnlineSettings:
       zoom: each replayed pair is a random crop of at least this fraction of each side
         holding its labelled pixel, resized back (`ReplayBuffer.batch`): a sensor that
         reads one fixed pixel then labels the whole image; 1 = no crop.
-      learning_rate: Adam's, constant.
+      learning_rate: Adam's, constant after the warm-up.
+      warmup: updates over which the rate rises linearly from 0 to `learning_rate`:
+        Adam's first steps from fresh moments move every parameter by about the full
+        rate whatever its gradient, which a pretrained model's first updates feel; 0 =
+        none.
       anchor: each update also takes this fraction of every parameter's distance from
         its starting value (a pretrained model's) back (L2-SP, decoupled:
         `optimizer.toward_start`); 0 = none.
@@ -90,6 +94,7 @@ class OnlineSettings:
     capacity: int = 256
     zoom: float = 0.5
     learning_rate: float = 5e-4
+    warmup: int = 0
     anchor: float = 0.0
     reading_memory: int = 0
     learn: bool = True
@@ -97,6 +102,8 @@ class OnlineSettings:
     seed: int = 0
 
     def __post_init__(self):
+        if self.warmup < 0:
+            raise ValueError(f"warmup must be >= 0, got {self.warmup}")
         for name in ("max_partner_gap", "batch_size", "capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -132,7 +139,9 @@ class OnlineLearner:
             loss_weights = losses.LossWeights()
         self.self_supervised = trainer.loss_name(model) == "self_supervised"
         self.keys = trainer.batch_keys(model, loss_weights)
-        optimizer = optimizer_lib.make_optimizer(settings.learning_rate, "constant")
+        optimizer = optimizer_lib.make_optimizer(
+            settings.learning_rate, "constant", warmup_steps=settings.warmup
+        )
         if settings.anchor:
             optimizer = optax.chain(optimizer, optimizer_lib.toward_start(settings.anchor))
         self._state = state_lib.state_of(variables, optimizer, settings.seed)

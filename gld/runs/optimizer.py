@@ -33,10 +33,13 @@ def learning_rate_schedule(
 ) -> optax.Schedule:
     """The learning rate per step.
 
-    "constant" is the paper's. "cosine" rises linearly from 0 over `warmup_steps`, then
-    decays along a cosine to 1% of `learning_rate` at `steps`.
+    "constant" is the paper's; with `warmup_steps` it first rises linearly from 0 over
+    them. "cosine" rises linearly from 0 over `warmup_steps`, then decays along a cosine
+    to 1% of `learning_rate` at `steps`.
     """
     if schedule == "constant":
+        if warmup_steps > 0:
+            return optax.linear_schedule(0.0, learning_rate, warmup_steps)
         return optax.constant_schedule(learning_rate)
     if schedule == "cosine":
         check_schedule(schedule, warmup_steps, steps)
@@ -97,4 +100,4 @@ class OptimizerOptions:
         "constant (the paper's) or cosine (linear warm-up, then cosine decay to 1%).",
         LR_SCHEDULES,
     )
-    warmup_steps: int = option(0, "Linear warm-up steps of the cosine schedule.", at_least=0)
+    warmup_steps: int = option(0, "Linear warm-up steps from a rate of 0.", at_least=0)

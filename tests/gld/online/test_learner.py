@@ -191,6 +191,8 @@ def test_bad_settings_are_refused():
         OnlineSettings(reading_memory=-1)
     with pytest.raises(ValueError, match="anchor must be in"):
         OnlineSettings(anchor=1.0)
+    with pytest.raises(ValueError, match="warmup must be >= 0"):
+        OnlineSettings(warmup=-1)
 
 
 def _distance(variables, start):
@@ -200,14 +202,20 @@ def _distance(variables, start):
     return float(np.sqrt(sum(jax.tree.leaves(moved["params"]))))
 
 
-def test_an_anchored_learner_stays_nearer_its_starting_parameters(model_and_variables, frames):
+def test_anchored_or_warming_up_the_learner_stays_nearer_its_start(model_and_variables, frames):
     start = model_and_variables[1]
     free = _learner(model_and_variables, asynchronous=False)
-    anchored = _learner(model_and_variables, asynchronous=False, anchor=0.5)
     _observe_all(free, frames[:12])
+    moved = _distance(free.published, start)
+    anchored = _learner(model_and_variables, asynchronous=False, anchor=0.5)
     _observe_all(anchored, frames[:12])
     assert anchored.updates == free.updates > 0
-    assert 0 < _distance(anchored.published, start) < 0.7 * _distance(free.published, start)
+    assert 0 < _distance(anchored.published, start) < 0.7 * moved
+    # Over a warm-up of 1,000 updates the first ten take at most 1% of the rate each.
+    warming = _learner(model_and_variables, asynchronous=False, warmup=1000)
+    _observe_all(warming, frames[:12])
+    assert warming.updates == free.updates
+    assert 0 < _distance(warming.published, start) < 0.1 * moved
 
 
 def _frame(index, translation, reading=None):

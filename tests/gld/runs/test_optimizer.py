@@ -9,6 +9,10 @@ from gld.runs import optimizer as optimizer_lib
 def test_learning_rate_schedules():
     constant = optimizer_lib.learning_rate_schedule(1e-4, "constant")
     assert float(constant(0)) == float(constant(10_000)) == pytest.approx(1e-4)
+    warmed = optimizer_lib.learning_rate_schedule(1e-4, "constant", warmup_steps=100)
+    assert float(warmed(0)) == 0.0
+    assert float(warmed(50)) == pytest.approx(5e-5)
+    assert float(warmed(100)) == float(warmed(10_000)) == pytest.approx(1e-4)
     cosine = optimizer_lib.learning_rate_schedule(1e-3, "cosine", steps=1000, warmup_steps=100)
     assert float(cosine(0)) == 0.0
     assert float(cosine(50)) == pytest.approx(5e-4)
