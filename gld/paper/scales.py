@@ -64,7 +64,7 @@ class Scale:
 
 
 SUITES: dict[str, Scale] = {
-    # The paper's main experiments in about 3 hours on the 2-core CPU machine at 128x96
+    # The paper's main experiments in about 5 hours on the 2-core CPU machine at 128x96
     # (step times: experiments.benchmark): half of cpu_full's budget, no further runs;
     # DispNet and FCRN 60 steps, and the over-fitting curves on 50 test pairs (a DispNet
     # evaluation of all 200 takes 40 s, as long as 7 of its steps).
@@ -79,7 +79,7 @@ SUITES: dict[str, Scale] = {
         probe_steps=1000,
         large_densities=(1, 0),
         further=False,
-        hours="about 3 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
+        hours="about 5 hours on 2 CPU cores (DispNet: 5.7 s a step, FCRN: 4.8 s)",
     ),
     # Every run at twice the cpu suite's budget, with the further runs: about 11 hours.
     "cpu_full": Scale(

@@ -3,6 +3,8 @@ and the varying target."""
 
 from __future__ import annotations
 
+from gld.models import layers, registry
+from gld.models.global_local import CAMERA_INPUTS
 from gld.paper import analyses as paper_analyses
 from gld.paper import numbers as paper
 from gld.paper import rate_check
@@ -17,6 +19,28 @@ from gld.paper.report_cells import (
 from gld.paper.report_results import CLASSICAL_LABELS, ReportResults
 
 
+def reads_cameras(result: dict | None) -> bool:
+    """Whether a training run's model is told each view's intrinsics (its inputs hold
+    them: `gld.models.layers.input_keys`)."""
+    config = (result or {}).get("config") or {}
+    if "model" not in config:
+        return False
+    model = registry.make_model(config["model"], **config.get("model_config", {}))
+    return set(CAMERA_INPUTS) <= set(layers.input_keys(model))
+
+
+def _told(told: list[str], not_told: list[str]) -> str:
+    """Which learned models are told the intrinsics, as a sentence's clause."""
+    if not told:
+        return "The learned models are not told the intrinsics"
+    clause = f"{' and '.join(told)} {'is' if len(told) == 1 else 'are'} told each view's "
+    clause += "intrinsics (its model reads them: the pose it searches and refines on the "
+    clause += "flow, and the flow derotated and triangulated under it)"
+    if not_told:
+        clause += f", {' and '.join(not_told)} {'is' if len(not_told) == 1 else 'are'} not"
+    return clause[0].upper() + clause[1:]
+
+
 def varying_intrinsics(report: ReportResults) -> str:
     table, fixed_table = "results_change_intrs", "results_sparse"
     text = "## 5. Varying intrinsics (±20% between views)\n\n"
@@ -27,6 +51,7 @@ def varying_intrinsics(report: ReportResults) -> str:
     )
     means = (report.mean_reference(), report.mean_reference(True))
     changes = {}
+    told, not_told = [], []
 
     def row(label, fixed, varying, ref=None, missing=(NOT_RUN, NOT_RUN)):
         change = None if None in (fixed, varying) else varying / fixed - 1
@@ -52,6 +77,8 @@ def varying_intrinsics(report: ReportResults) -> str:
         name = f"{model}_varying"
         if name not in report.runs:
             continue
+        if report.run(name) is not None:
+            (told if reads_cameras(report.run(name)) else not_told).append(label)
         fixed_run = report.compared_run(f"{model}_1px") or f"{model}_1px"
         fixed, varying = metric(report.run(fixed_run)), metric(report.run(name))
         if (result := report.run(name)) is not None and rate_check.collapse(result) is not None:
@@ -76,7 +103,7 @@ def varying_intrinsics(report: ReportResults) -> str:
         "score the same pairs; the first view's field of view changes, and with it the "
         "depth it sees, so the target reads the change of each model's Abs-Inv as a "
         "multiple of its split's dataset mean (the multiple of the oracle is given beside "
-        "it). The learned models are not told the intrinsics; triangulation and SfM are "
+        f"it). {_told(told, not_told)}; triangulation and SfM are "
         "given each view's true intrinsics, so their change is the estimated flow's: the "
         "change of camera between the views adds its own flow (the principal point moves "
         "by up to 20%), and the flow the models and the classical methods read is "
