@@ -77,7 +77,9 @@ flags.DEFINE_integer("capacity", 256, "Pairs the replay buffer holds.", lower_bo
 flags.DEFINE_float(
     "zoom", 0.5, "Replayed pairs are random crops of at least this much of each side (1: none)."
 )
-flags.DEFINE_float("learning_rate", 5e-4, "Adam's learning rate, constant.", lower_bound=0)
+flags.DEFINE_float(
+    "learning_rate", 5e-4, "Adam's learning rate, constant after --warmup.", lower_bound=0
+)
 flags.DEFINE_integer(
     "warmup", 0, "Updates over which the rate rises linearly from 0 (0: none).", lower_bound=0
 )
