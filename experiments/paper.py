@@ -115,12 +115,9 @@ def main(argv):
         raise app.UsageError(f"--only: {error}") from None
     # The hand-written discussion is checked before any task runs: a number written by
     # hand or an unknown placeholder in it would otherwise stop the report at the end.
-    discussion_path = report_dir / paper_discussion.DISCUSSION
     try:
-        paper_discussion.fill_discussion(
-            ReportResults(scale, runner.finished(), results_dir),
-            paper_discussion.read_discussion(discussion_path),
-            discussion_path,
+        paper_discussion.report_discussion(
+            ReportResults(scale, runner.finished(), results_dir), report_dir
         )
     except ValueError as error:
         raise ArgumentError(str(error)) from None

@@ -66,6 +66,14 @@ def read_discussion(path: Path) -> dict[str, str]:
     return discussion
 
 
+def report_discussion(report: ReportResults, report_dir: Path | str) -> dict[str, str]:
+    """The discussion beside a report (`<report_dir>/discussion.md`) read and filled in
+    from its results: what the report shows, and what the suite checks before any task
+    runs. ValueError as `read_discussion` and `fill_discussion`."""
+    path = Path(report_dir) / DISCUSSION
+    return fill_discussion(report, read_discussion(path), path)
+
+
 def fill_discussion(
     report: ReportResults, discussion: dict[str, str], path: Path | str = DISCUSSION
 ) -> dict[str, str]:

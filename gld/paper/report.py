@@ -31,7 +31,7 @@ from gld.evaluation import metrics
 from gld.paper import numbers as paper
 from gld.paper import run_configs, scales
 from gld.paper import suite as paper_suite
-from gld.paper.discussion import DISCUSSION, discussion_section, fill_discussion, read_discussion
+from gld.paper.discussion import discussion_section, report_discussion
 from gld.paper.report_cells import table_row, verdict
 from gld.paper.report_results import ReportResults
 from gld.paper.scales import Scale
@@ -62,8 +62,7 @@ def write_report(
     report_dir = Path(report_dir)
     report = ReportResults(scale, results, results_dir, commit)
     # Checked and filled in before anything is written.
-    path = report_dir / DISCUSSION
-    discussion = fill_discussion(report, read_discussion(path), path)
+    discussion = report_discussion(report, report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
     results = report.results  # without those made by uncommitted code
     main = report.run("global_local_1px") or next(
