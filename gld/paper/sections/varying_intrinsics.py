@@ -77,11 +77,12 @@ def varying_intrinsics(report: ReportResults) -> str:
         name = f"{model}_varying"
         if name not in report.runs:
             continue
-        if report.run(name) is not None:
-            (told if reads_cameras(report.run(name)) else not_told).append(label)
+        result = report.run(name)
+        if result is not None:
+            (told if reads_cameras(result) else not_told).append(label)
         fixed_run = report.compared_run(f"{model}_1px") or f"{model}_1px"
-        fixed, varying = metric(report.run(fixed_run)), metric(report.run(name))
-        if (result := report.run(name)) is not None and rate_check.collapse(result) is not None:
+        fixed, varying = metric(report.run(fixed_run)), metric(result)
+        if result is not None and rate_check.collapse(result) is not None:
             label += " — collapsed on the varying intrinsics"
         ref = (table, model) if paper.row(table, model) else None
         missing = (report.missing_run(fixed_run), report.missing_run(name))
