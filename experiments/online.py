@@ -98,6 +98,13 @@ flags.DEFINE_integer(
 )
 flags.DEFINE_float("min_baseline", 0.05, "Metres of odometry between a frame and its partner.")
 flags.DEFINE_integer("max_partner_gap", 20, "Frames back a partner may be.", lower_bound=1)
+flags.DEFINE_float(
+    "max_rotation",
+    0.0,
+    "Degrees the odometry may turn between a frame and its partner (a nearer partner in a "
+    "sharp turn; 0 = any).",
+    lower_bound=0.0,
+)
 flags.DEFINE_bool("asynchronous", True, "Updates in a worker thread beside prediction.")
 flags.DEFINE_integer("checkpoint_every", 250, "Frames between checkpoints.", lower_bound=1)
 flags.DEFINE_integer("window", 250, "Frames per point of the curve.", lower_bound=1)
@@ -302,6 +309,7 @@ def main(argv: list[str]) -> None:
         settings = learner_lib.OnlineSettings(
             min_baseline=FLAGS.min_baseline,
             max_partner_gap=FLAGS.max_partner_gap,
+            max_rotation=FLAGS.max_rotation,
             batch_size=FLAGS.batch_size,
             updates_per_frame=FLAGS.updates_per_frame,
             capacity=FLAGS.capacity,

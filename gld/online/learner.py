@@ -6,7 +6,8 @@
     learner.finish()                       # waits for the update in flight
 
 For each frame the learner picks its partner, the newest earlier frame (within
-`max_partner_gap`) whose odometry puts the camera at least `min_baseline` metres away,
+`max_partner_gap`) whose odometry puts the camera at least `min_baseline` metres away
+(and, with `max_rotation`, turned no more than that from the frame: `_partner`),
 computes the flow from the frame to the partner (OpenCV DIS, as the datasets), predicts
 the frame's depth with the model as it is and publishes it (in baselines; times the
 odometry's baseline, metres). In simulation the prediction is then scored against the
@@ -61,6 +62,12 @@ class OnlineSettings:
     Attributes:
       min_baseline: metres of odometry between a frame and its partner.
       max_partner_gap: how many frames back a partner may be.
+      max_rotation: degrees the odometry may turn between a frame and its partner; 0 =
+        any. In a sharp turn the frame `min_baseline` back can have turned further than
+        the pairs a model was trained on (`gld_scenes` pairs turn less than 10 degrees),
+        where the search of g fails; the partner is then the farthest frame within the
+        turn if it is at least half of `min_baseline` away, else the frame without the
+        limit.
       batch_size: pairs per update (the newest and replayed ones).
       updates_per_frame: optimiser steps after each labelled frame.
       capacity: the replay buffer's pairs.
@@ -89,6 +96,7 @@ class OnlineSettings:
 
     min_baseline: float = 0.05
     max_partner_gap: int = 20
+    max_rotation: float = 0.0
     batch_size: int = 4
     updates_per_frame: int = 1
     capacity: int = 256
@@ -111,6 +119,8 @@ class OnlineSettings:
             raise ValueError(f"reading_memory must be >= 0, got {self.reading_memory}")
         if self.updates_per_frame < 0:
             raise ValueError(f"updates_per_frame must be >= 0, got {self.updates_per_frame}")
+        if not self.max_rotation >= 0:
+            raise ValueError(f"max_rotation must be >= 0 degrees, got {self.max_rotation}")
         if not self.min_baseline > 0:
             raise ValueError(f"min_baseline must be > 0 metres, got {self.min_baseline}")
         if not 0 < self.zoom <= 1:
@@ -170,12 +180,25 @@ class OnlineLearner:
     # ------------------------------------------------------------------ pairs
 
     def _partner(self, frame: Frame) -> tuple[Frame, float] | None:
-        """The newest frame of the window at least `min_baseline` away, and the distance."""
+        """The frame's partner in the window and the odometry's distance to it: the newest
+        frame at least `min_baseline` away (within `max_rotation`; see `OnlineSettings`)."""
+        settings = self.settings
+        # The partner without the turn's limit, and the farthest frame within it.
+        unlimited, within = None, None
         for candidate in reversed(self._window):
             distance = float(np.linalg.norm(frame.center - candidate.center))
-            if distance >= self.settings.min_baseline:
+            far_enough = distance >= settings.min_baseline
+            if unlimited is None and far_enough:
+                unlimited = candidate, distance
+            if settings.max_rotation and turn_degrees(frame, candidate) > settings.max_rotation:
+                continue
+            if far_enough:
                 return candidate, distance
-        return None
+            if within is None or distance > within[1]:
+                within = candidate, distance
+        if settings.max_rotation and within and within[1] >= settings.min_baseline / 2:
+            return within
+        return unlimited
 
     def _pair(self, frame: Frame, partner: Frame) -> tuple[dict[str, np.ndarray], float]:
         """The example contract's fields of (frame, partner) for the model, with the
@@ -401,6 +424,12 @@ class OnlineLearner:
         self._reference_count = int(counters["reference_count"])
         self._window.clear()
         self._memory.clear()
+
+
+def turn_degrees(frame: Frame, other: Frame) -> float:
+    """The angle (degrees) the odometry turns the camera between two frames."""
+    relative = np.asarray(other.rotation, np.float64) @ np.asarray(frame.rotation, np.float64).T
+    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1.0, 1.0))))
 
 
 def reading_point(frame: Frame) -> np.ndarray | None:

@@ -193,6 +193,8 @@ def test_bad_settings_are_refused():
         OnlineSettings(anchor=1.0)
     with pytest.raises(ValueError, match="warmup must be >= 0"):
         OnlineSettings(warmup=-1)
+    with pytest.raises(ValueError, match="max_rotation must be >= 0 degrees"):
+        OnlineSettings(max_rotation=-5)
 
 
 def _distance(variables, start):
@@ -218,18 +220,52 @@ def test_anchored_or_warming_up_the_learner_stays_nearer_its_start(model_and_var
     assert 0 < _distance(warming.published, start) < 0.1 * moved
 
 
-def _frame(index, translation, reading=None):
+def _frame(index, translation, reading=None, rotation=None):
     """A frame of a 32x24 camera (fx = fy = 20 px, centre (16, 12)) at `translation`
-    (world-to-camera, no rotation)."""
+    (world-to-camera; no rotation unless given)."""
     return Frame(
         index=index,
         time=index / 10,
         image=np.zeros((HEIGHT, WIDTH, 3), np.uint8),
-        rotation=np.eye(3),
+        rotation=np.eye(3) if rotation is None else rotation,
         translation=np.asarray(translation, np.float64),
         intrinsics=np.array([20 / WIDTH, 20 / HEIGHT, 16.5 / WIDTH, 12.5 / HEIGHT]),
         reading=reading,
     )
+
+
+def _turning(step, degrees_per_frame, count=8):
+    """Frames of a robot moving `step` metres a frame along x while it turns about y."""
+    frames = []
+    for index in range(count):
+        angle = np.radians(degrees_per_frame * index)
+        rotation = np.array(
+            [[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]]
+        )
+        center = np.array([step * index, 0.0, 0.0])
+        frames.append(_frame(index, -rotation @ center, rotation=rotation))
+    return frames
+
+
+@pytest.mark.parametrize(
+    "step, max_rotation, back",
+    [
+        (0.02, 0.0, 3),  # no limit: the newest 5 cm away (6 cm, turned 12 deg)
+        (0.02, 20.0, 3),  # within the limit already
+        (0.02, 10.0, 2),  # the farthest within 10 deg: 4 cm, at least half of 5 cm
+        (0.01, 10.0, 5),  # within 10 deg only 2 cm: the partner without the limit
+    ],
+)
+def test_a_sharp_turn_takes_a_nearer_partner(model_and_variables, step, max_rotation, back):
+    frames = _turning(step, degrees_per_frame=4.0)
+    assert learner_lib.turn_degrees(frames[-1], frames[-4]) == pytest.approx(12.0)
+    learner = _learner(model_and_variables, min_baseline=0.05, max_rotation=max_rotation)
+    learner.next_frame = frames[-1].index
+    for frame in frames[:-1]:
+        learner.resume_from(frame)
+    partner, distance = learner._partner(frames[-1])
+    assert partner.index == frames[-1].index - back
+    assert distance == pytest.approx(step * back)
 
 
 def test_a_reading_is_carried_to_where_the_odometry_puts_its_point():
