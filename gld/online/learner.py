@@ -65,9 +65,10 @@ class OnlineSettings:
       max_rotation: degrees the odometry may turn between a frame and its partner; 0 =
         any. In a sharp turn the frame `min_baseline` back can have turned further than
         the pairs a model was trained on (`gld_scenes` pairs turn less than 10 degrees),
-        where the search of g fails; the partner is then the farthest frame within the
-        turn if it is at least half of `min_baseline` away, else the frame without the
-        limit.
+        where the search of g fails; the partner is then the farthest nearer frame
+        within the turn if it is at least half of `min_baseline` away, else the frame
+        without the limit (never a farther frame: one that turned back after a bend is
+        far and sees the room from elsewhere).
       batch_size: pairs per update (the newest and replayed ones).
       updates_per_frame: optimiser steps after each labelled frame.
       capacity: the replay buffer's pairs.
@@ -181,24 +182,22 @@ class OnlineLearner:
 
     def _partner(self, frame: Frame) -> tuple[Frame, float] | None:
         """The frame's partner in the window and the odometry's distance to it: the newest
-        frame at least `min_baseline` away (within `max_rotation`; see `OnlineSettings`)."""
+        frame at least `min_baseline` away, or in a sharp turn a nearer one
+        (`max_rotation`; see `OnlineSettings`)."""
         settings = self.settings
-        # The partner without the turn's limit, and the farthest frame within it.
-        unlimited, within = None, None
+        within = None  # the farthest frame within the turn's limit, nearer than the partner
         for candidate in reversed(self._window):
             distance = float(np.linalg.norm(frame.center - candidate.center))
-            far_enough = distance >= settings.min_baseline
-            if unlimited is None and far_enough:
-                unlimited = candidate, distance
-            if settings.max_rotation and turn_degrees(frame, candidate) > settings.max_rotation:
-                continue
-            if far_enough:
+            turned = (
+                settings.max_rotation and turn_degrees(frame, candidate) > settings.max_rotation
+            )
+            if distance >= settings.min_baseline:
+                if turned and within and within[1] >= settings.min_baseline / 2:
+                    return within
                 return candidate, distance
-            if within is None or distance > within[1]:
+            if not turned and (within is None or distance > within[1]):
                 within = candidate, distance
-        if settings.max_rotation and within and within[1] >= settings.min_baseline / 2:
-            return within
-        return unlimited
+        return None
 
     def _pair(self, frame: Frame, partner: Frame) -> tuple[dict[str, np.ndarray], float]:
         """The example contract's fields of (frame, partner) for the model, with the

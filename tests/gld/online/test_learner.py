@@ -234,11 +234,12 @@ def _frame(index, translation, reading=None, rotation=None):
     )
 
 
-def _turning(step, degrees_per_frame, count=8):
-    """Frames of a robot moving `step` metres a frame along x while it turns about y."""
+def _turning(step, headings):
+    """Frames of a robot moving `step` metres a frame along x, turned about y by each
+    of `headings` (degrees) in turn."""
     frames = []
-    for index in range(count):
-        angle = np.radians(degrees_per_frame * index)
+    for index, heading in enumerate(headings):
+        angle = np.radians(heading)
         rotation = np.array(
             [[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]]
         )
@@ -247,18 +248,27 @@ def _turning(step, degrees_per_frame, count=8):
     return frames
 
 
+STEADY_TURN = [4.0 * index for index in range(8)]  # 4 deg a frame
+BEND = [0, 6, 12, 18, 12, 6, 0]  # out and back: frame 1 is heading as the last one
+
+
 @pytest.mark.parametrize(
-    "step, max_rotation, back",
+    "step, headings, max_rotation, back",
     [
-        (0.02, 0.0, 3),  # no limit: the newest 5 cm away (6 cm, turned 12 deg)
-        (0.02, 20.0, 3),  # within the limit already
-        (0.02, 10.0, 2),  # the farthest within 10 deg: 4 cm, at least half of 5 cm
-        (0.01, 10.0, 5),  # within 10 deg only 2 cm: the partner without the limit
+        (0.02, STEADY_TURN, 0.0, 3),  # no limit: the newest 5 cm away (6 cm, turned 12 deg)
+        (0.02, STEADY_TURN, 20.0, 3),  # within the limit already
+        (0.02, STEADY_TURN, 10.0, 2),  # the farthest nearer within 10 deg: 4 cm, >= 2.5 cm
+        (0.01, STEADY_TURN, 10.0, 5),  # within 10 deg only 2 cm: the partner without the limit
+        (0.03, BEND, 10.0, 1),  # never farther back: not frame 1 (15 cm, 6 deg) but frame 5
     ],
 )
-def test_a_sharp_turn_takes_a_nearer_partner(model_and_variables, step, max_rotation, back):
-    frames = _turning(step, degrees_per_frame=4.0)
-    assert learner_lib.turn_degrees(frames[-1], frames[-4]) == pytest.approx(12.0)
+def test_a_sharp_turn_takes_a_nearer_partner(
+    model_and_variables, step, headings, max_rotation, back
+):
+    frames = _turning(step, headings)
+    assert learner_lib.turn_degrees(frames[-1], frames[-4]) == pytest.approx(
+        abs(headings[-1] - headings[-4])
+    )
     learner = _learner(model_and_variables, min_baseline=0.05, max_rotation=max_rotation)
     learner.next_frame = frames[-1].index
     for frame in frames[:-1]:
