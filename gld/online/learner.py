@@ -188,8 +188,9 @@ class OnlineLearner:
         within = None  # the farthest frame within the turn's limit, nearer than the partner
         for candidate in reversed(self._window):
             distance = float(np.linalg.norm(frame.center - candidate.center))
-            turned = (
-                settings.max_rotation and turn_degrees(frame, candidate) > settings.max_rotation
+            turned = settings.max_rotation and (
+                geometry.rotation_error_degrees(candidate.rotation, frame.rotation)
+                > settings.max_rotation
             )
             if distance >= settings.min_baseline:
                 if turned and within and within[1] >= settings.min_baseline / 2:
@@ -423,12 +424,6 @@ class OnlineLearner:
         self._reference_count = int(counters["reference_count"])
         self._window.clear()
         self._memory.clear()
-
-
-def turn_degrees(frame: Frame, other: Frame) -> float:
-    """The angle (degrees) the odometry turns the camera between two frames."""
-    relative = np.asarray(other.rotation, np.float64) @ np.asarray(frame.rotation, np.float64).T
-    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1.0, 1.0))))
 
 
 def reading_point(frame: Frame) -> np.ndarray | None:

@@ -13,6 +13,7 @@ import pytest
 from conftest import TINY_MODEL, random_variables
 
 from data.gld_scenes import robot_stream
+from gld import geometry
 from gld.arguments import ArgumentError
 from gld.losses.supervised import LossWeights
 from gld.models import registry
@@ -239,10 +240,7 @@ def _turning(step, headings):
     of `headings` (degrees) in turn."""
     frames = []
     for index, heading in enumerate(headings):
-        angle = np.radians(heading)
-        rotation = np.array(
-            [[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]]
-        )
+        rotation = geometry.rotation_matrix(np.radians([0.0, heading, 0.0]))
         center = np.array([step * index, 0.0, 0.0])
         frames.append(_frame(index, -rotation @ center, rotation=rotation))
     return frames
@@ -266,9 +264,8 @@ def test_a_sharp_turn_takes_a_nearer_partner(
     model_and_variables, step, headings, max_rotation, back
 ):
     frames = _turning(step, headings)
-    assert learner_lib.turn_degrees(frames[-1], frames[-4]) == pytest.approx(
-        abs(headings[-1] - headings[-4])
-    )
+    turn = geometry.rotation_error_degrees(frames[-4].rotation, frames[-1].rotation)
+    assert turn == pytest.approx(abs(headings[-1] - headings[-4]))
     learner = _learner(model_and_variables, min_baseline=0.05, max_rotation=max_rotation)
     learner.next_frame = frames[-1].index
     for frame in frames[:-1]:
