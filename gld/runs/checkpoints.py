@@ -89,13 +89,22 @@ def checkpoint_manager(
 @contextlib.contextmanager
 def saving_manager(workdir: str | Path, *, keep: int) -> Iterator[ocp.CheckpointManager]:
     """`checkpoint_manager` for a trainer that saves: on exit its pending saves finish,
-    then it closes."""
+    then it closes. When the trainer stops on an error, that error is the one raised:
+    what orbax says while closing after it (about a save the error cut short, whose files
+    `save_checkpoint` removed) cannot replace it."""
     manager = checkpoint_manager(workdir, keep=keep)
     try:
         yield manager
-    finally:
-        manager.wait_until_finished()
-        manager.close()
+    except BaseException:
+        with contextlib.suppress(Exception):
+            _close(manager)
+        raise
+    _close(manager)
+
+
+def _close(manager: ocp.CheckpointManager) -> None:
+    manager.wait_until_finished()
+    manager.close()
 
 
 def step_directory(manager: ocp.CheckpointManager, step: int) -> Path:
@@ -196,6 +205,9 @@ def _unsaved_for_lack_of_space(manager: ocp.CheckpointManager, step: int) -> str
     """Removes what a save of `step` that ran out of space wrote (orbax's temporary folder,
     or the step orbax finished but without its checksums) and says what is kept."""
     step_dir = step_directory(manager, step)
+    # Orbax's threads of the failed save end before its files are removed from under them.
+    with _orbax_quiet_about_full_disk(), contextlib.suppress(Exception):
+        manager.wait_until_finished()
     if jax.process_index() == 0:
         partial = list(step_dir.parent.glob(f"{step}{ocp.utils.TMP_DIR_SUFFIX}*"))
         if not (step_dir / CHECKSUMS_FILE).exists():

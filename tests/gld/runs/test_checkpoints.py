@@ -107,3 +107,24 @@ def test_a_save_that_finds_the_disk_full_says_so_in_one_line_and_keeps_the_last_
     restored = checkpoint_lib.restore_intact_checkpoint(manager, state_at(0), print_fn=pytest.fail)
     manager.close()
     assert restored.step == 2 and restored.state.params["w"].tolist() == [0.0, 2.0, 4.0, 6.0]
+
+
+def test_an_error_that_ends_a_run_is_not_replaced_by_what_closing_the_manager_says(
+    tmp_path, monkeypatch
+):
+    import orbax.checkpoint as ocp
+
+    from gld.files import DiskFullError
+
+    def close_fails(self):
+        # What orbax raises when a failed save's partial files were removed under it.
+        raise FileNotFoundError(errno.ENOENT, "No such file or directory", "_CHECKPOINT_METADATA")
+
+    monkeypatch.setattr(ocp.CheckpointManager, "close", close_fails)
+    with pytest.raises(DiskFullError, match="^disk full: no room$"):
+        with checkpoint_lib.saving_manager(tmp_path, keep=1):
+            raise DiskFullError("disk full: no room")
+    # Without an error to keep, a failing close is not hidden.
+    with pytest.raises(FileNotFoundError, match="_CHECKPOINT_METADATA"):
+        with checkpoint_lib.saving_manager(tmp_path, keep=1):
+            pass
