@@ -20,6 +20,8 @@ replayed pairs, beside the next frames' predictions. The model: `--pretrained` (
 training workdir: its model and weights), or a new one (`--model`: the main job's
 global-local model and loss, or `struct2depth[_flow]`, the self-supervised baseline's
 photometric route, which reads no range). `--nolearn` keeps it frozen.
+`--references` also scores, on each of the learner's pairs, the classical pipeline on
+its flow (`sfm_flow`) and the flow triangulated under the true pose (simulation only).
 
 Writes to `--workdir` (`gld.online.run`): prequential.jsonl, checkpoints/, summary.json
 (speed and the curve), curve.png and, with `--view_every=N`, view/ (the frame, the
@@ -71,6 +73,13 @@ flags.DEFINE_enum(
     "the flow), the robot's odometry (pose), or the flow's essential matrix (flow_pose).",
 )
 flags.DEFINE_bool("learn", True, "Learn online (--nolearn: the frozen reference).")
+flags.DEFINE_bool(
+    "references",
+    False,
+    "Also score the classical references on each pair (simulation only): the essential "
+    "matrix's pipeline on the pair's flow (sfm_flow) and the flow triangulated under the "
+    "true pose; their columns and curve in the run's summary.",
+)
 flags.DEFINE_integer("updates_per_frame", 1, "Adam steps after each frame.", lower_bound=0)
 flags.DEFINE_integer("batch_size", 4, "Pairs per update.", lower_bound=1)
 flags.DEFINE_integer("capacity", 256, "Pairs the replay buffer holds.", lower_bound=1)
@@ -303,7 +312,7 @@ def main(argv: list[str]) -> None:
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)  # orbax's progress lines
     from gld.online import learner as learner_lib
-    from gld.online import run
+    from gld.online import references, run
 
     try:
         settings = learner_lib.OnlineSettings(
@@ -319,6 +328,7 @@ def main(argv: list[str]) -> None:
             anchor=FLAGS.anchor,
             reading_memory=FLAGS.reading_memory,
             learn=FLAGS.learn,
+            references=FLAGS.references,
             asynchronous=FLAGS.asynchronous,
             seed=FLAGS.seed,
         )
@@ -353,7 +363,14 @@ def main(argv: list[str]) -> None:
     for point in summary["curve"]:
         print(
             f"frames {point['frames']:6d}: Abs-Inv {point['abs_inv']:.4f} "
-            f"(running mean {point['abs_inv_mean']:.4f}, {point['x_mean']:.2f}x mean)"
+            f"(running mean {point['abs_inv_mean']:.4f}, {point['x_mean']:.2f}x mean; "
+            f"median frame {point['median_x_mean']:.2f}x)"
+            + "".join(
+                f"; {name} {point[f'{name}_x_mean']:.2f}x, median frame "
+                f"{point[f'{name}_median_x_mean']:.2f}x"
+                for name in references.NAMES
+                if f"{name}_x_mean" in point
+            )
         )
     print(f"wrote {Path(FLAGS.workdir) / run.SUMMARY_FILE}")
 

@@ -47,6 +47,7 @@ from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.losses import supervised as losses
 from gld.models import layers
+from gld.online import references
 from gld.online.replay import VECTOR_FIELDS, LabelledPair, ReplayBuffer
 from gld.online.stream import Frame
 from gld.runs import optimizer as optimizer_lib
@@ -91,6 +92,9 @@ class OnlineSettings:
         from there, to pixels whose flow carries their depth. 0 = only the frame's own
         reading.
       learn: False keeps the model as given (the frozen reference).
+      references: also score the classical references on each pair (simulation only,
+        `gld.online.references`: the essential matrix's pipeline on the pair's flow, and
+        the flow triangulated under the true pose), after the prediction is published.
       asynchronous: run updates in a worker thread beside the next frames.
       seed: the buffer's sampling and the train steps' randomness.
     """
@@ -107,6 +111,7 @@ class OnlineSettings:
     anchor: float = 0.0
     reading_memory: int = 0
     learn: bool = True
+    references: bool = False
     asynchronous: bool = True
     seed: int = 0
 
@@ -177,6 +182,7 @@ class OnlineLearner:
         self.next_frame = 0  # the stream position of the next frame to observe
         self.updates = 0
         self._reference_sum, self._reference_count = 0.0, 0
+        self._references = references.StreamReferences() if settings.references else None
 
     # ------------------------------------------------------------------ pairs
 
@@ -261,10 +267,17 @@ class OnlineLearner:
 
     # ----------------------------------------------------------------- scoring
 
-    def _score(self, frame: Frame, inv_depth: np.ndarray, partner: Frame) -> dict[str, float]:
-        """Abs-Inv of the prediction against the truth in the true baseline's units, and
-        of the running reference: the mean true inverse depth of the frames scored
-        before (the frame's own for the first), a constant that knows the world so far."""
+    def _score(
+        self,
+        frame: Frame,
+        inv_depth: np.ndarray,
+        partner: Frame,
+        others: dict[str, np.ndarray | None],
+    ) -> dict[str, float]:
+        """Abs-Inv of the prediction against the truth in the true baseline's units, of
+        the running reference (the mean true inverse depth of the frames scored before,
+        the frame's own for the first: a constant that knows the world so far), and of
+        each of `others` ("abs_inv_<name>"; None is scored as the running reference)."""
         _, true_translation = geometry.relative_pose(
             frame.true_rotation,
             frame.true_translation,
@@ -280,11 +293,15 @@ class OnlineLearner:
             reference = float(truth.mean())
         self._reference_sum += float(truth.mean())
         self._reference_count += 1
-        return {
+        scores = {
             "abs_inv": float(np.mean(np.abs(truth - inv_depth[valid]))),
             "abs_inv_mean": float(np.mean(np.abs(truth - reference))),
             "true_baseline": true_baseline,
         }
+        for name, other in others.items():
+            predicted = reference if other is None else other[valid]
+            scores[f"abs_inv_{name}"] = float(np.mean(np.abs(truth - predicted)))
+        return scores
 
     # ----------------------------------------------------------------- updates
 
@@ -366,7 +383,10 @@ class OnlineLearner:
                 result["inv_depth"] = inv_depth
                 result["latency_ms"] = 1e3 * (time.perf_counter() - start)
                 if frame.depth is not None:
-                    result.update(self._score(frame, inv_depth, partner))
+                    others = {}
+                    if self._references is not None:
+                        others = self._references.predict(example, frame, partner)
+                    result.update(self._score(frame, inv_depth, partner, others))
             labels = self.labels_of(frame, baseline)
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from gld import files
 from gld.arguments import ArgumentError
 from gld.inference import depth_io
-from gld.online import checkpoint
+from gld.online import checkpoint, references
 from gld.online.learner import OnlineLearner
 from gld.online.stream import Frame, FrameStream
 from gld.runs import workdir as workdir_lib
@@ -55,6 +55,7 @@ LOGGED = (
     "labelled",
     "abs_inv",
     "abs_inv_mean",
+    *(f"abs_inv_{name}" for name in references.NAMES),
     "latency_ms",
     "update_wait_ms",
     "updates",
@@ -79,9 +80,17 @@ def _percentiles(values: list[float]) -> dict[str, float] | None:
     }
 
 
+def _median_ratio(scored: list[dict[str, Any]], key: str) -> float:
+    return float(np.median([row[key] / row["abs_inv_mean"] for row in scored]))
+
+
 def curve(rows: list[dict[str, Any]], window: int) -> list[dict[str, Any]]:
-    """Abs-Inv and its ratio to the running mean reference ("x mean") per window of
-    frames, over the scored frames of each."""
+    """Abs-Inv and its ratio to the running mean reference ("x mean": the window's
+    means) per window of frames, over the scored frames of each; the median over the
+    frames of each frame's ratio ("median_x_mean"); and where the rows hold them, the
+    classical references' ("<name>_x_mean", "<name>_median_x_mean"). A classical
+    reference's mean is its few exploded frames' (a triangulation near the expansion's
+    centre or on a degenerate pair); its median is its typical frame's."""
     points = []
     for start in range(0, (rows[-1]["frame"] + 1) if rows else 0, window):
         scored = [
@@ -93,15 +102,20 @@ def curve(rows: list[dict[str, Any]], window: int) -> list[dict[str, Any]]:
             continue
         error = float(np.mean([row["abs_inv"] for row in scored]))
         reference = float(np.mean([row["abs_inv_mean"] for row in scored]))
-        points.append(
-            {
-                "frames": min(start + window, rows[-1]["frame"] + 1),
-                "abs_inv": error,
-                "abs_inv_mean": reference,
-                "x_mean": error / reference,
-                "scored": len(scored),
-            }
-        )
+        point = {
+            "frames": min(start + window, rows[-1]["frame"] + 1),
+            "abs_inv": error,
+            "abs_inv_mean": reference,
+            "x_mean": error / reference,
+            "median_x_mean": _median_ratio(scored, "abs_inv"),
+            "scored": len(scored),
+        }
+        for name in references.NAMES:
+            key = f"abs_inv_{name}"
+            if all(key in row for row in scored):
+                point[f"{name}_x_mean"] = float(np.mean([row[key] for row in scored])) / reference
+                point[f"{name}_median_x_mean"] = _median_ratio(scored, key)
+        points.append(point)
     return points
 
 
@@ -134,7 +148,13 @@ def write_curve(path: Path, points: list[dict[str, Any]], title: str) -> None:
     left.plot(frames, [point["abs_inv_mean"] for point in points], "--", label="running mean")
     left.set(xlabel="frames seen", ylabel="Abs-Inv (baselines^-1)", title=title)
     left.legend()
-    right.plot(frames, [point["x_mean"] for point in points])
+    right.plot(frames, [point["x_mean"] for point in points], label="learner")
+    right.plot(frames, [point["median_x_mean"] for point in points], ":", label="its median frame")
+    for name in references.NAMES:
+        if points and all(f"{name}_median_x_mean" in point for point in points):
+            medians = [point[f"{name}_median_x_mean"] for point in points]
+            right.plot(frames, medians, "--", label=f"{name}, median frame")
+    right.legend(fontsize="small")
     right.axhline(1.0, color="grey", linewidth=0.5)
     right.set(xlabel="frames seen", ylabel="x mean", ylim=(0, None))
     figure.tight_layout()

@@ -357,3 +357,64 @@ def test_a_restored_learner_carries_the_readings_of_the_frames_it_replays(
     expected = labels(whole)
     assert labels(restored(whole.history)) == expected
     assert labels(restored(SETTINGS["max_partner_gap"])) != expected
+
+
+def test_the_classical_references_are_scored_on_the_learners_pairs_and_change_nothing_else(
+    model_and_variables, frames, monkeypatch
+):
+    plain = _observe_all(_learner(model_and_variables, learn=False), frames)
+    # With the true flow in place of DIS, the flow triangulated under the true pose is the
+    # truth, and so is the essential matrix's pipeline where its pose does not fail (on
+    # these 32x24 images it often finds too few correspondences; a failed pair is scored
+    # as the running reference): the references are in the learner's units (the true
+    # baseline's) and read the pair the learner read.
+    by_image = {frame.image.tobytes(): frame for frame in frames}
+
+    def true_flow(image1, image2):
+        frame, partner = by_image[image1.tobytes()], by_image[image2.tobytes()]
+        rotation, translation = geometry.relative_pose(
+            frame.true_rotation,
+            frame.true_translation,
+            partner.true_rotation,
+            partner.true_translation,
+        )
+        flow, _ = geometry.ground_truth_flow(
+            frame.depth, None, frame.intrinsics, partner.intrinsics, rotation, translation
+        )
+        return flow
+
+    monkeypatch.setattr(learner_lib.flow_lib, "estimate", true_flow)
+    exact = _observe_all(_learner(model_and_variables, learn=False, references=True), frames)
+    scored = [row for row in exact if "abs_inv" in row]
+    assert scored
+    for row in scored:
+        assert row["abs_inv_triangulation_true_pose"] < 1e-3 * row["abs_inv_mean"]
+        assert row["abs_inv_sfm_flow"] < 1e-3 * row["abs_inv_mean"] or (
+            row["abs_inv_sfm_flow"] == row["abs_inv_mean"]
+        )
+    assert sum(row["abs_inv_sfm_flow"] < 1e-3 * row["abs_inv_mean"] for row in scored) >= 5
+    monkeypatch.undo()
+    # On DIS's flow, the learner's own predictions and scores are those of a run without
+    # the references.
+    with_references = _observe_all(
+        _learner(model_and_variables, learn=False, references=True), frames
+    )
+    for a, b in zip(plain, with_references, strict=True):
+        assert a.get("abs_inv") == b.get("abs_inv")
+        assert ("abs_inv_sfm_flow" in b) == ("abs_inv" in b)
+
+
+def test_the_curve_gives_the_medians_and_the_references_where_the_rows_hold_them():
+    rows = [
+        {"frame": 0, "abs_inv": 1.0, "abs_inv_mean": 1.0, "abs_inv_sfm_flow": 9.0},
+        {"frame": 1, "abs_inv": 1.0, "abs_inv_mean": 2.0, "abs_inv_sfm_flow": 1.0},
+        {"frame": 2, "abs_inv": 3.0, "abs_inv_mean": 2.0, "abs_inv_sfm_flow": 0.5},
+        {"frame": 3, "abs_inv": 2.0, "abs_inv_mean": 1.0},
+    ]
+    first, second = run.curve(rows, window=3)
+    assert first["x_mean"] == pytest.approx(5 / 5)
+    assert first["median_x_mean"] == pytest.approx(1.0)  # of 1, 0.5, 1.5
+    assert first["sfm_flow_x_mean"] == pytest.approx(10.5 / 5)  # one frame's explosion
+    assert first["sfm_flow_median_x_mean"] == pytest.approx(0.5)  # of 9, 0.5, 0.25
+    assert "triangulation_true_pose_x_mean" not in first
+    assert second["median_x_mean"] == 2.0 and "sfm_flow_x_mean" not in second
