@@ -306,6 +306,10 @@ def main(argv: list[str]) -> None:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     if FLAGS.images and FLAGS.video:
         raise app.UsageError("give --images or --video, not both")
+    if FLAGS.references and (FLAGS.images or FLAGS.video):
+        raise app.UsageError(
+            "--references scores against the simulator's truth; a recording has none"
+        )
     height, width = _size()
     from absl import logging
 

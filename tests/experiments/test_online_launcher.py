@@ -97,3 +97,17 @@ def test_a_simulator_flag_with_a_recording_is_refused(tmp_path):
     assert completed.returncode == 2, completed.stderr[-2000:]
     assert "--camera_yaw sets the simulated robot" in completed.stderr
     assert len(completed.stderr.strip().splitlines()) == 1 and not workdir.exists()
+
+
+def test_references_with_a_recording_are_refused(tmp_path):
+    workdir = tmp_path / "run"
+    completed = launch(
+        "experiments.online",
+        f"--workdir={workdir}",
+        f"--images={tmp_path}",
+        "--references",
+        *COMMON,
+    )
+    assert completed.returncode == 2, completed.stderr[-2000:]
+    assert "--references scores against the simulator's truth" in completed.stderr
+    assert len(completed.stderr.strip().splitlines()) == 1 and not workdir.exists()
