@@ -94,7 +94,9 @@ class OnlineSettings:
       learn: False keeps the model as given (the frozen reference).
       references: also score the classical references on each pair (simulation only,
         `gld.online.references`: the essential matrix's pipeline on the pair's flow, and
-        the flow triangulated under the true pose), after the prediction is published.
+        the flow triangulated under the true pose), after the prediction is published:
+        the latency is not touched, the frame rate is (a RANSAC and two triangulations
+        a frame).
       asynchronous: run updates in a worker thread beside the next frames.
       seed: the buffer's sampling and the train steps' randomness.
     """
