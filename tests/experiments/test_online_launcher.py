@@ -85,29 +85,18 @@ def test_a_bad_sensor_pixel_is_refused_in_one_line_before_anything_is_written(
     assert not workdir.exists()
 
 
-def test_a_simulator_flag_with_a_recording_is_refused(tmp_path):
+@pytest.mark.parametrize(
+    "flag, message",
+    [
+        ("--camera_yaw=90", "--camera_yaw sets the simulated robot"),
+        ("--references", "--references scores against the simulator's truth"),
+    ],
+)
+def test_a_simulator_flag_with_a_recording_is_refused(tmp_path, flag, message):
     workdir = tmp_path / "run"
     completed = launch(
-        "experiments.online",
-        f"--workdir={workdir}",
-        f"--images={tmp_path}",
-        "--camera_yaw=90",
-        *COMMON,
+        "experiments.online", f"--workdir={workdir}", f"--images={tmp_path}", flag, *COMMON
     )
     assert completed.returncode == 2, completed.stderr[-2000:]
-    assert "--camera_yaw sets the simulated robot" in completed.stderr
-    assert len(completed.stderr.strip().splitlines()) == 1 and not workdir.exists()
-
-
-def test_references_with_a_recording_are_refused(tmp_path):
-    workdir = tmp_path / "run"
-    completed = launch(
-        "experiments.online",
-        f"--workdir={workdir}",
-        f"--images={tmp_path}",
-        "--references",
-        *COMMON,
-    )
-    assert completed.returncode == 2, completed.stderr[-2000:]
-    assert "--references scores against the simulator's truth" in completed.stderr
+    assert message in completed.stderr
     assert len(completed.stderr.strip().splitlines()) == 1 and not workdir.exists()
