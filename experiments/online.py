@@ -155,7 +155,14 @@ def _size() -> tuple[int, int]:
 
 
 # The flags of the simulated robot alone.
-SIMULATOR_FLAGS = ("world", "camera_yaw", "reading_pixel")
+# The flags that only the simulated robot reads, and why a recording refuses each.
+_SETS_THE_ROBOT = "sets the simulated robot; a recording has its own camera and readings"
+SIMULATOR_FLAGS = {
+    "world": _SETS_THE_ROBOT,
+    "camera_yaw": _SETS_THE_ROBOT,
+    "reading_pixel": _SETS_THE_ROBOT,
+    "references": "scores against the simulator's truth; a recording has none",
+}
 
 
 def _stream(height: int, width: int):
@@ -163,10 +170,7 @@ def _stream(height: int, width: int):
     if FLAGS.images or FLAGS.video:
         simulated = [name for name in SIMULATOR_FLAGS if FLAGS[name].present]
         if simulated:
-            raise app.UsageError(
-                f"--{simulated[0]} sets the simulated robot; a recording has its own camera "
-                "and readings"
-            )
+            raise app.UsageError(f"--{simulated[0]} {SIMULATOR_FLAGS[simulated[0]]}")
         from data.demon import recordings as recording_files
         from gld.online import recording_stream
 
@@ -306,10 +310,6 @@ def main(argv: list[str]) -> None:
         raise app.UsageError(f"unexpected arguments: {argv[1:]}")
     if FLAGS.images and FLAGS.video:
         raise app.UsageError("give --images or --video, not both")
-    if FLAGS.references and (FLAGS.images or FLAGS.video):
-        raise app.UsageError(
-            "--references scores against the simulator's truth; a recording has none"
-        )
     height, width = _size()
     from absl import logging
 

@@ -273,19 +273,14 @@ class OnlineLearner:
         self,
         frame: Frame,
         inv_depth: np.ndarray,
-        partner: Frame,
+        true_translation: np.ndarray,
         others: dict[str, np.ndarray | None],
     ) -> dict[str, float]:
-        """Abs-Inv of the prediction against the truth in the true baseline's units, of
+        """Abs-Inv of the prediction against the truth in the true baseline's units (the
+        norm of `true_translation`, the true motion from the frame to its partner), of
         the running reference (the mean true inverse depth of the frames scored before,
         the frame's own for the first: a constant that knows the world so far), and of
         each of `others` ("abs_inv_<name>"; None is scored as the running reference)."""
-        _, true_translation = geometry.relative_pose(
-            frame.true_rotation,
-            frame.true_translation,
-            partner.true_rotation,
-            partner.true_translation,
-        )
         true_baseline = float(np.linalg.norm(true_translation))
         valid = np.isfinite(frame.depth) & (frame.depth > 0)
         truth = true_baseline / frame.depth[valid]
@@ -385,10 +380,16 @@ class OnlineLearner:
                 result["inv_depth"] = inv_depth
                 result["latency_ms"] = 1e3 * (time.perf_counter() - start)
                 if frame.depth is not None:
+                    true_rotation, true_translation = geometry.relative_pose(
+                        frame.true_rotation,
+                        frame.true_translation,
+                        partner.true_rotation,
+                        partner.true_translation,
+                    )
                     others = {}
                     if self._references is not None:
-                        others = self._references.predict(example, frame, partner)
-                    result.update(self._score(frame, inv_depth, partner, others))
+                        others = self._references.predict(example, true_rotation, true_translation)
+                    result.update(self._score(frame, inv_depth, true_translation, others))
             labels = self.labels_of(frame, baseline)
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:

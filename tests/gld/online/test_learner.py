@@ -388,7 +388,7 @@ def test_the_classical_references_are_scored_on_the_learners_pairs_and_change_no
     scored = [row for row in exact if "abs_inv" in row]
     assert scored
     for row in scored:
-        assert row["abs_inv_triangulation_true_pose"] < 1e-3 * row["abs_inv_mean"]
+        assert row["abs_inv_triangulation_gt_pose"] < 1e-3 * row["abs_inv_mean"]
         assert row["abs_inv_sfm_flow"] < 1e-3 * row["abs_inv_mean"] or (
             row["abs_inv_sfm_flow"] == row["abs_inv_mean"]
         )
@@ -416,5 +416,5 @@ def test_the_curve_gives_the_medians_and_the_references_where_the_rows_hold_them
     assert first["median_x_mean"] == pytest.approx(1.0)  # of 1, 0.5, 1.5
     assert first["sfm_flow_x_mean"] == pytest.approx(10.5 / 5)  # one frame's explosion
     assert first["sfm_flow_median_x_mean"] == pytest.approx(0.5)  # of 9, 0.5, 0.25
-    assert "triangulation_true_pose_x_mean" not in first
+    assert "triangulation_gt_pose_x_mean" not in first
     assert second["median_x_mean"] == 2.0 and "sfm_flow_x_mean" not in second
