@@ -105,6 +105,16 @@ flags.DEFINE_integer(
     "Earlier frames whose range readings, carried by the odometry, also label each frame.",
     lower_bound=0,
 )
+flags.DEFINE_integer(
+    "teacher_labels",
+    0,
+    "Labels a pair also gets from the classical pipeline on its own flow (the essential "
+    "matrix's pose, triangulated where the parallax is large); 0: none.",
+    lower_bound=0,
+)
+flags.DEFINE_float(
+    "teacher_parallax", 1.0, "Pixels of parallax a teacher's label needs.", lower_bound=0.0
+)
 flags.DEFINE_float("min_baseline", 0.05, "Metres of odometry between a frame and its partner.")
 flags.DEFINE_integer("max_partner_gap", 20, "Frames back a partner may be.", lower_bound=1)
 flags.DEFINE_float(
@@ -331,6 +341,8 @@ def main(argv: list[str]) -> None:
             warmup=FLAGS.warmup,
             anchor=FLAGS.anchor,
             reading_memory=FLAGS.reading_memory,
+            teacher_labels=FLAGS.teacher_labels,
+            teacher_parallax=FLAGS.teacher_parallax,
             learn=FLAGS.learn,
             references=FLAGS.references,
             asynchronous=FLAGS.asynchronous,

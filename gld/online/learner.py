@@ -47,7 +47,7 @@ from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.losses import supervised as losses
 from gld.models import layers
-from gld.online import references
+from gld.online import references, teacher
 from gld.online.replay import VECTOR_FIELDS, LabelledPair, ReplayBuffer
 from gld.online.stream import Frame
 from gld.runs import optimizer as optimizer_lib
@@ -91,6 +91,10 @@ class OnlineSettings:
         no parallax (the expansion's centre); the points it read earlier have moved out
         from there, to pixels whose flow carries their depth. 0 = only the frame's own
         reading.
+      teacher_labels: each new pair also gets up to this many labels from the classical
+        pipeline on its own flow (`gld.online.teacher`: the essential matrix's pose,
+        triangulated where the parallax is at least `teacher_parallax` pixels); 0 = none.
+      teacher_parallax: pixels of parallax a teacher's label needs.
       learn: False keeps the model as given (the frozen reference).
       references: also score the classical references on each pair (simulation only,
         `gld.online.references`: the essential matrix's pipeline on the pair's flow, and
@@ -112,6 +116,8 @@ class OnlineSettings:
     warmup: int = 0
     anchor: float = 0.0
     reading_memory: int = 0
+    teacher_labels: int = 0
+    teacher_parallax: float = 1.0
     learn: bool = True
     references: bool = False
     asynchronous: bool = True
@@ -123,6 +129,7 @@ class OnlineSettings:
         for name in ("max_partner_gap", "batch_size", "capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        teacher.TeacherSettings(self.teacher_labels, self.teacher_parallax)  # checks them
         if self.reading_memory < 0:
             raise ValueError(f"reading_memory must be >= 0, got {self.reading_memory}")
         if self.updates_per_frame < 0:
@@ -171,9 +178,9 @@ class OnlineLearner:
             ]
         )
         self.published = self._state.variables()
-        self.buffer = ReplayBuffer(
-            settings.capacity, height, width, settings.seed, 1 + settings.reading_memory
-        )
+        self._teacher = teacher.TeacherSettings(settings.teacher_labels, settings.teacher_parallax)
+        labels = 1 + settings.reading_memory + settings.teacher_labels
+        self.buffer = ReplayBuffer(settings.capacity, height, width, settings.seed, labels)
         self._window: collections.deque[Frame] = collections.deque(maxlen=settings.max_partner_gap)
         # The world points of the last `reading_memory` frames' readings (None: no reading).
         self._memory: collections.deque[np.ndarray | None] = collections.deque(
@@ -256,10 +263,8 @@ class OnlineLearner:
             own = np.array([[row, column, distance]], np.float32)
         points = [point for point in self._memory if point is not None]
         carried = carried_labels(frame, np.array(points).reshape(-1, 3), self.height, self.width)
-        labels = np.concatenate([own, carried])
         # One label a pixel: the frame's own reading, else the newest carried point.
-        _, first = np.unique(labels[:, :2], axis=0, return_index=True)
-        labels = labels[np.sort(first)]
+        labels = _first_per_pixel(np.concatenate([own, carried]))
         labels[:, 2] /= baseline
         return labels
 
@@ -391,6 +396,10 @@ class OnlineLearner:
                         others = self._references.predict(example, true_rotation, true_translation)
                     result.update(self._score(frame, inv_depth, true_translation, others))
             labels = self.labels_of(frame, baseline)
+            if self._teacher.count:
+                rng = np.random.default_rng([self.settings.seed, frame.index])
+                taught = teacher.classical_labels(example, baseline, self._teacher, rng)
+                labels = _first_per_pixel(np.concatenate([labels, taught]))
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:
                 vectors = {key: example[key] for key in VECTOR_FIELDS}
@@ -447,6 +456,12 @@ class OnlineLearner:
         self._reference_count = int(counters["reference_count"])
         self._window.clear()
         self._memory.clear()
+
+
+def _first_per_pixel(labels: np.ndarray) -> np.ndarray:
+    """[N, 3] labels less those of a pixel labelled earlier in the array."""
+    _, first = np.unique(labels[:, :2], axis=0, return_index=True)
+    return labels[np.sort(first)]
 
 
 def reading_point(frame: Frame) -> np.ndarray | None:

@@ -359,6 +359,27 @@ def test_a_restored_learner_carries_the_readings_of_the_frames_it_replays(
     assert labels(restored(SETTINGS["max_partner_gap"])) != expected
 
 
+def _true_flow(frames):
+    """A stand-in for DIS that gives the exact flow between two of `frames`."""
+    by_image = {frame.image.tobytes(): frame for frame in frames}
+
+    def true_flow(image1, image2):
+        frame, partner = by_image[image1.tobytes()], by_image[image2.tobytes()]
+        rotation, translation = _true_motion(frame, partner)
+        flow, _ = geometry.ground_truth_flow(
+            frame.depth, None, frame.intrinsics, partner.intrinsics, rotation, translation
+        )
+        return flow
+
+    return true_flow
+
+
+def _true_motion(frame, partner):
+    return geometry.relative_pose(
+        frame.true_rotation, frame.true_translation, partner.true_rotation, partner.true_translation
+    )
+
+
 def test_the_classical_references_are_scored_on_the_learners_pairs_and_change_nothing_else(
     model_and_variables, frames, monkeypatch
 ):
@@ -368,22 +389,7 @@ def test_the_classical_references_are_scored_on_the_learners_pairs_and_change_no
     # these 32x24 images it often finds too few correspondences; a failed pair is scored
     # as the running reference): the references are in the learner's units (the true
     # baseline's) and read the pair the learner read.
-    by_image = {frame.image.tobytes(): frame for frame in frames}
-
-    def true_flow(image1, image2):
-        frame, partner = by_image[image1.tobytes()], by_image[image2.tobytes()]
-        rotation, translation = geometry.relative_pose(
-            frame.true_rotation,
-            frame.true_translation,
-            partner.true_rotation,
-            partner.true_translation,
-        )
-        flow, _ = geometry.ground_truth_flow(
-            frame.depth, None, frame.intrinsics, partner.intrinsics, rotation, translation
-        )
-        return flow
-
-    monkeypatch.setattr(learner_lib.flow_lib, "estimate", true_flow)
+    monkeypatch.setattr(learner_lib.flow_lib, "estimate", _true_flow(frames))
     exact = _observe_all(_learner(model_and_variables, learn=False, references=True), frames)
     scored = [row for row in exact if "abs_inv" in row]
     assert scored
@@ -418,3 +424,32 @@ def test_the_curve_gives_the_medians_and_the_references_where_the_rows_hold_them
     assert first["sfm_flow_median_x_mean"] == pytest.approx(0.5)  # of 9, 0.5, 0.25
     assert "triangulation_gt_pose_x_mean" not in first
     assert second["median_x_mean"] == 2.0 and "sfm_flow_x_mean" not in second
+
+
+def test_the_teacher_labels_a_pair_after_its_reading_with_the_depth_its_flow_gives(
+    model_and_variables, frames, monkeypatch
+):
+    """With the exact flow, each teacher's label is the true depth at its pixel in the
+    pair's true baseline, stored after the frame's own reading, one label a pixel."""
+    monkeypatch.setattr(learner_lib.flow_lib, "estimate", _true_flow(frames))
+    learner = _learner(model_and_variables, learn=False, teacher_labels=6, teacher_parallax=0.5)
+    added = []
+    monkeypatch.setattr(learner.buffer, "add", added.append)
+    rows = _observe_all(learner, frames)
+    by_image = {frame.image.tobytes(): frame for frame in frames}
+    taught = 0
+    for pair, row in zip(added, [row for row in rows if row.get("labelled")], strict=True):
+        frame, partner = by_image[pair.image1.tobytes()], by_image[pair.image2.tobytes()]
+        labels = pair.labels
+        assert len(np.unique(labels[:, :2], axis=0)) == len(labels) <= 7
+        if frame.reading is not None:
+            u, v, distance = frame.reading
+            np.testing.assert_allclose(labels[0], [round(v), round(u), distance / row["baseline"]])
+            labels = labels[1:]
+        true_baseline = np.linalg.norm(_true_motion(frame, partner)[1])
+        rows_, columns = labels[:, 0].astype(int), labels[:, 1].astype(int)
+        np.testing.assert_allclose(
+            labels[:, 2] * true_baseline, frame.depth[rows_, columns], rtol=1e-2
+        )
+        taught += len(labels) > 0
+    assert taught >= 3  # the essential matrix holds on some of these 32x24 pairs
