@@ -91,10 +91,9 @@ class OnlineSettings:
         no parallax (the expansion's centre); the points it read earlier have moved out
         from there, to pixels whose flow carries their depth. 0 = only the frame's own
         reading.
-      teacher_labels: each new pair also gets up to this many labels from the classical
-        pipeline on its own flow (`gld.online.teacher`: the essential matrix's pose,
-        triangulated where the parallax is at least `teacher_parallax` pixels); 0 = none.
-      teacher_parallax: pixels of parallax a teacher's label needs.
+      teacher_labels, teacher_parallax: each new pair also gets up to `teacher_labels`
+        labels from the classical pipeline on its own flow (`gld.online.teacher`: the
+        essential matrix's pose), where its parallax is at least `teacher_parallax` px.
       learn: False keeps the model as given (the frozen reference).
       references: also score the classical references on each pair (simulation only,
         `gld.online.references`: the essential matrix's pipeline on the pair's flow, and
@@ -129,7 +128,9 @@ class OnlineSettings:
         for name in ("max_partner_gap", "batch_size", "capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        teacher.TeacherSettings(self.teacher_labels, self.teacher_parallax)  # checks them
+        if self.teacher_labels < 0 or not self.teacher_parallax > 0:
+            got = f"{self.teacher_labels} and {self.teacher_parallax}"
+            raise ValueError(f"teacher_labels must be >= 0 and teacher_parallax > 0, got {got}")
         if self.reading_memory < 0:
             raise ValueError(f"reading_memory must be >= 0, got {self.reading_memory}")
         if self.updates_per_frame < 0:

@@ -2,9 +2,12 @@
 
 The range sensor labels one pixel a frame. The pair's flow says more, where it says it
 well: the essential matrix's pose from the flow (`gld.flow_pose`, RANSAC and cheirality)
-fixes the epipolar geometry, and a pixel whose flow moves far along its epipolar line
-(a large parallax) and lies on it (a small epipolar distance) triangulates to a depth
-that depends little on the flow's noise. `classical_labels` draws up to `count` such
+fixes the epipolar geometry, and a pixel whose flow moves along its epipolar line by
+more than the flow's noise (its parallax: the flow less the rotation's flow) and lies on
+it (a small epipolar distance) triangulates to a depth the flow decides. The error of
+such labels on the simulated robot's stream, and why more parallax does not make them
+better (DIS errs along the epipolar line too, where no test sees it), are measured in
+WORKSPACE.md ("A classical teacher"). `classical_labels` draws up to `count` such
 pixels and labels them with that depth, in the learner's units (baselines: the
 essential matrix's translation has unit norm, as the odometry's baseline is the unit of
 the range readings). Nothing here reads the truth; a surface nearer than `min_depth`
@@ -26,16 +29,16 @@ class TeacherSettings:
 
     Attributes:
       count: labels drawn a pair (0: no teacher).
-      min_parallax: pixels the flow must move along its epipolar line (the translation's
-        part of the flow at the triangulated depth); below it the depth is the flow's
-        noise over a short lever.
+      min_parallax: pixels of parallax (the flow less the rotation's flow, the part the
+        translation makes) a label needs; below it the depth is the flow's noise over a
+        short lever.
       max_epipolar: pixels the flow may lie off its epipolar line (the RANSAC inlier
         threshold of `gld.flow_pose` is 0.5).
       min_depth: metres; a nearer triangulated surface is left out.
     """
 
     count: int = 0
-    min_parallax: float = 2.0
+    min_parallax: float = 1.0
     max_epipolar: float = 0.5
     min_depth: float = 0.3
 

@@ -88,6 +88,24 @@ def test_a_bad_sensor_pixel_is_refused_in_one_line_before_anything_is_written(
 @pytest.mark.parametrize(
     "flag, message",
     [
+        ("--teacher_parallax=0", "teacher_parallax > 0, got 0 and 0.0"),
+        ("--teacher_labels=-1", "-1 is not a non-negative integer"),
+    ],
+)
+def test_a_bad_teacher_flag_is_refused_in_one_line_before_anything_is_written(
+    tmp_path, flag, message
+):
+    workdir = tmp_path / "run"
+    completed = launch("experiments.online", f"--workdir={workdir}", flag, *COMMON)
+    assert completed.returncode == 2, completed.stderr[-2000:]
+    assert message in completed.stderr and "Traceback" not in completed.stderr
+    assert len(completed.stderr.strip().splitlines()) == 1
+    assert not workdir.exists()
+
+
+@pytest.mark.parametrize(
+    "flag, message",
+    [
         ("--camera_yaw=90", "--camera_yaw sets the simulated robot"),
         ("--references", "--references scores against the simulator's truth"),
     ],

@@ -196,6 +196,9 @@ def test_bad_settings_are_refused():
         OnlineSettings(warmup=-1)
     with pytest.raises(ValueError, match="max_rotation must be >= 0 degrees"):
         OnlineSettings(max_rotation=-5)
+    for teacher in ({"teacher_labels": -1}, {"teacher_parallax": 0.0}):
+        with pytest.raises(ValueError, match="teacher_labels must be >= 0 and teacher_parallax"):
+            OnlineSettings(**teacher)
 
 
 def _distance(variables, start):
