@@ -59,20 +59,24 @@ def classical_labels(
     """[N, 3] (row, column, depth in baselines), N <= settings.count, of the pair
     `example` (the example contract's flow and intrinsics, one pair) whose odometry
     baseline is `baseline` metres; empty where the pose fails or no pixel qualifies."""
+    none = np.zeros((0, 3), np.float32)
+    if settings.count == 0:
+        return none
     flow = np.asarray(example["flow"], np.float32)
     height, width = flow.shape[:2]
     rotation, translation, succeeded = flow_pose.pose_of_example(
         flow, example["intrinsics1"], example["intrinsics2"]
     )
-    if not succeeded or settings.count == 0:
-        return np.zeros((0, 3), np.float32)
+    if not succeeded:
+        return none
     intrinsics1 = np.asarray(example["intrinsics1"], np.float64)
     intrinsics2 = np.asarray(example["intrinsics2"], np.float64)
     camera1 = geometry.intrinsics_matrix(intrinsics1, height, width)
     camera2 = geometry.intrinsics_matrix(intrinsics2, height, width)
     flow64, rotation64 = flow.astype(np.float64), rotation.astype(np.float64)
+    translation64 = translation.astype(np.float64)
     inverse_depth, _ = geometry.triangulate_inverse_depth(
-        flow64, camera1, camera2, rotation64, translation.astype(np.float64)
+        flow64, camera1, camera2, rotation64, translation64
     )
     # The flow less the rotation's: the parallax, which the translation alone makes.
     parallax = np.linalg.norm(
@@ -81,7 +85,7 @@ def classical_labels(
     epipolar = geometry.epipolar_distance(
         flow64[None],
         rotation64[None],
-        translation.astype(np.float64)[None],
+        translation64[None],
         intrinsics1[None],
         intrinsics2[None],
     )[0]

@@ -65,36 +65,16 @@ def test_a_run_killed_part_way_resumes_and_ends_as_an_uninterrupted_one(tmp_path
 
 
 @pytest.mark.parametrize(
-    "pixel, message",
-    [
-        ("64", "--reading_pixel must be two integers u,v, got 64"),
-        ("a,b", "--reading_pixel must be two integers u,v, got a,b"),
-        ("40,3", "reading_pixel must lie in the 32x24 image"),
-    ],
-)
-def test_a_bad_sensor_pixel_is_refused_in_one_line_before_anything_is_written(
-    tmp_path, pixel, message
-):
-    workdir = tmp_path / "run"
-    completed = launch(
-        "experiments.online", f"--workdir={workdir}", f"--reading_pixel={pixel}", *COMMON
-    )
-    assert completed.returncode == 2, completed.stderr[-2000:]
-    assert message in completed.stderr and "Traceback" not in completed.stderr
-    assert len(completed.stderr.strip().splitlines()) == 1
-    assert not workdir.exists()
-
-
-@pytest.mark.parametrize(
     "flag, message",
     [
+        ("--reading_pixel=64", "--reading_pixel must be two integers u,v, got 64"),
+        ("--reading_pixel=a,b", "--reading_pixel must be two integers u,v, got a,b"),
+        ("--reading_pixel=40,3", "reading_pixel must lie in the 32x24 image"),
         ("--teacher_parallax=0", "teacher_parallax > 0, got 0 and 0.0"),
         ("--teacher_labels=-1", "-1 is not a non-negative integer"),
     ],
 )
-def test_a_bad_teacher_flag_is_refused_in_one_line_before_anything_is_written(
-    tmp_path, flag, message
-):
+def test_a_bad_flag_is_refused_in_one_line_before_anything_is_written(tmp_path, flag, message):
     workdir = tmp_path / "run"
     completed = launch("experiments.online", f"--workdir={workdir}", flag, *COMMON)
     assert completed.returncode == 2, completed.stderr[-2000:]
