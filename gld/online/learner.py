@@ -47,6 +47,7 @@ from gld import flow as flow_lib
 from gld import flow_pose, geometry
 from gld.losses import supervised as losses
 from gld.models import layers
+from gld.online import labels as labels_lib
 from gld.online import references, teacher
 from gld.online.replay import VECTOR_FIELDS, LabelledPair, ReplayBuffer
 from gld.online.stream import Frame
@@ -263,15 +264,16 @@ class OnlineLearner:
                 )
             own = np.array([[row, column, distance]], np.float32)
         points = [point for point in self._memory if point is not None]
-        carried = carried_labels(frame, np.array(points).reshape(-1, 3), self.height, self.width)
+        points = np.array(points).reshape(-1, 3)
+        carried = labels_lib.carried_labels(frame, points, self.height, self.width)
         # One label a pixel: the frame's own reading, else the newest carried point.
-        labels = _first_per_pixel(np.concatenate([own, carried]))
+        labels = labels_lib.first_per_pixel(np.concatenate([own, carried]))
         labels[:, 2] /= baseline
         return labels
 
     def _remember(self, frame: Frame) -> None:
         if self.settings.reading_memory:
-            self._memory.appendleft(reading_point(frame))
+            self._memory.appendleft(labels_lib.reading_point(frame))
 
     # ----------------------------------------------------------------- scoring
 
@@ -400,7 +402,7 @@ class OnlineLearner:
             if self._teacher.count:
                 rng = np.random.default_rng([self.settings.seed, frame.index])
                 taught = teacher.classical_labels(example, baseline, self._teacher, rng)
-                labels = _first_per_pixel(np.concatenate([labels, taught]))
+                labels = labels_lib.first_per_pixel(np.concatenate([labels, taught]))
             result["labelled"] = bool(len(labels))
             if len(labels) or self.self_supervised:
                 vectors = {key: example[key] for key in VECTOR_FIELDS}
@@ -457,43 +459,3 @@ class OnlineLearner:
         self._reference_count = int(counters["reference_count"])
         self._window.clear()
         self._memory.clear()
-
-
-def _first_per_pixel(labels: np.ndarray) -> np.ndarray:
-    """[N, 3] labels less those of a pixel labelled earlier in the array."""
-    _, first = np.unique(labels[:, :2], axis=0, return_index=True)
-    return labels[np.sort(first)]
-
-
-def reading_point(frame: Frame) -> np.ndarray | None:
-    """The world point of `frame`'s range reading, placed by its odometry (None without
-    a reading). The reading is camera-z metres at pixel (u, v)."""
-    if frame.reading is None:
-        return None
-    height, width = frame.image.shape[:2]
-    camera_matrix = geometry.intrinsics_matrix(
-        np.asarray(frame.intrinsics, np.float64), height, width
-    )
-    u, v, depth = frame.reading
-    camera = depth * np.linalg.solve(camera_matrix, np.array([u, v, 1.0]))
-    rotation = np.asarray(frame.rotation, np.float64)
-    return rotation.T @ (camera - np.asarray(frame.translation, np.float64))
-
-
-def carried_labels(frame: Frame, points: np.ndarray, height: int, width: int) -> np.ndarray:
-    """[N, 3] (row, column, camera-z metres) of world `points` [M, 3] seen from `frame` by
-    its odometry: those in front of the camera and inside the image, in `points`' order."""
-    if not len(points):
-        return np.zeros((0, 3), np.float32)
-    camera = geometry.transform_points(
-        np.asarray(points, np.float64)[None],
-        np.asarray(frame.rotation, np.float64),
-        np.asarray(frame.translation, np.float64),
-    )
-    camera_matrix = geometry.intrinsics_matrix(
-        np.asarray(frame.intrinsics, np.float64), height, width
-    )
-    pixels, depth = geometry.project(camera, camera_matrix)
-    column, row, depth = np.round(pixels[0, :, 0]), np.round(pixels[0, :, 1]), depth[0]
-    keep = (depth > 1e-6) & (row >= 0) & (row < height) & (column >= 0) & (column < width)
-    return np.stack([row[keep], column[keep], depth[keep]], axis=1).astype(np.float32)

@@ -17,6 +17,7 @@ from gld import geometry
 from gld.arguments import ArgumentError
 from gld.losses.supervised import LossWeights
 from gld.models import registry
+from gld.online import labels as labels_lib
 from gld.online import learner as learner_lib
 from gld.online import offline, run
 from gld.online.learner import OnlineLearner, OnlineSettings
@@ -281,17 +282,17 @@ def test_a_sharp_turn_takes_a_nearer_partner(
 def test_a_reading_is_carried_to_where_the_odometry_puts_its_point():
     # Read 4 m ahead at pixel (26, 12), 10 px right of the centre: the point (2, 0, 4).
     first = _frame(0, [0.0, 0.0, 0.0], reading=(26.0, 12.0, 4.0))
-    point = learner_lib.reading_point(first)
+    point = labels_lib.reading_point(first)
     np.testing.assert_allclose(point, [2.0, 0.0, 4.0])
     # The camera 1 m further on (world-to-camera t = -c): the point is 3 m ahead and has
     # moved out from the expansion's centre, u = 16 + 20 * 2 / 3 = 29.3 -> column 29.
-    labels = learner_lib.carried_labels(_frame(1, [0.0, 0.0, -1.0]), point[None], 24, 32)
+    labels = labels_lib.carried_labels(_frame(1, [0.0, 0.0, -1.0]), point[None], 24, 32)
     np.testing.assert_allclose(labels, [[12.0, 29.0, 3.0]])
     # 2 m on, u = 16 + 20 * 2 / 2 = 36 is outside the 32-pixel image; 5 m on, the point is
     # behind the camera: nothing.
-    assert not len(learner_lib.carried_labels(_frame(1, [0.0, 0.0, -2.0]), point[None], 24, 32))
+    assert not len(labels_lib.carried_labels(_frame(1, [0.0, 0.0, -2.0]), point[None], 24, 32))
     behind = _frame(1, [0.0, 0.0, -5.0])
-    assert not len(learner_lib.carried_labels(behind, point[None], 24, 32))
+    assert not len(labels_lib.carried_labels(behind, point[None], 24, 32))
 
 
 def test_carried_readings_agree_with_the_rendered_depth(model_and_variables, frames):
