@@ -125,6 +125,14 @@ flags.DEFINE_float(
     lower_bound=0.0,
 )
 flags.DEFINE_bool("asynchronous", True, "Updates in a worker thread beside prediction.")
+flags.DEFINE_integer(
+    "cpu_devices",
+    2,
+    "On the CPU, JAX devices the updates are split over (data parallelism over the cores; "
+    "lowered to the largest count that divides --batch_size); predictions run on one more "
+    "device of their own, so that an update never holds them up.",
+    lower_bound=1,
+)
 flags.DEFINE_integer("checkpoint_every", 250, "Frames between checkpoints.", lower_bound=1)
 flags.DEFINE_integer("window", 250, "Frames per point of the curve.", lower_bound=1)
 flags.DEFINE_integer(
@@ -323,8 +331,11 @@ def main(argv: list[str]) -> None:
     height, width = _size()
     from absl import logging
 
+    from gld import sharding
+
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)  # orbax's progress lines
+    sharding.split_cpu_devices(1 + sharding.devices_for_batch(FLAGS.batch_size, FLAGS.cpu_devices))
     from gld.online import learner as learner_lib
     from gld.online import references, run
 
@@ -360,6 +371,7 @@ def main(argv: list[str]) -> None:
         "name": Path(FLAGS.workdir).name,
         "model": described,
         "learn": FLAGS.learn,
+        "devices": learner.devices,
         "stream": stream.describe(),
         "settings": {key: getattr(settings, key) for key in settings.__dataclass_fields__},
     }
@@ -374,7 +386,16 @@ def main(argv: list[str]) -> None:
         view_every=FLAGS.view_every,
         progress=FLAGS.progress,
     )
-    speed = {key: summary[key] for key in ("frames_per_second", "latency_ms", "update_wait_ms")}
+    speed = {
+        key: summary[key]
+        for key in (
+            "frames_per_second",
+            "sustained_frames_per_second",
+            "frame_ms",
+            "latency_ms",
+            "update_wait_ms",
+        )
+    }
     print(json.dumps(speed))
     for point in summary["curve"]:
         print(

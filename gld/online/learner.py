@@ -44,7 +44,7 @@ import numpy as np
 import optax
 
 from gld import flow as flow_lib
-from gld import flow_pose, geometry
+from gld import flow_pose, geometry, sharding
 from gld.losses import supervised as losses
 from gld.models import layers
 from gld.online import labels as labels_lib
@@ -166,20 +166,32 @@ class OnlineLearner:
             loss_weights = losses.LossWeights()
         self.self_supervised = trainer.loss_name(model) == "self_supervised"
         self.keys = trainer.batch_keys(model, loss_weights)
+        self._model_reads_flow_pose = "flow_rotation" in getattr(model, "extra_inputs", ())
         optimizer = optimizer_lib.make_optimizer(
             settings.learning_rate, "constant", warmup_steps=settings.warmup
         )
         if settings.anchor:
             optimizer = optax.chain(optimizer, optimizer_lib.toward_start(settings.anchor))
-        self._state = state_lib.state_of(variables, optimizer, settings.seed)
+        # With several devices (on the CPU, the cores `sharding.split_cpu_devices` made
+        # devices of), predictions run on the last one alone and updates data-parallel
+        # over those of the others that the batch splits over: a device that runs a share
+        # of an update runs nothing else until it is done, which would hold a prediction
+        # up for most of an update.
+        devices = jax.local_devices()
+        self._prediction_device = devices[-1]
+        if len(devices) > 1:
+            devices = devices[:-1]
+        count = sharding.devices_for_batch(settings.batch_size, len(devices))
+        self._mesh = sharding.make_mesh(devices[:count])
+        self._state = self._placed(state_lib.state_of(variables, optimizer, settings.seed))
         step = trainer.make_train_step(model=model, optimizer=optimizer, loss_weights=loss_weights)
-        self._train_step = jax.jit(step)
+        self._train_step = sharding.under_mesh(jax.jit(step), self._mesh)
         self._predict = jax.jit(
             lambda variables, batch: layers.apply_model(model, variables, batch, train=False)[
                 "inv_depth"
             ]
         )
-        self.published = self._state.variables()
+        self.published = self._published()
         self._teacher = teacher.TeacherSettings(settings.teacher_labels, settings.teacher_parallax)
         labels = 1 + settings.reading_memory + settings.teacher_labels
         self.buffer = ReplayBuffer(settings.capacity, height, width, settings.seed, labels)
@@ -194,6 +206,11 @@ class OnlineLearner:
         self.updates = 0
         self._reference_sum, self._reference_count = 0.0, 0
         self._references = references.StreamReferences() if settings.references else None
+
+    @property
+    def devices(self) -> int:
+        """The devices an update runs on (predictions run on one more, where there is one)."""
+        return self._mesh.devices.size
 
     # ------------------------------------------------------------------ pairs
 
@@ -234,16 +251,25 @@ class OnlineLearner:
             "rotation": np.asarray(rotation, np.float32),
             "translation": np.asarray(translation / baseline, np.float32),
         }
+        if self._model_reads_flow_pose:
+            self._add_flow_pose(example)
+        return example, baseline
+
+    def _add_flow_pose(self, example: dict[str, np.ndarray]) -> None:
+        """Adds the essential matrix's pose of the pair's flow (`gld.flow_pose`) where the
+        model or its loss reads it (placeholders where neither does), once. A model that
+        does not read it gets it after its depth is published: a RANSAC off the latency."""
+        if "flow_rotation" in example:
+            return
         if "flow_rotation" in self.keys:
             flow_rotation, flow_translation, _ = flow_pose.pose_of_example(
-                flow, example["intrinsics1"], example["intrinsics2"]
+                example["flow"], example["intrinsics1"], example["intrinsics2"]
             )
             example["flow_rotation"] = np.asarray(flow_rotation, np.float32)
             example["flow_translation"] = np.asarray(flow_translation, np.float32)
         else:
             example["flow_rotation"] = np.eye(3, dtype=np.float32)
             example["flow_translation"] = np.zeros(3, np.float32)
-        return example, baseline
 
     @property
     def history(self) -> int:
@@ -310,9 +336,18 @@ class OnlineLearner:
 
     # ----------------------------------------------------------------- updates
 
+    def _placed(self, state: TrainState) -> TrainState:
+        """`state` replicated on the updates' devices."""
+        return jax.device_put(state, sharding.replicated(self._mesh))
+
+    def _published(self) -> dict[str, Any]:
+        """The state's variables on the prediction's device."""
+        return jax.device_put(self._state.variables(), self._prediction_device)
+
     def _run_updates(self, state: TrainState, batches: list[dict]) -> TrainState:
         for index, batch in enumerate(batches):
             rng = jax.random.fold_in(jax.random.key(self.settings.seed), self.updates + index)
+            batch = sharding.to_global_batch(batch, self._mesh, list(batch))
             state, _ = self._train_step(state, batch, rng)
         return jax.block_until_ready(state)
 
@@ -321,7 +356,7 @@ class OnlineLearner:
         if self._pending is not None:
             self._state = self._pending.result()
             self._pending = None
-            self.published = self._state.variables()
+            self.published = self._published()
 
     def _batches(self, count: int, newest: int) -> list[dict[str, np.ndarray]]:
         """`count` training batches from the buffer, only the keys the train step reads."""
@@ -343,7 +378,7 @@ class OnlineLearner:
         state = self._state
         if self._worker is None:
             self._state = self._run_updates(state, batches)
-            self.published = self._state.variables()
+            self.published = self._published()
         else:
             self._pending = self._worker.submit(self._run_updates, state, batches)
         self.updates += count
@@ -356,7 +391,7 @@ class OnlineLearner:
             batches = self._batches(min(chunk, updates - done), newest=0)
             self._state = self._run_updates(self._state, batches)
             self.updates += len(batches)
-        self.published = self._state.variables()
+        self.published = self._published()
 
     # -------------------------------------------------------------------- API
 
@@ -398,6 +433,7 @@ class OnlineLearner:
                     if self._references is not None:
                         others = self._references.predict(example, true_rotation, true_translation)
                     result.update(self._score(frame, inv_depth, true_translation, others))
+            self._add_flow_pose(example)
             labels = self.labels_of(frame, baseline)
             if self._teacher.count:
                 rng = np.random.default_rng([self.settings.seed, frame.index])
@@ -450,8 +486,8 @@ class OnlineLearner:
     def restore(self, state: dict[str, Any]) -> None:
         """Continues from `state()` (the partner window refilled by `resume_from`)."""
         self._join()
-        self._state = state["train_state"]
-        self.published = self._state.variables()
+        self._state = self._placed(state["train_state"])
+        self.published = self._published()
         self.buffer = ReplayBuffer.from_state(state["buffer"])
         counters = state["counters"]
         self.next_frame, self.updates = int(counters["next_frame"]), int(counters["updates"])

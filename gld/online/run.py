@@ -6,9 +6,11 @@ The workdir holds:
 
     prequential.jsonl   one line per frame, written before the learner trains on it: the
                         partner, baselines, Abs-Inv against the truth and of the running
-                        mean reference (simulation), latency, updates so far
+                        mean reference (simulation), latency, updates so far, the
+                        frame's time in the learner (frame_ms)
     checkpoints/        the learner every `checkpoint_every` frames (`gld.online.checkpoint`)
-    summary.json        the run: speed (frames/s, latency and update times p50/p90) and
+    summary.json        the run: speed (frames/s, over the run and sustained after its
+                        first window; frame, latency and update times p50/p90) and
                         the curve, Abs-Inv and "x mean" per window of frames
     curve.png           the curve
     view/<frame>.png    with `view_every`: the frame, its predicted inverse depth, the
@@ -120,8 +122,12 @@ def curve(rows: list[dict[str, Any]], window: int) -> list[dict[str, Any]]:
 
 
 def summarise(rows: list[dict[str, Any]], window: int, seconds: float) -> dict[str, Any]:
-    """The run's numbers from its log rows and the learner's wall time."""
+    """The run's numbers from its log rows and the learner's wall time: frames/s over
+    the whole run (its first frames compile the model), and sustained, over the frames
+    after the first `window` (all of them in a shorter run)."""
     predicted = [row for row in rows if row.get("partner") is not None]
+    timed = [row["frame_ms"] for row in rows if "frame_ms" in row]
+    steady = timed[window:] or timed
     return {
         "frames": len(rows),
         "predicted": len(predicted),
@@ -129,6 +135,8 @@ def summarise(rows: list[dict[str, Any]], window: int, seconds: float) -> dict[s
         "updates": rows[-1]["updates"] if rows else 0,
         "learner_seconds": seconds,
         "frames_per_second": len(rows) / seconds if seconds > 0 else None,
+        "sustained_frames_per_second": 1e3 * len(steady) / sum(steady) if sum(steady) else None,
+        "frame_ms": _percentiles(timed),
         "latency_ms": _percentiles([row["latency_ms"] for row in predicted]),
         "update_wait_ms": _percentiles([row["update_wait_ms"] for row in rows]),
         "curve": curve(rows, window),
@@ -277,8 +285,10 @@ def _continue(stream, learner, workdir, checkpoints, restored, meta, options, pr
                 break
             start = time.perf_counter()
             result = learner.observe(frame)
-            seconds += time.perf_counter() - start
+            elapsed = time.perf_counter() - start
+            seconds += elapsed
             row = {key: result[key] for key in LOGGED if key in result}
+            row["frame_ms"] = 1e3 * elapsed
             rows.append(row)
             log.write(json.dumps(row) + "\n")
             if view_every and frame.index % view_every == 0 and "inv_depth" in result:

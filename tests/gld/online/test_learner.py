@@ -4,13 +4,14 @@ small simulated robot: prequential scores, determinism, updates beside predictio
 import itertools
 import json
 import shutil
+import textwrap
 import threading
 import time
 
 import jax
 import numpy as np
 import pytest
-from conftest import TINY_MODEL, random_variables
+from conftest import TINY_MODEL, random_variables, run_on_cpu_devices
 
 from data.gld_scenes import robot_stream
 from gld import geometry
@@ -96,6 +97,59 @@ def test_the_worker_gives_the_same_run_as_updating_in_turn(model_and_variables, 
         jax.tree.leaves(together.published), jax.tree.leaves(in_turn.published), strict=True
     ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+# The learner of `_learner` on three CPU devices, its final parameters and the devices
+# its state and its published variables lie on.
+THREE_DEVICE_SCRIPT = textwrap.dedent(
+    """
+    import itertools, json, sys
+    import jax, numpy as np
+    sys.path.insert(0, "tests")
+    from conftest import TINY_MODEL, random_variables
+    from data.gld_scenes import robot_stream
+    from gld.losses.supervised import LossWeights
+    from gld.models import registry
+    from gld.online.learner import OnlineLearner, OnlineSettings
+
+    stream = robot_stream.SimulatedRobot(3, robot_stream.RobotSettings(height=24, width=32))
+    model = registry.make_model("global_local", **TINY_MODEL)
+    variables = random_variables(model, 24, 32, seed=0)
+    settings = OnlineSettings(**SETTINGS, asynchronous=False)
+    learner = OnlineLearner(model, variables, settings, 24, 32, LossWeights())
+    for frame in itertools.islice(stream.frames(), 12):
+        learner.observe(frame)
+    leaves = jax.tree.leaves
+    devices = lambda tree: sorted({device.id for leaf in leaves(tree) for device in leaf.devices()})
+    print(json.dumps({
+        "devices": learner.devices,
+        "state_devices": devices(learner.state()["train_state"].params),
+        "published_devices": devices(learner.published),
+        "updates": learner.updates,
+        "params": [np.asarray(leaf).ravel().tolist() for leaf in leaves(learner.published)],
+    }))
+    """
+).replace("SETTINGS", repr(SETTINGS))
+
+
+def test_on_several_devices_updates_are_split_and_predictions_run_on_their_own(
+    model_and_variables, frames
+):
+    numbers = run_on_cpu_devices(THREE_DEVICE_SCRIPT, 3)
+    # The batch of 2 splits over the first two devices; the third predicts.
+    assert numbers["devices"] == 2
+    assert numbers["state_devices"] == [0, 1] and numbers["published_devices"] == [2]
+    # The same updates as on one device, but for the float rounding of split sums (which
+    # Adam turns into up to a step's size where a gradient is near zero).
+    learner = _learner(model_and_variables, asynchronous=False)
+    for frame in frames[:12]:
+        learner.observe(frame)
+    assert learner.devices == 1 and numbers["updates"] == learner.updates > 0
+    flat = lambda leaves: np.concatenate([np.ravel(leaf) for leaf in leaves])
+    split = flat(numbers["params"])
+    whole = flat(jax.tree.leaves(learner.published))
+    start = flat(jax.tree.leaves(model_and_variables[1]))
+    assert np.linalg.norm(split - whole) < 0.01 * np.linalg.norm(whole - start)
 
 
 def test_a_prediction_is_served_while_an_update_runs(model_and_variables, frames):
