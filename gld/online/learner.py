@@ -22,7 +22,11 @@ one. The update launched at frame t runs while frame t + 1 is predicted and is j
 (its parameters swapped in whole) after that prediction is published, so frame t's depth
 comes from the parameters of the updates up to frame t - 2. The order of operations is
 fixed, so a run is deterministic for a stream and a seed, with the worker or without
-(`asynchronous=False` runs each update at once, for the same results).
+(`asynchronous=False` runs each update at once, for the same results). With several
+devices (on the CPU, cores made devices by `gld.sharding.split_cpu_devices`), the
+updates run data-parallel over all but the last, which predicts alone: a device running
+its share of an update would hold a prediction up until the update is done. Results
+depend on the update's device count at the level of float rounding.
 
 `state()` and `restore()` hold everything a resumed run needs besides the stream (the
 model and optimiser state, the buffer, the running reference, counters); the stream is
@@ -172,11 +176,7 @@ class OnlineLearner:
         )
         if settings.anchor:
             optimizer = optax.chain(optimizer, optimizer_lib.toward_start(settings.anchor))
-        # With several devices (on the CPU, the cores `sharding.split_cpu_devices` made
-        # devices of), predictions run on the last one alone and updates data-parallel
-        # over those of the others that the batch splits over: a device that runs a share
-        # of an update runs nothing else until it is done, which would hold a prediction
-        # up for most of an update.
+        # Predictions on the last device, updates over the others the batch splits over.
         devices = jax.local_devices()
         self._prediction_device = devices[-1]
         if len(devices) > 1:

@@ -72,6 +72,7 @@ def test_a_run_killed_part_way_resumes_and_ends_as_an_uninterrupted_one(tmp_path
         ("--reading_pixel=40,3", "reading_pixel must lie in the 32x24 image"),
         ("--teacher_parallax=0", "teacher_parallax > 0, got 0 and 0.0"),
         ("--teacher_labels=-1", "-1 is not a non-negative integer"),
+        ("--cpu_devices=0", "flag --cpu_devices=0: 0 is not a positive integer"),
     ],
 )
 def test_a_bad_flag_is_refused_in_one_line_before_anything_is_written(tmp_path, flag, message):
