@@ -152,6 +152,54 @@ def test_on_several_devices_updates_are_split_and_predictions_run_on_their_own(
     assert np.linalg.norm(split - whole) < 0.01 * np.linalg.norm(whole - start)
 
 
+def _keys_predicted_on(learner):
+    """The batch keys of each prediction `learner` makes from now on."""
+    seen, predict = [], learner._predict
+
+    def recorded(variables, batch):
+        seen.append(set(batch))
+        return predict(variables, batch)
+
+    learner._predict = recorded
+    return seen
+
+
+def test_the_flow_pose_reaches_the_model_that_reads_it_first_and_the_loss_after_the_depth(
+    model_and_variables, frames
+):
+    from gld import flow as flow_lib
+    from gld import flow_pose
+
+    # The main job's loss reads the flow's pose (its pose teacher), its model does not:
+    # the prediction goes without it, the stored pair gets it.
+    model, variables = model_and_variables
+    settings = OnlineSettings(**{**SETTINGS, "asynchronous": False, "capacity": 32})
+    learner = OnlineLearner(model, variables, settings, HEIGHT, WIDTH, LossWeights(pose_teacher=1))
+    seen = _keys_predicted_on(learner)
+    rows = [learner.observe(frame) for frame in frames]
+    assert seen and all("flow_rotation" not in keys for keys in seen)
+    stored = learner.buffer.state()["arrays"]
+    intrinsics = np.asarray(frames[0].intrinsics, np.float32)
+    labelled = [row for row in rows if row.get("labelled")]
+    succeeded = 0
+    for slot, row in enumerate(labelled):  # the reservoir is not full: in arrival order
+        flow = flow_lib.estimate(frames[row["frame"]].image, frames[row["partner"]].image)
+        rotation, translation, good = flow_pose.pose_of_example(flow, intrinsics, intrinsics)
+        np.testing.assert_allclose(stored["flow_rotation"][slot], rotation, atol=1e-6)
+        np.testing.assert_allclose(stored["flow_translation"][slot], translation, atol=1e-6)
+        succeeded += good
+    assert succeeded >= 3  # not the placeholders alone (identity, zero)
+    # A model whose g is the flow's pose gets it before its prediction.
+    reader = registry.make_model("global_local", global_source="flow_pose", **TINY_MODEL)
+    pose = {"flow_rotation": np.eye(3)[None], "flow_translation": np.ones((1, 3))}
+    start = random_variables(reader, HEIGHT, WIDTH, seed=0, **pose)
+    learner = OnlineLearner(reader, start, settings, HEIGHT, WIDTH, LossWeights())
+    seen = _keys_predicted_on(learner)
+    for frame in frames[:8]:
+        learner.observe(frame)
+    assert seen and all("flow_rotation" in keys for keys in seen)
+
+
 def test_a_prediction_is_served_while_an_update_runs(model_and_variables, frames):
     learner = _learner(model_and_variables)
     spans, predictions = [], []
@@ -482,6 +530,19 @@ def test_the_curve_gives_the_medians_and_the_references_where_the_rows_hold_them
     assert first["sfm_flow_median_x_mean"] == pytest.approx(0.5)  # of 9, 0.5, 0.25
     assert "triangulation_gt_pose_x_mean" not in first
     assert second["median_x_mean"] == 2.0 and "sfm_flow_x_mean" not in second
+
+
+def test_the_sustained_frame_rate_leaves_out_the_first_window():
+    # Four frames that compile (1 s each), then six at 0.1 s: 10 frames/s sustained.
+    rows = [{"frame": index, "updates": index, "update_wait_ms": 0.0} for index in range(10)]
+    for row in rows:
+        row["frame_ms"] = 1000.0 if row["frame"] < 4 else 100.0
+    summary = run.summarise(rows, window=4, seconds=4.6)
+    assert summary["sustained_frames_per_second"] == pytest.approx(10.0)
+    assert summary["frames_per_second"] == pytest.approx(10 / 4.6)
+    assert summary["frame_ms"] == {"p50": 100.0, "p90": 1000.0}
+    # A run no longer than its window: all of it.
+    assert run.summarise(rows[:4], window=4, seconds=4.0)["sustained_frames_per_second"] == 1.0
 
 
 def test_the_teacher_labels_a_pair_after_its_reading_with_the_depth_its_flow_gives(
