@@ -19,7 +19,8 @@ replay buffer and `--updates_per_frame` Adam steps run on batches of the newest 
 replayed pairs, beside the next frames' predictions. The model: `--pretrained` (a
 training workdir: its model and weights), or a new one (`--model`: the main job's
 global-local model and loss, or `struct2depth[_flow]`, the self-supervised baseline's
-photometric route, which reads no range). `--nolearn` keeps it frozen.
+photometric route, which reads no range). `--nolearn` keeps it frozen. On the CPU the
+updates run data-parallel over `--cpu_devices` devices and the predictions on one more.
 `--references` also scores, on each of the learner's pairs, the classical pipeline on
 its flow (`sfm_flow`) and the flow triangulated under the true pose (simulation only).
 
