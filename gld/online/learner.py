@@ -170,7 +170,7 @@ class OnlineLearner:
             loss_weights = losses.LossWeights()
         self.self_supervised = trainer.loss_name(model) == "self_supervised"
         self.keys = trainer.batch_keys(model, loss_weights)
-        self._model_reads_flow_pose = "flow_rotation" in getattr(model, "extra_inputs", ())
+        self._model_keys = layers.input_keys(model)  # what a prediction reads
         optimizer = optimizer_lib.make_optimizer(
             settings.learning_rate, "constant", warmup_steps=settings.warmup
         )
@@ -251,7 +251,7 @@ class OnlineLearner:
             "rotation": np.asarray(rotation, np.float32),
             "translation": np.asarray(translation / baseline, np.float32),
         }
-        if self._model_reads_flow_pose:
+        if "flow_rotation" in self._model_keys:
             self._add_flow_pose(example)
         return example, baseline
 
@@ -418,7 +418,7 @@ class OnlineLearner:
             example, baseline = self._pair(frame, partner)
             result.update(partner=partner.index, baseline=baseline)
             if predict:
-                batch = {key: value[None] for key, value in example.items() if key in self.keys}
+                batch = {key: example[key][None] for key in self._model_keys}
                 inv_depth = np.asarray(self._predict(self.published, batch)[0])
                 result["inv_depth"] = inv_depth
                 result["latency_ms"] = 1e3 * (time.perf_counter() - start)

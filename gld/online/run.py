@@ -128,6 +128,7 @@ def summarise(rows: list[dict[str, Any]], window: int, seconds: float) -> dict[s
     predicted = [row for row in rows if row.get("partner") is not None]
     timed = [row["frame_ms"] for row in rows if "frame_ms" in row]
     steady = timed[window:] or timed
+    steady_ms = sum(steady)
     return {
         "frames": len(rows),
         "predicted": len(predicted),
@@ -135,7 +136,7 @@ def summarise(rows: list[dict[str, Any]], window: int, seconds: float) -> dict[s
         "updates": rows[-1]["updates"] if rows else 0,
         "learner_seconds": seconds,
         "frames_per_second": len(rows) / seconds if seconds > 0 else None,
-        "sustained_frames_per_second": 1e3 * len(steady) / sum(steady) if sum(steady) else None,
+        "sustained_frames_per_second": 1e3 * len(steady) / steady_ms if steady_ms else None,
         "frame_ms": _percentiles(timed),
         "latency_ms": _percentiles([row["latency_ms"] for row in predicted]),
         "update_wait_ms": _percentiles([row["update_wait_ms"] for row in rows]),
