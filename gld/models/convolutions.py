@@ -1,6 +1,7 @@
 """Convolution pieces the filter-bank formulations are built from: a batch with one
-kernel, one example, 'SAME' padding, im2col patches, shifted matmuls, the input
-gradient, and LeakyReLU's backward pass read off its output.
+kernel, one example (also with its output channels aligned to the CPU's vectors),
+'SAME' padding, im2col patches, shifted matmuls, the input gradient, and LeakyReLU's
+backward pass read off its output.
 """
 
 from __future__ import annotations
@@ -22,6 +23,26 @@ def conv(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
 def conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
     """One example: [H, W, C_in] x [k, k, C_in, C_out] -> [H, W, C_out]."""
     return conv(image[None], kernel)[0]
+
+
+def aligned_channels(count: int) -> int:
+    """`count` output channels rounded up to a multiple of 8 (one AVX vector of float32),
+    unless there are at most 4."""
+    return count if count <= 4 else -(-count // 8) * 8
+
+
+def aligned_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
+    """`conv_single` with the output channels padded by zero filters to
+    `aligned_channels` and cut back: the same values. XLA's CPU convolution runs some
+    output channel counts several times slower than the next multiple of 8 (one core of
+    the 2-core AMD EPYC, 104x136, 20 input channels: 10 outputs in 6.3 ms, 16 in 2.6 ms;
+    10 inputs: 20 outputs in 1.7 ms, 24 in 1.9)."""
+    c_out = kernel.shape[-1]
+    padding = aligned_channels(c_out) - c_out
+    if not padding:
+        return conv_single(image, kernel)
+    kernel = jnp.pad(kernel, ((0, 0), (0, 0), (0, 0), (0, padding)))
+    return conv_single(image, kernel)[..., :c_out]
 
 
 def pad_same(images: jax.Array, kernel_size: int) -> jax.Array:
@@ -75,9 +96,10 @@ def conv_valid(inputs: jax.Array, kernel: jax.Array) -> jax.Array:
     )
 
 
-def input_grad_conv(cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
-    """NHWC input gradient: conv with the flipped, io-transposed kernel."""
-    return conv_single(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
+def input_grad_conv(cotangent: jax.Array, kernel: jax.Array, conv_one=conv_single) -> jax.Array:
+    """NHWC input gradient: `conv_one` (one example's conv) with the flipped,
+    io-transposed kernel."""
+    return conv_one(cotangent, jnp.flip(kernel, (0, 1)).swapaxes(2, 3))
 
 
 def leaky_relu_grad(activations: jax.Array, cotangent: jax.Array, slope: float) -> jax.Array:

@@ -5,11 +5,12 @@ the local network ends with a conv shared by the batch (`SharedConv`, the head).
 `apply_filter_banks` applies such banks. The design's reference is a `jax.vmap` over
 `lax.conv_general_dilated` ("vmap"), which XLA lowers to a grouped convolution that is
 very slow to differentiate on CPU; the other entries of `FORMULATIONS` compute the same
-function (outputs and gradients) in forms that XLA compiles to better code, four of
+function (outputs and gradients) in forms that XLA compiles to better code, five of
 them with a hand-written backward pass. `default_formulation()` picks the formulation
-measured fastest on each platform (`python -m experiments.benchmark`). On a mesh, each
-device applies the banks of its own share of the batch (`gld.sharding.on_batch_shards`).
-The formulations are built from the pieces of `gld.models.convolutions`.
+measured fastest on each platform (`python -m experiments.benchmark`): "fused_aligned"
+on CPU, "vmap" on GPU. On a mesh, each device applies the banks of its own share of the
+batch (`gld.sharding.on_batch_shards`). The formulations are built from the pieces of
+`gld.models.convolutions`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from jax import lax
 
 from gld.models import layers
 from gld.models.convolutions import (
+    aligned_conv_single,
     conv,
     conv_single,
     conv_valid,
@@ -146,20 +148,42 @@ class _StackBackend(NamedTuple):
     bias_grad: Callable[[jax.Array], jax.Array]
 
 
+def _shifted_views(image: jax.Array, kernel_size: int) -> list[jax.Array]:
+    """The k*k views of a zero-padded [H, W, C] image that a 'SAME' conv's taps read."""
+    height, width = image.shape[:2]
+    padded = pad_same(image, kernel_size)
+    return [
+        padded[dy : dy + height, dx : dx + width, :]
+        for dy in range(kernel_size)
+        for dx in range(kernel_size)
+    ]
+
+
 def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """NHWC kernel gradient as k*k matmuls over pixels, one per tap (no patch tensor).
 
     image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
     """
-    kernel_size = kernel.shape[0]
-    height, width = image.shape[:2]
-    padded = pad_same(image, kernel_size)
-    taps = [
-        jnp.einsum("hwc,hwd->cd", padded[dy : dy + height, dx : dx + width, :], cotangent)
-        for dy in range(kernel_size)
-        for dx in range(kernel_size)
-    ]
+    views = _shifted_views(image, kernel.shape[0])
+    taps = [jnp.einsum("hwc,hwd->cd", view, cotangent) for view in views]
     return jnp.stack(taps).reshape(kernel.shape)
+
+
+def _kernel_grad_aligned(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """NHWC kernel gradient as per-tap matmuls whose result has the wider of C_in and
+    C_out as its minor axis, or as `_kernel_grad_conv` when either has one channel (the
+    head). One core of the 2-core AMD EPYC, 104x136: 6 -> 20 channels 2.0 ms (the conv
+    3.5), 20 -> 10 4.9 ms (taps with 10 minor 10.2, the conv 6.4), 10 -> 20 4.1 ms (the
+    conv 6.6), 20 -> 1 by the conv 0.5 ms (taps 4.4).
+    """
+    c_in, c_out = kernel.shape[2:]
+    if min(c_in, c_out) == 1:
+        return _kernel_grad_conv(image, cotangent, kernel)
+    if c_out >= c_in:
+        return _kernel_grad_taps(image, cotangent, kernel)
+    views = _shifted_views(image, kernel.shape[0])
+    taps = [jnp.einsum("hwd,hwc->dc", cotangent, view) for view in views]
+    return jnp.stack(taps).swapaxes(1, 2).reshape(kernel.shape)
 
 
 def _kernel_grad_im2col(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -192,13 +216,14 @@ def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     return jnp.flip(out.transpose(1, 2, 3, 0), (0, 1))
 
 
-def _nhwc_backend(kernel_grad) -> _StackBackend:
+def _nhwc_backend(kernel_grad, conv_one=conv_single) -> _StackBackend:
+    """NHWC pieces with `conv_one` as one example's conv (forward and input gradient)."""
     return _StackBackend(
         to_layout=lambda x: x,
         from_layout=lambda x: x,
-        forward=lambda image, kernel, bias: conv_single(image, kernel) + bias,
+        forward=lambda image, kernel, bias: conv_one(image, kernel) + bias,
         kernel_grad=kernel_grad,
-        input_grad=input_grad_conv,
+        input_grad=functools.partial(input_grad_conv, conv_one=conv_one),
         bias_grad=lambda cotangent: cotangent.sum((0, 1)),
     )
 
@@ -350,21 +375,24 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "fused": _fused(_nhwc_backend(_kernel_grad_conv)),
     "fused_taps": _fused(_nhwc_backend(_kernel_grad_taps)),
     "fused_im2col": _fused(_nhwc_backend(_kernel_grad_im2col)),
+    # "fused" with each conv's output channels padded to a multiple of 8 (the same
+    # values) and the kernel gradient as per-tap matmuls with the wider channel minor.
+    "fused_aligned": _fused(_nhwc_backend(_kernel_grad_aligned, aligned_conv_single)),
     # custom_vjp, lax.map of the stack in channel-major layout, everything as
     # [C_out, k*k*C_in] x [k*k*C_in, H*W] matmuls.
     "fused_planar": _fused(_PLANAR_BACKEND),
 }
 
 # Default formulation per platform. CPU, measured: `python -m experiments.benchmark` on
-# the 2-core machine (2 CPU devices, 256x192, the final conv as the head) timed the
-# batch-16 Adam step at 1.21-1.30 s with "fused" against 1.29 "fused_taps", 1.82
-# "fused_im2col", 2.20 "fused_planar", 2.33 "map_im2col", 2.69 "shifted", 4.7
-# "map_conv" and 31 "vmap" (PyTorch eager 1.67-2.00 s, compiled 1.74-2.30 s in the same
-# run), with the fastest forward at batch 16 too (0.20-0.25 s against 0.32-0.44 s
-# compiled). GPU: a choice, not a measurement (no GPU timing exists yet): "vmap" lowers
-# to one grouped convolution, which cuDNN runs natively, while the lax.map formulations
-# would serialise the batch into small kernels.
-_DEFAULT_FORMULATIONS = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
+# the 2-core AMD EPYC (2 CPU devices, 256x192, the final conv as the head, XLA's
+# reductions out of YNNPACK as `gld` sets) timed the batch-16 Adam step at 1.20-1.26 s
+# with "fused_aligned" against 1.67 "fused_taps" and 2.31 "fused" (PyTorch eager 2.04 s,
+# compiled 2.05 in the same run); the main job's step (128x96) at 386 ms against 480.
+# Earlier, on another 2-core machine: "fused" 1.21-1.30 s, "fused_taps" 1.29,
+# "fused_im2col" 1.82, "fused_planar" 2.20, "map_im2col" 2.33, "shifted" 2.69, "map_conv"
+# 4.7 and "vmap" 31. GPU, measured on an H200: "vmap" (one grouped convolution, which
+# cuDNN runs natively) has the fastest train step and forward throughput.
+_DEFAULT_FORMULATIONS = {"cpu": "fused_aligned", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap"}
 
 
 def default_formulation(backend: str | None = None) -> str:

@@ -42,7 +42,7 @@ def test_the_file_describes_the_model_and_runs_any_batch(tiny_model, tmp_path):
     assert (stored["height"], stored["width"], stored["batch_size"]) == (HEIGHT, WIDTH, None)
     assert stored["model"] == "global_local" and stored["source"] == source
     assert stored["model_config"]["encoder_channels"] == TINY_MODEL["encoder_channels"]
-    assert stored["formulation"] == "fused" and stored["platforms"] == ["cpu"]
+    assert stored["formulation"] == "fused_aligned" and stored["platforms"] == ["cpu"]
     assert [entry["name"] for entry in stored["inputs"]] == ["image1", "image2", "flow"]
     assert stored["inputs"][2]["shape"] == ["batch", HEIGHT, WIDTH, 2]
     outputs = {entry["name"]: entry["shape"] for entry in stored["outputs"]}

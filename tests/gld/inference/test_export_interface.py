@@ -7,8 +7,8 @@ from gld.inference import export_interface
 
 
 def test_the_formulation_follows_the_platform():
-    assert export_interface.choose_formulation(None, ("cpu",), None) == "fused"
-    assert export_interface.choose_formulation(None, ("cpu", "cuda"), None) == "fused"
+    assert export_interface.choose_formulation(None, ("cpu",), None) == "fused_aligned"
+    assert export_interface.choose_formulation(None, ("cpu", "cuda"), None) == "fused_aligned"
     # The GPU default (a grouped conv) needs a static batch; a symbolic one gets "shifted".
     assert export_interface.choose_formulation(None, ("cuda",), 4) == "vmap"
     assert export_interface.choose_formulation(None, ("cuda",), None) == "shifted"

@@ -142,9 +142,15 @@ def _check_formulation_matches_loop_of_plain_convs(formulation, reference_case):
 
 
 def test_default_formulation_is_the_measured_choice_per_platform():
-    # CPU: the fused custom-VJP stack (fastest on the 2-core benchmark); GPU and any
-    # other platform: "vmap", one grouped convolution.
-    expected = {"cpu": "fused", "gpu": "vmap", "cuda": "vmap", "rocm": "vmap", "tpu": "vmap"}
+    # CPU: the fused custom-VJP stack with channels aligned to the vectors (fastest on the
+    # 2-core benchmark); GPU and any other platform: "vmap", one grouped convolution.
+    expected = {
+        "cpu": "fused_aligned",
+        "gpu": "vmap",
+        "cuda": "vmap",
+        "rocm": "vmap",
+        "tpu": "vmap",
+    }
     for backend, name in expected.items():
         assert filter_banks.default_formulation(backend) == name, backend
         assert name in filter_banks.FORMULATIONS
