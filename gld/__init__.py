@@ -11,8 +11,10 @@ __version__ = "0.1.0"
 # on the 2-core AMD EPYC took 470 ms with them in YNNPACK and 385 ms without, the pose
 # refinement 95 ms and 30 ms of it. Dots and convolutions stay in YNNPACK. The option is
 # read when JAX starts its backend, so it is set on import, before any computation, and
-# never over a value that XLA_FLAGS already gives.
+# never over a value that XLA_FLAGS already gives. XLA aborts on a flag or value it does
+# not know, so it is set only for the jaxlib versions it was measured with (0.10).
 CPU_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+CPU_FUSION_JAXLIB = ((0, 10),)
 
 
 def _jaxlib_version() -> tuple[int, ...]:
@@ -23,5 +25,10 @@ def _jaxlib_version() -> tuple[int, ...]:
     return tuple(int(part) for part in version.split(".")[:2] if part.isdigit())
 
 
-if _jaxlib_version() >= (0, 10) and "ynn_fusion_type" not in os.environ.get("XLA_FLAGS", ""):
+def sets_cpu_fusion_flag() -> bool:
+    """Whether importing gld adds `CPU_FUSION_FLAG` to XLA_FLAGS here."""
+    return _jaxlib_version() in CPU_FUSION_JAXLIB
+
+
+if sets_cpu_fusion_flag() and "ynn_fusion_type" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_FUSION_FLAG}".strip()

@@ -34,7 +34,7 @@ def _run(xla_flags: str | None) -> tuple[str, bool]:
     return flags, in_library == "True"
 
 
-@pytest.mark.skipif(gld._jaxlib_version() < (0, 10), reason="the option exists from jaxlib 0.10")
+@pytest.mark.skipif(not gld.sets_cpu_fusion_flag(), reason="the option is set for jaxlib 0.10")
 def test_the_cpu_reductions_stay_out_of_the_library_unless_xla_flags_says_otherwise():
     flags, in_library = _run(None)
     assert flags == gld.CPU_FUSION_FLAG
