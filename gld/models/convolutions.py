@@ -52,35 +52,35 @@ def pad_same(images: jax.Array, kernel_size: int) -> jax.Array:
     return jnp.pad(images, widths)
 
 
+def shifted_views(images: jax.Array, kernel_size: int) -> list[jax.Array]:
+    """The k*k views of zero-padded images [..., H, W, C] that a 'SAME' conv's taps read,
+    ordered (dy, dx) like HWIO."""
+    height, width = images.shape[-3:-1]
+    padded = pad_same(images, kernel_size)
+    return [
+        padded[..., dy : dy + height, dx : dx + width, :]
+        for dy in range(kernel_size)
+        for dx in range(kernel_size)
+    ]
+
+
 def shifted_conv(images: jax.Array, kernels: jax.Array) -> jax.Array:
     """Per-example conv as a sum of k*k shifted batched matmuls (no patch tensor).
 
     images: [B, H, W, C_in]; kernels: [B, k, k, C_in, C_out] -> [B, H, W, C_out].
     """
     kernel_size = kernels.shape[1]
-    height, width = images.shape[1:3]
-    padded = pad_same(images, kernel_size)
+    taps = kernels.reshape(kernels.shape[0], kernel_size * kernel_size, *kernels.shape[3:])
     out = None
-    for dy in range(kernel_size):
-        for dx in range(kernel_size):
-            view = padded[:, dy : dy + height, dx : dx + width, :]
-            term = jnp.einsum("bhwc,bcd->bhwd", view, kernels[:, dy, dx])
-            out = term if out is None else out + term
+    for index, view in enumerate(shifted_views(images, kernel_size)):
+        term = jnp.einsum("bhwc,bcd->bhwd", view, taps[:, index])
+        out = term if out is None else out + term
     return out
 
 
 def im2col_patches(image: jax.Array, kernel_size: int) -> jax.Array:
     """im2col of one example: [H, W, C] -> [H, W, k*k*C] ordered (dy, dx, c) like HWIO."""
-    height, width = image.shape[:2]
-    padded = pad_same(image, kernel_size)
-    return jnp.concatenate(
-        [
-            padded[dy : dy + height, dx : dx + width, :]
-            for dy in range(kernel_size)
-            for dx in range(kernel_size)
-        ],
-        axis=-1,
-    )
+    return jnp.concatenate(shifted_views(image, kernel_size), axis=-1)
 
 
 def im2col_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:

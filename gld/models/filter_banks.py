@@ -33,8 +33,8 @@ from gld.models.convolutions import (
     im2col_patches,
     input_grad_conv,
     leaky_relu_grad,
-    pad_same,
     shifted_conv,
+    shifted_views,
 )
 from gld.sharding import on_batch_shards
 
@@ -148,23 +148,12 @@ class _StackBackend(NamedTuple):
     bias_grad: Callable[[jax.Array], jax.Array]
 
 
-def _shifted_views(image: jax.Array, kernel_size: int) -> list[jax.Array]:
-    """The k*k views of a zero-padded [H, W, C] image that a 'SAME' conv's taps read."""
-    height, width = image.shape[:2]
-    padded = pad_same(image, kernel_size)
-    return [
-        padded[dy : dy + height, dx : dx + width, :]
-        for dy in range(kernel_size)
-        for dx in range(kernel_size)
-    ]
-
-
 def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """NHWC kernel gradient as k*k matmuls over pixels, one per tap (no patch tensor).
 
     image: [H, W, C_in]; cotangent: [H, W, C_out] -> [k, k, C_in, C_out].
     """
-    views = _shifted_views(image, kernel.shape[0])
+    views = shifted_views(image, kernel.shape[0])
     taps = [jnp.einsum("hwc,hwd->cd", view, cotangent) for view in views]
     return jnp.stack(taps).reshape(kernel.shape)
 
@@ -181,7 +170,7 @@ def _kernel_grad_aligned(image: jax.Array, cotangent: jax.Array, kernel: jax.Arr
         return _kernel_grad_conv(image, cotangent, kernel)
     if c_out >= c_in:
         return _kernel_grad_taps(image, cotangent, kernel)
-    views = _shifted_views(image, kernel.shape[0])
+    views = shifted_views(image, kernel.shape[0])
     taps = [jnp.einsum("hwd,hwc->dc", cotangent, view) for view in views]
     return jnp.stack(taps).swapaxes(1, 2).reshape(kernel.shape)
 
