@@ -158,23 +158,6 @@ def _kernel_grad_taps(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     return jnp.stack(taps).reshape(kernel.shape)
 
 
-def _kernel_grad_aligned(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
-    """NHWC kernel gradient as per-tap matmuls whose result has the wider of C_in and
-    C_out as its minor axis, or as `_kernel_grad_conv` when either has one channel (the
-    head). One core of the 2-core AMD EPYC, 104x136: 6 -> 20 channels 2.0 ms (the conv
-    3.5), 20 -> 10 4.9 ms (taps with 10 minor 10.2, the conv 6.4), 10 -> 20 4.1 ms (the
-    conv 6.6), 20 -> 1 by the conv 0.5 ms (taps 4.4).
-    """
-    c_in, c_out = kernel.shape[2:]
-    if min(c_in, c_out) == 1:
-        return _kernel_grad_conv(image, cotangent, kernel)
-    if c_out >= c_in:
-        return _kernel_grad_taps(image, cotangent, kernel)
-    views = shifted_views(image, kernel.shape[0])
-    taps = [jnp.einsum("hwd,hwc->dc", cotangent, view) for view in views]
-    return jnp.stack(taps).swapaxes(1, 2).reshape(kernel.shape)
-
-
 def _kernel_grad_im2col(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """NHWC kernel gradient as one matmul: patches [HW, k*k*C_in]^T @ cotangent [HW, C_out]."""
     patches = im2col_patches(image, kernel.shape[0])
@@ -203,6 +186,40 @@ def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     lhs = padded.transpose(2, 0, 1)[..., None]  # [C_out, H + 2p, W + 2p, 1]
     out = conv_valid(lhs, image[:, :, None, :])  # [C_out, k, k, C_in]
     return jnp.flip(out.transpose(1, 2, 3, 0), (0, 1))
+
+
+# XLA's CPU runtime of jaxlib 0.10 hands a convolution with more than this many input or
+# output features to YNNPACK, whose code for the kernel gradient's shape (an H x W
+# filter, a k x k output) runs 2-4x slower than XLA's own.
+_SLICE_CHANNELS = 16
+
+
+def _kernel_grad_sliced(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
+    """`_kernel_grad_conv` over slices of at most 16 input and output channels, so that
+    every conv has at most 16 features; the head (one output channel) in one conv. One
+    core of the 2-core AMD EPYC, 192x256: 6 -> 20 channels 7.7 ms (per-tap matmuls 9.6,
+    the unsliced conv 42), 20 -> 10 10.6 ms (35, 67), 10 -> 20 10.6 ms (17, 68), 20 -> 1
+    unsliced 2.0 ms (sliced 2.5).
+    """
+    c_in, c_out = kernel.shape[2:]
+    if min(c_in, c_out) == 1:
+        return _kernel_grad_conv(image, cotangent, kernel)
+    step = _SLICE_CHANNELS
+    rows = [
+        jnp.concatenate(
+            [
+                _kernel_grad_conv(
+                    image[..., i : i + step],
+                    cotangent[..., o : o + step],
+                    kernel[:, :, i : i + step, o : o + step],
+                )
+                for o in range(0, c_out, step)
+            ],
+            axis=3,
+        )
+        for i in range(0, c_in, step)
+    ]
+    return jnp.concatenate(rows, axis=2)
 
 
 def _nhwc_backend(kernel_grad, conv_one=conv_single) -> _StackBackend:
@@ -365,8 +382,8 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "fused_taps": _fused(_nhwc_backend(_kernel_grad_taps)),
     "fused_im2col": _fused(_nhwc_backend(_kernel_grad_im2col)),
     # "fused" with each conv's output channels padded to a multiple of 8 (the same
-    # values) and the kernel gradient as per-tap matmuls with the wider channel minor.
-    "fused_aligned": _fused(_nhwc_backend(_kernel_grad_aligned, aligned_conv_single)),
+    # values) and the kernel gradient's conv over slices of at most 16 channels.
+    "fused_aligned": _fused(_nhwc_backend(_kernel_grad_sliced, aligned_conv_single)),
     # custom_vjp, lax.map of the stack in channel-major layout, everything as
     # [C_out, k*k*C_in] x [k*k*C_in, H*W] matmuls.
     "fused_planar": _fused(_PLANAR_BACKEND),

@@ -11,6 +11,7 @@ from conftest import run_on_cpu_devices
 from jax import lax
 
 from gld.models import filter_banks
+from gld.models.convolutions import conv_single
 from gld.models.filter_banks import FilterBank, SharedConv
 
 BANK_CHANNELS = (5, 3, 4)
@@ -139,6 +140,21 @@ def _check_formulation_matches_loop_of_plain_convs(formulation, reference_case):
     np.testing.assert_allclose(input_grads, expected_grads[1], rtol=1e-4, atol=1e-4)
     # Inputs that are data (as in the model): only the layers are differentiated.
     _assert_bank_grads_equal(jax.jit(jax.grad(loss))(layers, inputs), expected_grads[0])
+
+
+@pytest.mark.parametrize("c_in, c_out", [(3, 17), (18, 20), (20, 5), (33, 2), (17, 1)])
+def test_sliced_kernel_gradient_matches_autodiff_across_slices(c_in, c_out):
+    # The CPU default's kernel gradient cuts channel counts above 16 into slices of 16
+    # (both sides, with a short last slice); a head's one output channel stays whole.
+    rng = np.random.default_rng(100 * c_in + c_out)
+    image = jnp.asarray(rng.normal(size=(6, 7, c_in)), jnp.float32)
+    cotangent = jnp.asarray(rng.normal(size=(6, 7, c_out)), jnp.float32)
+    kernel = jnp.zeros((3, 3, c_in, c_out), jnp.float32)
+    with jax.default_matmul_precision("highest"):
+        _, vjp = jax.vjp(lambda k: conv_single(image, k), kernel)
+        (expected,) = vjp(cotangent)
+        got = jax.jit(filter_banks._kernel_grad_sliced)(image, cotangent, kernel)
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4)
 
 
 def test_default_formulation_is_the_measured_choice_per_platform():
