@@ -26,17 +26,22 @@ def conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
 
 
 def aligned_channels(count: int) -> int:
-    """`count` output channels rounded up to a multiple of 8 (one AVX vector of float32),
-    unless there are at most 4."""
-    return count if count <= 4 else -(-count // 8) * 8
+    """`count` output channels rounded up to a multiple of 8 (one AVX vector of float32)
+    when there are 5 to 15 of them; other counts stay."""
+    return count if count <= 4 or count >= 16 else -(-count // 8) * 8
 
 
 def aligned_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
     """`conv_single` with the output channels padded by zero filters to
-    `aligned_channels` and cut back: the same values. XLA's CPU convolution runs some
-    output channel counts several times slower than the next multiple of 8 (one core of
-    the 2-core AMD EPYC, 104x136, 20 input channels: 10 outputs in 6.3 ms, 16 in 2.6 ms;
-    10 inputs: 20 outputs in 1.7 ms, 24 in 1.9)."""
+    `aligned_channels` and cut back: the same values.
+
+    XLA's CPU runtime (jaxlib 0.10) runs a conv with at most 16 input and output
+    channels itself and hands larger ones to YNNPACK; both run some output counts far
+    slower than the next multiple of 8, but YNNPACK runs 20 outputs faster than 24. One
+    core of the 2-core AMD EPYC, 192x256: 20 inputs, 10 outputs 19.4 ms, 16
+    outputs 8.4; 6 inputs, 10 outputs 10.9 ms, 16 outputs 8.9; 10 inputs, 20 outputs
+    5.8 ms, 24 outputs 6.4.
+    """
     c_out = kernel.shape[-1]
     padding = aligned_channels(c_out) - c_out
     if not padding:

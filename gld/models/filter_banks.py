@@ -381,7 +381,7 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
     "fused": _fused(_nhwc_backend(_kernel_grad_conv)),
     "fused_taps": _fused(_nhwc_backend(_kernel_grad_taps)),
     "fused_im2col": _fused(_nhwc_backend(_kernel_grad_im2col)),
-    # "fused" with each conv's output channels padded to a multiple of 8 (the same
+    # "fused" with 5-15 output channels of a conv padded to a multiple of 8 (the same
     # values) and the kernel gradient's conv over slices of at most 16 channels.
     "fused_aligned": _fused(_nhwc_backend(_kernel_grad_sliced, aligned_conv_single)),
     # custom_vjp, lax.map of the stack in channel-major layout, everything as
