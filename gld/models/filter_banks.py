@@ -190,7 +190,7 @@ def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
 
 # XLA's CPU runtime of jaxlib 0.10 hands a convolution with more than this many input or
 # output features to YNNPACK, whose code for the kernel gradient's shape (an H x W
-# filter, a k x k output) runs 2-4x slower than XLA's own.
+# filter, a k x k output) runs 5-6x slower than XLA's own.
 _SLICE_CHANNELS = 16
 
 
