@@ -391,9 +391,10 @@ FORMULATIONS: dict[str, Callable[..., jax.Array]] = {
 
 # Default formulation per platform. CPU, measured: `python -m experiments.benchmark` on
 # the 2-core AMD EPYC (2 CPU devices, 256x192, the final conv as the head, XLA's
-# reductions out of YNNPACK as `gld` sets) timed the batch-16 Adam step at 1.20-1.26 s
-# with "fused_aligned" against 1.67 "fused_taps" and 2.31 "fused" (PyTorch eager 2.04 s,
-# compiled 2.05 in the same run); the main job's step (128x96) at 386 ms against 480.
+# reductions out of YNNPACK as `gld` sets) timed the batch-16 Adam step at 1.06-1.10 s
+# with "fused_aligned" against 1.73 "fused_taps", 2.21 "fused_im2col", 2.27
+# "fused_planar" and 2.40 "fused" (PyTorch eager 2.04-2.14 s, compiled 1.96-2.02 in the
+# same run); the main job's step (128x96) at 336-373 ms against 480 with "fused".
 # Earlier, on another 2-core machine: "fused" 1.21-1.30 s, "fused_taps" 1.29,
 # "fused_im2col" 1.82, "fused_planar" 2.20, "map_im2col" 2.33, "shifted" 2.69, "map_conv"
 # 4.7 and "vmap" 31. GPU, measured on an H200: "vmap" (one grouped convolution, which
