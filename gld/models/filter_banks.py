@@ -197,9 +197,9 @@ _SLICE_CHANNELS = 16
 def _kernel_grad_sliced(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
     """`_kernel_grad_conv` over slices of at most 16 input and output channels, so that
     every conv has at most 16 features; the head (one output channel) in one conv. One
-    core of the 2-core AMD EPYC, 192x256: 6 -> 20 channels 7.7 ms (per-tap matmuls 9.6,
-    the unsliced conv 42), 20 -> 10 10.6 ms (35, 67), 10 -> 20 10.6 ms (17, 68), 20 -> 1
-    unsliced 2.0 ms (sliced 2.5).
+    core of the 2-core AMD EPYC, 192x256: 6 -> 20 channels 7.9 ms (per-tap matmuls 9.6,
+    the unsliced conv 42), 20 -> 10 10.9 ms (35, 67), 10 -> 20 11.0 ms (17, 68), 20 -> 1
+    unsliced 2.0 ms (sliced 2.8).
     """
     c_in, c_out = kernel.shape[2:]
     if min(c_in, c_out) == 1:
