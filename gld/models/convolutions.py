@@ -25,18 +25,23 @@ def conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
     return conv(image[None], kernel)[0]
 
 
+# The most input and output channels a conv may have for XLA's CPU runtime (jaxlib 0.10)
+# to run it with its own code; it hands a conv with more to YNNPACK (XLA's
+# `ynn_support.cc`). Which of the two runs a conv decides its speed.
+XLA_CONV_CHANNELS = 16
+
+
 def aligned_channels(count: int) -> int:
     """`count` output channels rounded up to a multiple of 8 (one AVX vector of float32)
-    when there are 5 to 15 of them; other counts stay."""
-    return count if count <= 4 or count >= 16 else -(-count // 8) * 8
+    when there are 5 to 15 of them (`XLA_CONV_CHANNELS`); other counts stay."""
+    return count if count <= 4 or count >= XLA_CONV_CHANNELS else -(-count // 8) * 8
 
 
 def aligned_conv_single(image: jax.Array, kernel: jax.Array) -> jax.Array:
     """`conv_single` with the output channels padded by zero filters to
     `aligned_channels` and cut back: the same values.
 
-    XLA's CPU runtime (jaxlib 0.10) runs a conv with at most 16 input and output
-    channels itself and hands larger ones to YNNPACK; both run some output counts far
+    XLA's own code and YNNPACK (`XLA_CONV_CHANNELS`) both run some output counts far
     slower than the next multiple of 8, but YNNPACK runs 20 outputs faster than 24. One
     core of the 2-core AMD EPYC, 192x256: 20 inputs, 10 outputs 19.4 ms, 16
     outputs 8.4; 6 inputs, 10 outputs 10.9 ms, 16 outputs 8.9; 10 inputs, 20 outputs

@@ -25,6 +25,7 @@ from jax import lax
 
 from gld.models import layers
 from gld.models.convolutions import (
+    XLA_CONV_CHANNELS,
     aligned_conv_single,
     conv,
     conv_single,
@@ -188,38 +189,33 @@ def _kernel_grad_conv(image: jax.Array, cotangent: jax.Array, kernel: jax.Array)
     return jnp.flip(out.transpose(1, 2, 3, 0), (0, 1))
 
 
-# XLA's CPU runtime of jaxlib 0.10 hands a convolution with more than this many input or
-# output features to YNNPACK, whose code for the kernel gradient's shape (an H x W
-# filter, a k x k output) runs 5-6x slower than XLA's own.
-_SLICE_CHANNELS = 16
-
-
 def _kernel_grad_sliced(image: jax.Array, cotangent: jax.Array, kernel: jax.Array) -> jax.Array:
-    """`_kernel_grad_conv` over slices of at most 16 input and output channels, so that
-    every conv has at most 16 features; the head (one output channel) in one conv. One
-    core of the 2-core AMD EPYC, 192x256: 6 -> 20 channels 7.9 ms (per-tap matmuls 9.6,
-    the unsliced conv 42), 20 -> 10 10.9 ms (35, 67), 10 -> 20 11.0 ms (17, 68), 20 -> 1
-    unsliced 2.0 ms (sliced 2.8).
+    """`_kernel_grad_conv` over slices of at most `XLA_CONV_CHANNELS` (16) input and
+    output channels, so that XLA runs every conv with its own code: YNNPACK's code for
+    this shape (an H x W filter, a k x k output) is 5-6x slower. The head (one output
+    channel) stays one conv, which YNNPACK runs faster. One core of the 2-core AMD EPYC,
+    192x256: 6 -> 20 channels 7.9 ms (per-tap matmuls 9.6, the unsliced conv 42),
+    20 -> 10 10.9 ms (35, 67), 10 -> 20 11.0 ms (17, 68), 20 -> 1 unsliced 2.0 ms
+    (sliced 2.8).
     """
     c_in, c_out = kernel.shape[2:]
     if min(c_in, c_out) == 1:
         return _kernel_grad_conv(image, cotangent, kernel)
-    step = _SLICE_CHANNELS
-    rows = [
-        jnp.concatenate(
+
+    def slices(count: int) -> list[slice]:
+        step = XLA_CONV_CHANNELS
+        return [slice(start, start + step) for start in range(0, count, step)]
+
+    # jnp.block joins the inner lists along C_out (the last axis), the rows along C_in.
+    return jnp.block(
+        [
             [
-                _kernel_grad_conv(
-                    image[..., i : i + step],
-                    cotangent[..., o : o + step],
-                    kernel[:, :, i : i + step, o : o + step],
-                )
-                for o in range(0, c_out, step)
-            ],
-            axis=3,
-        )
-        for i in range(0, c_in, step)
-    ]
-    return jnp.concatenate(rows, axis=2)
+                _kernel_grad_conv(image[..., i], cotangent[..., o], kernel[:, :, i, o])
+                for o in slices(c_out)
+            ]
+            for i in slices(c_in)
+        ]
+    )
 
 
 def _nhwc_backend(kernel_grad, conv_one=conv_single) -> _StackBackend:
