@@ -133,15 +133,21 @@ def gather_strings(values: Sequence[Any], max_bytes: int = 120) -> list[str]:
     return [bytes(row).rstrip(b"\0").decode() for row in np.asarray(gathered)]
 
 
-def on_batch_shards(apply: Callable, batch_size: int) -> Callable:
-    """`apply(banks, inputs, head)` run on each device's shard of the batch.
+def on_batch_shards(
+    apply: Callable, batch_size: int, *, replicated: tuple[int, ...] = ()
+) -> Callable:
+    """`apply(*args)`, a function of each example alone, run on each device's shard of
+    the batch.
 
     XLA's partitioner cannot split a `lax.map` over its mapped axis: given a batch
     sharded over devices, it gathers the whole batch on every device and each device
-    loops over all examples. When a mesh with a `BATCH_AXIS` axis is set (`jax.set_mesh`,
-    as `under_mesh` does around the jitted steps) and divides the batch, `shard_map` gives each
-    device its own examples; banks and inputs are split on the batch axis, the shared
-    head is replicated (its gradient is summed over devices).
+    loops over all examples; and it may reshard a computation per example between its
+    steps (an all-to-all each time). When a mesh with a `BATCH_AXIS` axis is set
+    (`jax.set_mesh`, as `under_mesh` does around the jitted steps) and divides the batch,
+    `shard_map` gives each device its own examples: every argument (a pytree) is split on
+    its leading batch axis, except those at the positions `replicated` (e.g. a kernel
+    shared by the batch; its gradient is summed over devices). The outputs are split on
+    their batch axis too.
     """
     mesh = jax.sharding.get_abstract_mesh()
     if mesh.empty or BATCH_AXIS not in mesh.axis_names:
@@ -150,20 +156,14 @@ def on_batch_shards(apply: Callable, batch_size: int) -> Callable:
     if devices == 1 or batch_size % devices:
         return apply
     batch = PartitionSpec(BATCH_AXIS)
-    sharded = jax.shard_map(
-        apply,
-        mesh=mesh,
-        in_specs=(batch, batch, PartitionSpec()),
-        out_specs=batch,
-        check_vma=False,
-    )
-    axis_type = mesh.axis_types[mesh.axis_names.index(BATCH_AXIS)]
-    if axis_type != jax.sharding.AxisType.Explicit:
-        return sharded
+    explicit = mesh.axis_types[mesh.axis_names.index(BATCH_AXIS)] == jax.sharding.AxisType.Explicit
 
-    def resharded(banks, inputs, head):
-        # Explicit sharding: the arguments' types must already carry the specs.
-        banks, inputs = jax.reshard((banks, inputs), batch)
-        return sharded(banks, inputs, jax.reshard(head, PartitionSpec()))
+    def sharded(*args):
+        specs = tuple(PartitionSpec() if i in replicated else batch for i in range(len(args)))
+        if explicit:
+            # Explicit sharding: the arguments' types must already carry the specs.
+            args = tuple(jax.reshard(arg, spec) for arg, spec in zip(args, specs, strict=True))
+        mapped = jax.shard_map(apply, mesh=mesh, in_specs=specs, out_specs=batch, check_vma=False)
+        return mapped(*args)
 
-    return resharded
+    return sharded

@@ -80,9 +80,10 @@ def launch(module: str, *args: str, timeout: int = 300, **options) -> subprocess
     return _interpreter(["-m", module, *args], timeout=timeout, **options)
 
 
-def run_on_cpu_devices(script: str, device_count: int) -> dict:
-    """`run_python` on `device_count` devices; the JSON object the script prints last."""
-    result = run_python(script, device_count=device_count)
+def run_on_cpu_devices(script: str, device_count: int, *args: str) -> dict:
+    """`run_python` with `args` on `device_count` devices; the JSON object the script
+    prints last."""
+    result = run_python(script, *args, device_count=device_count)
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 

@@ -471,4 +471,6 @@ def apply_filter_banks(
             raise ValueError(f"head.bias must be {(kernel.shape[3],)}, got shape {bias.shape}")
     formulation_fn = functools.partial(FORMULATIONS[name], negative_slope=negative_slope)
     apply = lambda banks, inputs, head: formulation_fn(banks, inputs, head=head)
-    return on_batch_shards(apply, inputs.shape[0])(list(filter_banks), inputs, head)
+    return on_batch_shards(apply, inputs.shape[0], replicated=(2,))(
+        list(filter_banks), inputs, head
+    )

@@ -89,7 +89,7 @@ def test_per_example_code_runs_on_each_devices_share_of_the_batch():
         seen.clear()
         mesh = AbstractMesh((devices,), (sharding.BATCH_AXIS,))
         with jax.sharding.use_abstract_mesh(mesh):
-            jaxpr = jax.make_jaxpr(sharding.on_batch_shards(apply, batch_size))(
+            jaxpr = jax.make_jaxpr(sharding.on_batch_shards(apply, batch_size, replicated=(2,)))(
                 jnp.zeros((batch_size, 3)), jnp.zeros((batch_size, 2)), jnp.zeros(5)
             )
         assert jaxpr.out_avals[0].shape == (batch_size, 2)  # the whole batch comes back
@@ -102,10 +102,29 @@ def test_per_example_code_runs_on_each_devices_share_of_the_batch():
     assert shapes_seen(8, 1) == [((8, 3), (8, 2), (5,))]
     # No mesh at all.
     seen.clear()
-    jax.make_jaxpr(sharding.on_batch_shards(apply, 8))(
+    jax.make_jaxpr(sharding.on_batch_shards(apply, 8, replicated=(2,)))(
         jnp.zeros((8, 3)), jnp.zeros((8, 2)), jnp.zeros(5)
     )
     assert seen == [((8, 3), (8, 2), (5,))]
+
+
+def test_every_argument_is_split_unless_replicated():
+    from jax.sharding import AbstractMesh
+
+    seen = []
+
+    def apply(pair, scale):
+        seen.append((pair[0].shape, pair[1].shape, scale.shape))
+        return pair[0] * scale, pair[1]
+
+    mesh = AbstractMesh((2,), (sharding.BATCH_AXIS,))
+    with jax.sharding.use_abstract_mesh(mesh):
+        jaxpr = jax.make_jaxpr(sharding.on_batch_shards(apply, 4))(
+            (jnp.zeros((4, 3)), jnp.zeros((4, 5, 2))), jnp.zeros((4, 1))
+        )
+    # A pytree's leaves and every other argument split on the batch axis; the outputs too.
+    assert seen == [((2, 3), (2, 5, 2), (2, 1))]
+    assert [aval.shape for aval in jaxpr.out_avals] == [(4, 3), (4, 5, 2)]
 
 
 def test_an_evaluation_batch_is_rounded_up_to_the_devices():
