@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import collections
 import json
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -409,6 +411,60 @@ def test_every_worker_count_reads_the_same_batches(source):
         workers = _train_iterator(source, worker_count)
         _assert_same_batches(expected, _take(workers, 6))
         workers.close()
+
+
+class _CountingSource:
+    """A list of records that counts the reads of each index."""
+
+    def __init__(self, records):
+        self.records, self.reads = records, collections.Counter()
+
+    def __len__(self):
+        return len(self.records)
+
+    def __getitem__(self, index):
+        self.reads[index] += 1
+        # A fresh copy, as a data source decodes a new record at every read.
+        return {
+            key: np.array(value) if isinstance(value, np.ndarray) else value
+            for key, value in self.records[index].items()
+        }
+
+
+def _epochs_of_batches(source, epochs: int) -> list[dict]:
+    iterator = iter(input_pipeline.train_dataset(source, batch_size=1, seed=3, gt_pixels=4))
+    batches = _take(iterator, epochs * len(source))
+    iterator.close()
+    return batches
+
+
+@pytest.mark.parametrize("budget", ["all", "some", "none"])
+def test_kept_records_are_read_once_and_give_the_same_batches(source, monkeypatch, budget):
+    sizes = [input_pipeline._record_bytes(record) for record in source]
+    monkeypatch.setattr(input_pipeline, "_RECORD_CACHE_BYTES", 0)
+    expected = _epochs_of_batches(_CountingSource(source), 3)
+    cache_bytes = {"all": sum(sizes), "some": 3 * min(sizes), "none": 0}[budget]
+    monkeypatch.setattr(input_pipeline, "_RECORD_CACHE_BYTES", cache_bytes)
+    counting = _CountingSource(source)
+    _assert_same_batches(expected, _epochs_of_batches(counting, 3))
+    # A kept record is read once; the others in every epoch (some once more, by the
+    # prefetch into the fourth). The kept ones fit the budget.
+    kept = [index for index in range(len(source)) if counting.reads[index] == 1]
+    assert all(counting.reads[index] >= 3 for index in range(len(source)) if index not in kept)
+    assert sum(sizes[index] for index in kept) <= cache_bytes
+    expected_kept = {"all": [len(source)], "some": [1, 2, 3], "none": [0]}[budget]
+    assert len(kept) in expected_kept
+
+
+def test_a_kept_record_cannot_be_written(source):
+    reader = input_pipeline._RecordReader(_CountingSource(source), cache_bytes=1 << 30)
+    record, _ = reader.read(0)
+    assert reader.read(0)[0] is record
+    with pytest.raises(ValueError, match="read-only"):
+        record["depth1"][0, 0] = 1.0
+    # A grain worker's copy keeps nothing of what this process read.
+    copy = pickle.loads(pickle.dumps(reader))
+    assert copy._cache == {} and copy.cache_bytes == reader.cache_bytes
 
 
 def test_states_of_earlier_checkpoints_are_read(source):
