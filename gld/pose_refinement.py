@@ -30,10 +30,13 @@ The translation keeps its sign (the constraint does not fix it) and unit norm.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 from gld import geometry
+from gld.sharding import on_batch_shards
 
 # Pixels used: every STRIDE-th row and column (768 of 128x96's 12,288 pixels at 4).
 DEFAULT_STRIDE = 4
@@ -315,8 +318,21 @@ def pose_from_proposal(
     at 0.5 px, the rest at 0.2 px; a single step at 0.2 px), which a narrower basin allows
     once the search has found it. No steps return the proposal (no search).
 
+    On a batch-sharded mesh each device finds the poses of its own pairs
+    (`gld.sharding.on_batch_shards`): left to XLA's partitioner, the search's steps were
+    resharded between the devices (all-to-alls).
+
     Args and returns: as `refine_pose`.
     """
+    search = functools.partial(_pose_from_proposal, iterations=iterations, starts=starts)
+    return on_batch_shards(search, flow.shape[0])(
+        flow, rotation, translation, intrinsics1, intrinsics2
+    )
+
+
+def _pose_from_proposal(
+    flow, rotation, translation, intrinsics1, intrinsics2, *, iterations, starts
+):
     if starts == 1 or iterations == 0:
         return refine_pose(
             flow, rotation, translation, intrinsics1, intrinsics2, iterations=iterations

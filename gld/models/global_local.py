@@ -9,7 +9,6 @@ ablation of the paper's Table (image pair, CoordConv, global module, flow) is a 
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 
@@ -32,7 +31,6 @@ from gld.models.global_pose import (  # noqa: F401  (POSE_ROTATION_SCALE: read a
 from gld.models.hypernet import MODULATION_SCALE, HyperNetwork, StaticFilterBanks
 from gld.models.parallax import parallax_flow, parallax_inverse_depth
 from gld.options import option
-from gld.sharding import on_batch_shards
 
 LOCAL_FLOW_UNITS = ("normalised", "pixels")
 GLOBAL_NORMS = ("none", "batch")
@@ -467,19 +465,14 @@ class GlobalLocal(nn.Module):
                 f"{self.global_dim}"
             )
         pose = global_params_pose(jax.lax.stop_gradient(proposal))
-        # Each pair's pose alone, on each device's own pairs: left to XLA's partitioner,
-        # the search's steps were resharded between devices (all-to-alls).
-        refine = functools.partial(
-            pose_refinement.pose_from_proposal,
-            iterations=self.pose_refinement_steps,
-            starts=self.pose_refinement_starts,
-        )
-        rotation, translation = on_batch_shards(refine, flow.shape[0])(
+        rotation, translation = pose_refinement.pose_from_proposal(
             jax.lax.stop_gradient(flow),
             pose["rotation"],
             pose["translation"],
             intrinsics1,
             intrinsics2,
+            iterations=self.pose_refinement_steps,
+            starts=self.pose_refinement_starts,
         )
         return jax.lax.stop_gradient(pose_parameters(rotation, translation)).astype(flow.dtype)
 
