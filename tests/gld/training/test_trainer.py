@@ -243,7 +243,8 @@ SHARDED_SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("model", ["paper", "recipe"])
+# The main job's model compiles for ~40 s on two cores: with the slow tests.
+@pytest.mark.parametrize("model", ["paper", pytest.param("recipe", marks=pytest.mark.slow)])
 def test_four_device_step_equals_one_device_step(tmp_path, model):
     numbers = run_on_cpu_devices(SHARDED_SCRIPT, 4, model)
     assert numbers["max_abs_diff"] <= 1e-5 * max(numbers["max_abs"], 1.0)
