@@ -53,9 +53,9 @@ def source_decoders() -> dict[str, Any]:
 
 
 # Training reads every record once an epoch. The records a process read are kept, decoded,
-# up to this many bytes of arrays per process (grain worker or trainer): TFDS's
+# up to this many bytes per process (grain worker or trainer): TFDS's
 # deserialising and zlib are ~55% of an example's preparation (3.1 of 5.6 ms of CPU on
-# gld_scenes/small, whose 2,000 records take ~420 MB), CPU time the train step would
+# gld_scenes/small, whose 2,000 records take ~580 MB), CPU time the train step would
 # otherwise share its cores with. Records beyond the budget are read again every epoch.
 _RECORD_CACHE_BYTES = 1 << 30
 
@@ -78,8 +78,8 @@ class _RecordReader:
 
     With `cache_bytes`, the records read are kept (read-only) until they take that many
     bytes, and read again from the source only beyond it: the same records either way.
-    Picklable (grain workers receive a copy, with what it kept so far) as long as the
-    source is.
+    Picklable as long as the source is; a grain worker's copy keeps nothing yet (the
+    budget is each process's).
     """
 
     def __init__(self, source: Sequence[Any], cache_bytes: int = 0):
@@ -91,7 +91,7 @@ class _RecordReader:
         self._describe_files()
 
     def __getstate__(self) -> dict[str, Any]:
-        # A worker gets the source, not what this process kept: the budget is per process.
+        # A worker gets the source, not what this process kept.
         return {**self.__dict__, "_cache": {}, "_cached_bytes": 0}
 
     def _describe_files(self) -> None:
@@ -128,7 +128,7 @@ class _RecordReader:
             raise ValueError(f"{where}: cannot read the record ({error})") from error
         if self.cache_bytes and isinstance(record, dict):
             size = _record_bytes(record)
-            # Two reader threads may both add a record: the budget is kept to one record.
+            # Two reader threads adding at once may overshoot the budget by a record.
             if self._cached_bytes + size <= self.cache_bytes:
                 self._cache[index] = _read_only(record)
                 self._cached_bytes += size
