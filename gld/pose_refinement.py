@@ -331,8 +331,16 @@ def pose_from_proposal(
 
 
 def _pose_from_proposal(
-    flow, rotation, translation, intrinsics1, intrinsics2, *, iterations, starts
-):
+    flow: jax.Array,
+    rotation: jax.Array,
+    translation: jax.Array,
+    intrinsics1: jax.Array,
+    intrinsics2: jax.Array,
+    *,
+    iterations: int,
+    starts: int,
+) -> tuple[jax.Array, jax.Array]:
+    """`pose_from_proposal` on the pairs at hand (one device's, on a mesh)."""
     if starts == 1 or iterations == 0:
         return refine_pose(
             flow, rotation, translation, intrinsics1, intrinsics2, iterations=iterations
