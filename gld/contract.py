@@ -86,7 +86,11 @@ def _check_finite(value: np.ndarray, key: str, where: str) -> None:
 
 
 def decode_example(
-    record: dict[str, Any], *, flow_source: str = "estimated", where: str = ""
+    record: dict[str, Any],
+    *,
+    flow_source: str = "estimated",
+    where: str = "",
+    decoded: bool = False,
 ) -> dict[str, Any]:
     """A stored record -> an example before scale normalisation and sparse sampling:
     `records.decode`, then the checks of the contract and its names and ranges.
@@ -96,6 +100,8 @@ def decode_example(
       flow_source: "estimated" takes the network's input flow from the stored
         estimated flow, "gt" from the ground-truth flow.
       where: names the record (file and index) in errors.
+      decoded: `record` is `records.decode`'s output already (a reader that keeps the
+        records decoded), not a data source's.
 
     Returns:
       image1, image2: [H, W, 3] float32 in [-0.5, 0.5]; flow: [H, W, 2] float32 pixels,
@@ -111,7 +117,7 @@ def decode_example(
     if flow_source not in FLOW_SOURCES:
         raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
     where = where or "record"
-    raw = records.decode(record, where=where)
+    raw = record if decoded else records.decode(record, where=where)
     height, width = raw["image1"].shape[:2]
     _check_shape(raw["image2"], (height, width, 3), "image2", where)
 
@@ -285,6 +291,7 @@ def prepare_example(
     fixed_sparse_pixels: bool = False,
     keys: Sequence[str] | None = None,
     where: str = "",
+    decoded: bool = False,
 ) -> dict[str, Any]:
     """A stored record -> one example of the contract: decode, augment, normalise, sparsify.
 
@@ -303,11 +310,12 @@ def prepare_example(
         the input flow is estimated before augmentation (once per pair and process,
         `gld.flow_pose.pose_of_example`) and flipped with the example.
       where: names the record in errors.
+      decoded: `record` is `records.decode`'s output already (see `decode_example`).
 
     Returns:
       the example dict of the contract, with `sparse_mask` [H, W] bool.
     """
-    example = decode_example(record, flow_source=flow_source, where=where)
+    example = decode_example(record, flow_source=flow_source, where=where, decoded=decoded)
     if keys is not None:
         unknown = sorted(set(keys) - set(CONTRACT_KEYS))
         if unknown:

@@ -29,6 +29,7 @@ from typing import Any
 import grain
 import numpy as np
 
+from gld import records
 from gld.contract import FLOW_SOURCES, UNUSED_RECORD_KEYS, prepare_example
 
 # Threads preparing examples in each process. grain's defaults (16 threads, 500
@@ -76,8 +77,10 @@ def _read_only(record: dict[str, Any]) -> dict[str, Any]:
 class _RecordReader:
     """Reads records by index and names each by file and index for error messages.
 
-    With `cache_bytes`, the records read are kept (read-only) until they take that many
-    bytes, and read again from the source only beyond it: the same records either way.
+    With `cache_bytes`, every record read is decoded (`records.decode`: images out of
+    PNG, arrays in their decoded dtypes) and kept so (read-only) until the kept ones take
+    that many bytes; beyond it, records are read and decoded again at every use: the
+    same examples either way (`decodes` says that `read` returns them decoded).
     Picklable as long as the source is; a grain worker's copy keeps nothing yet (the
     budget is each process's).
     """
@@ -85,6 +88,7 @@ class _RecordReader:
     def __init__(self, source: Sequence[Any], cache_bytes: int = 0):
         self.source = source
         self.cache_bytes = cache_bytes
+        self.decodes = cache_bytes > 0
         self._cache: dict[int, dict[str, Any]] = {}
         self._cached_bytes = 0
         self._files: list[tuple[int, str, int]] = []  # (first index, file name, skip)
@@ -126,7 +130,8 @@ class _RecordReader:
             record = self.source[index]
         except Exception as error:  # TFDS and array_record raise many kinds
             raise ValueError(f"{where}: cannot read the record ({error})") from error
-        if self.cache_bytes and isinstance(record, dict):
+        if self.decodes:
+            record = records.decode(record, where=where)
             size = _record_bytes(record)
             # Two reader threads adding at once may overshoot the budget by a record.
             if self._cached_bytes + size <= self.cache_bytes:
@@ -223,7 +228,9 @@ class _PrepareTrainExample:
     def __call__(self, position: int, record_index: int) -> dict[str, Any]:
         record, where = self.reader.read(int(record_index))
         epoch = position // self.shard_size
-        return prepare_example(record, epoch=epoch, where=where, **self.options)
+        return prepare_example(
+            record, epoch=epoch, where=where, decoded=self.reader.decodes, **self.options
+        )
 
 
 def train_dataset(
