@@ -208,8 +208,9 @@ def measure_one(
     flops = _flops(jax.jit(make_step(flops_model)), state, batch, step_rng)
     mesh = mesh_for(train_batch_size)
     # Compiled as the trainer compiles it (`loop.jit_train_step`).
-    step_jit = loop.jit_train_step(make_step(model), mesh).__wrapped__
-    state = jax.device_put(state, sharding.replicated(mesh))
+    placement = sharding.state_sharding(state, mesh)
+    step_jit = loop.jit_train_step(make_step(model), mesh, placement).__wrapped__
+    state = jax.device_put(state, placement)
     batch = sharding.to_global_batch(batch, mesh, list(batch))
     start = time.perf_counter()
     with jax.set_mesh(mesh):

@@ -239,16 +239,18 @@ def resume(
     return restored.state
 
 
-def jit_train_step(train_step: Callable, mesh: Mesh) -> Callable:
-    """`train_step` compiled with replicated state, sharded batch and donated state."""
+def jit_train_step(train_step: Callable, mesh: Mesh, state_sharding: Any) -> Callable:
+    """`train_step` compiled with the state placed by `state_sharding` (a tree of
+    shardings like the state's, `sharding.state_sharding`), the batch sharded and the
+    state donated."""
     jitted = jax.jit(
         train_step,
         in_shardings=(
-            sharding.replicated(mesh),
+            state_sharding,
             sharding.batch_sharded(mesh),
             sharding.replicated(mesh),
         ),
-        out_shardings=(sharding.replicated(mesh), sharding.replicated(mesh)),
+        out_shardings=(state_sharding, sharding.replicated(mesh)),
         donate_argnums=0,
     )
     return sharding.under_mesh(jitted, mesh)
@@ -297,8 +299,9 @@ def run_loop(
         dropped = metrics_log.drop_metrics_after(workdir, start_step)
         if dropped:
             print_fn(f"metrics.jsonl: dropped {dropped} lines after step {start_step}")
-    state = jax.device_put(state, sharding.replicated(mesh))
-    train_step = jit_train_step(train_step, mesh)
+    placement = sharding.state_sharding(state, mesh)
+    state = jax.device_put(state, placement)
+    train_step = jit_train_step(train_step, mesh, placement)
     logger = metrics_log.MetricsLogger(workdir)
     base_rng = jax.random.wrap_key_data(jnp.asarray(jax.device_get(state.rng)))
     steps = schedule.steps

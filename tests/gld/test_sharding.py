@@ -127,6 +127,41 @@ def test_every_argument_is_split_unless_replicated():
     assert [aval.shape for aval in jaxpr.out_avals] == [(4, 3), (4, 5, 2)]
 
 
+def test_large_matrices_of_the_state_are_split_along_their_larger_divisible_axis(monkeypatch):
+    from jax.sharding import AbstractMesh
+
+    large = sharding.SPLIT_STATE_MIN_SIZE
+    state = {
+        "dense": jax.ShapeDtypeStruct((large // 2, 4), np.float32),
+        "columns": jax.ShapeDtypeStruct((6, large), np.float32),
+        "conv": jax.ShapeDtypeStruct((3, 3, 64, large // 64), np.float32),
+        "tie": jax.ShapeDtypeStruct((1024, 1024), np.float32),
+        "indivisible": jax.ShapeDtypeStruct((large + 1,), np.float32),
+        "small": jax.ShapeDtypeStruct((large // 4, 2), np.float32),
+        "step": np.int32(0),
+    }
+    specs = jax.tree_util.tree_map(
+        lambda placed: placed.spec,
+        sharding.state_sharding(state, AbstractMesh((4,), (sharding.BATCH_AXIS,))),
+    )
+    axis = sharding.BATCH_AXIS
+    assert specs == {
+        "dense": PartitionSpec(axis, None),
+        "columns": PartitionSpec(None, axis),
+        "conv": PartitionSpec(),  # conv kernels stay whole
+        "tie": PartitionSpec(axis, None),
+        "indivisible": PartitionSpec(),
+        "small": PartitionSpec(),
+        "step": PartitionSpec(),
+    }
+    # One device, or several processes (each reads the whole state back): replicated.
+    for count, processes in ((1, 1), (4, 2)):
+        monkeypatch.setattr(jax, "process_count", lambda processes=processes: processes)
+        mesh = AbstractMesh((count,), (sharding.BATCH_AXIS,))
+        placed = sharding.state_sharding(state, mesh)
+        assert all(leaf.spec == PartitionSpec() for leaf in jax.tree_util.tree_leaves(placed))
+
+
 def test_an_evaluation_batch_is_rounded_up_to_the_devices():
     class ThreeDevices:
         devices = np.empty(3, object)

@@ -194,11 +194,14 @@ SHARDED_SCRIPT = textwrap.dedent(
 
     assert len(jax.devices()) == 4
     # The paper's model, or (argument "recipe") the main job's: the pose searched and
-    # refined on the flow, the flow derotated and triangulated under it.
+    # refined on the flow, the flow derotated and triangulated under it; or (argument
+    # "eigen") Eigen, whose dense layer of 1M parameters is split over the devices.
     recipe = len(sys.argv) > 1 and sys.argv[1] == "recipe"
+    split = len(sys.argv) > 1 and sys.argv[1] == "eigen"
     options = dict(pose_refinement_steps=3, pose_refinement_starts=5, derotate_flow=True,
                    parallax_depth=True) if recipe else {}
-    model = registry.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8], **options)
+    model = (registry.make_model("eigen") if split else
+             registry.make_model("global_local", encoder_channels=[4, 8, 8, 8, 8], **options))
     optimizer = make_optimizer(1e-3)
     rng = np.random.default_rng(0)
     batch = {
@@ -215,10 +218,11 @@ SHARDED_SCRIPT = textwrap.dedent(
     for name, devices in (("one", jax.devices()[:1]), ("four", jax.devices())):
         mesh = sharding.make_mesh(devices)
         state = state_lib.create_train_state(model, optimizer, 24, 32, seed=0)
-        state = jax.device_put(state, sharding.replicated(mesh))
+        placement = sharding.state_sharding(state, mesh)
+        state = jax.device_put(state, placement)
         step = loop.jit_train_step(
             train.make_train_step(model=model, optimizer=optimizer,
-                                  loss_weights=losses.LossWeights()), mesh)
+                                  loss_weights=losses.LossWeights()), mesh, placement)
         for _ in range(2):
             global_batch = sharding.to_global_batch(batch, mesh, keys)
             state, _ = step(state, global_batch, jax.random.key(1))
@@ -226,6 +230,14 @@ SHARDED_SCRIPT = textwrap.dedent(
         results[name] = np.concatenate([np.ravel(leaf) for leaf in leaves])
         if name == "four":
             assert len(global_batch["image1"].sharding.device_set) == 4
+            # The state stays where it was placed: split only where asked.
+            kept_split = [not leaf.sharding.is_fully_replicated
+                          for leaf in jax.tree_util.tree_leaves(state)]
+            assert any(kept_split) == split, kept_split
+            if split:
+                # Split parameters are gathered where a layer is computed whole: the
+                # program's all-gathers are not the batch's.
+                continue
             # Each device runs the per-example filter banks on its own two examples:
             # nothing gathers the batch onto every device.
             with jax.set_mesh(mesh):
@@ -244,7 +256,9 @@ SHARDED_SCRIPT = textwrap.dedent(
 
 
 # The main job's model compiles for ~40 s on two cores: with the slow tests.
-@pytest.mark.parametrize("model", ["paper", pytest.param("recipe", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "model", ["paper", "eigen", pytest.param("recipe", marks=pytest.mark.slow)]
+)
 def test_four_device_step_equals_one_device_step(tmp_path, model):
     numbers = run_on_cpu_devices(SHARDED_SCRIPT, 4, model)
     assert numbers["max_abs_diff"] <= 1e-5 * max(numbers["max_abs"], 1.0)
