@@ -374,7 +374,11 @@ def run(
     # that an accelerator's memory is theirs alone).
     backend = gemm.get("backend", "cpu")
     default = filter_banks.default_formulation(backend)
-    paired_name = default if default in names else names[0]
+    # The first model alternates with the reference: with the default formulation when
+    # it is the global-local model (the others have no filter banks).
+    paired_name = (
+        (default if default in names else names[0]) if models[0] == "global_local" else None
+    )
     measured_pairs = []
     for index in range(pairs):
         reference = None

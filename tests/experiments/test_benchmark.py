@@ -89,6 +89,32 @@ def test_quick_run_writes_every_figure(tmp_path, fake_torch_reference):
     assert result["default_formulation"]["cpu"] in filter_banks.FORMULATIONS
 
 
+def test_a_model_without_filter_banks_is_measured_without_a_formulation(monkeypatch):
+    measured = []
+
+    def fake_measure(arguments):
+        measured.append((arguments["model_name"], arguments["formulation"]))
+        formulation = arguments["formulation"] or "-"
+        return {"model": arguments["model_name"], "formulation": formulation, "error": "fake"}
+
+    monkeypatch.setattr(model_benchmark, "_measure_in_subprocess", fake_measure)
+    monkeypatch.setattr(model_benchmark, "_in_subprocess", lambda kind, arguments: {})
+    model_benchmark.run(
+        models=["small_encdec", "global_local"],
+        formulations=["fused", "vmap"],
+        pairs=2,
+        log=lambda line: None,
+    )
+    # The first model pairs with the reference as it is; the formulations are the
+    # global-local model's alone.
+    assert measured == [
+        ("small_encdec", None),
+        ("small_encdec", None),
+        ("global_local", "fused"),
+        ("global_local", "vmap"),
+    ]
+
+
 def test_goal_ratios_against_the_reference():
     row = {
         "train_b16": {"median_s": 1.0},
