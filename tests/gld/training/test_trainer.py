@@ -264,6 +264,54 @@ def test_four_device_step_equals_one_device_step(tmp_path, model):
     assert numbers["max_abs_diff"] <= 1e-5 * max(numbers["max_abs"], 1.0)
 
 
+SPLIT_RESUME_SCRIPT = textwrap.dedent(
+    """
+    import json, shutil, sys
+    from pathlib import Path
+    import jax, numpy as np
+    import data
+    from gld.runs import config as config_lib
+    from gld.runs import workdir as workdir_lib
+    from gld.training import trainer as train
+    assert len(jax.devices()) == 2
+    source = data.get_builder("gld_scenes/tiny", sys.argv[1]).as_data_source("train")
+    root = Path(sys.argv[2])
+    config = config_lib.TrainConfig(model="eigen", batch_size=4, steps=4, log_every=2,
+                                    eval_every=0, checkpoint_every=2,
+                                    dataset="gld_scenes/tiny", height=48, width=64)
+    quiet = lambda _: None
+    whole = train.train_and_evaluate(config, root / "whole", source, progress=False,
+                                     print_fn=quiet)
+    split = [not leaf.sharding.is_fully_replicated for leaf in jax.tree_util.tree_leaves(whole)]
+    shutil.copytree(root / "whole", root / "resumed")
+    shutil.rmtree(root / "resumed" / "checkpoints" / "4")
+    messages = []
+    resumed = train.train_and_evaluate(config, root / "resumed", source, progress=False,
+                                       print_fn=messages.append)
+    _, stored, _ = workdir_lib.load_trained(root / "resumed")
+    equal = lambda a, b: jax.tree_util.tree_all(jax.tree_util.tree_map(
+        lambda x, y: bool(np.array_equal(x, y)), a, b))
+    params = jax.device_get(whole.params)
+    print(json.dumps({
+        "split": sum(split),
+        "resumed": f"resumed from step 2 in {root / 'resumed' / 'checkpoints'}" in messages,
+        "same": equal(params, jax.device_get(resumed.params)),
+        "same_stored": equal(params, stored["params"]),
+    }))
+    """
+)
+
+
+# Two devices, two trainings of Eigen: with the slow tests.
+@pytest.mark.slow
+def test_a_run_with_a_split_state_resumes_to_the_same_parameters(tiny_scenes_dir, tmp_path):
+    # Eigen's first dense layer (4M parameters at 64x48) and its Adam moments are split over
+    # the two devices; the checkpoint of step 2 holds them whole, and steps 3 and 4 train again
+    # to the same bits.
+    numbers = run_on_cpu_devices(SPLIT_RESUME_SCRIPT, 2, str(tiny_scenes_dir), str(tmp_path))
+    assert numbers == {"split": 3, "resumed": True, "same": True, "same_stored": True}
+
+
 TWO_PROCESS_SCRIPT = textwrap.dedent(
     """
     import hashlib, sys
