@@ -12,6 +12,7 @@ from conftest import REPO_ROOT
 from experiments.benchmarks import robot
 
 
+@pytest.mark.slow
 def test_quick_run_times_every_stage_of_both_networks_and_the_runtime(tmp_path):
     output = tmp_path / "robot.json"
     completed = subprocess.run(

@@ -30,6 +30,7 @@ def _launch(args, data_dir, dataset="gld_scenes/tiny", **kwargs):
     )
 
 
+@pytest.mark.slow
 def test_train_writes_everything_it_promises(tiny_scenes_dir, tmp_path):
     workdir = tmp_path / "run"
     result = _launch(
@@ -304,6 +305,7 @@ def test_evaluate_runs_a_classical_baseline(tiny_scenes_dir, tmp_path, method):
     assert exact < 0.1 * mean_baseline
 
 
+@pytest.mark.slow
 def test_evaluate_scores_stored_predictions_and_refuses_a_folder_missing_one(
     tiny_scenes, tiny_scenes_dir, tmp_path
 ):

@@ -117,6 +117,7 @@ def test_the_closed_form_jacobian_is_the_derivative_of_the_distances():
     np.testing.assert_allclose(jacobian, automatic, rtol=1e-3, atol=1e-3 * np.abs(automatic).max())
 
 
+@pytest.mark.slow
 def test_a_search_around_the_proposal_finds_the_motion_where_one_start_stops_in_a_wrong_basin():
     flow, rotations, translations = _pairs()
     cameras = (jnp.asarray(INTRINSICS), jnp.asarray(INTRINSICS))

@@ -192,6 +192,7 @@ def test_a_model_trained_given_the_pose_takes_the_odometry(tmp_path):
         runtime(*frames, rotation=2 * np.eye(3), translation=translation)
 
 
+@pytest.mark.slow
 def test_the_flow_network_in_the_file_gives_the_flow(flow_net_model):
     model, variables, network, network_variables, path = flow_net_model
     runtime = DepthRuntime.load(path)

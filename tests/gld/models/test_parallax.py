@@ -102,6 +102,7 @@ def _scaled(model, parallax_pixels):
     return np.asarray(parallax_pixels, np.float64) / [WIDTH, HEIGHT] * model.flow_scale
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("refinement_steps", [0, 2])
 def test_a_derotating_model_reads_the_cameras_and_its_local_network_sees_the_parallax(
     refinement_steps,
@@ -177,6 +178,7 @@ def test_near_the_epipole_the_channel_says_far_with_no_confidence_and_never_behi
     assert np.all(np.asarray(forwards)[..., 0] > 0.5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("refinement_steps", [0, 2])
 def test_the_local_network_sees_the_parallax_its_triangulation_and_the_coordinates(
     refinement_steps,

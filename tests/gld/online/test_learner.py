@@ -83,6 +83,7 @@ def test_each_frame_is_predicted_and_scored_before_it_is_learned_from(model_and_
     )
 
 
+@pytest.mark.slow
 def test_the_worker_gives_the_same_run_as_updating_in_turn(model_and_variables, frames):
     together = _learner(model_and_variables, asynchronous=True)
     in_turn = _learner(model_and_variables, asynchronous=False)
@@ -132,6 +133,7 @@ THREE_DEVICE_SCRIPT = textwrap.dedent(
 ).replace("SETTINGS", repr(SETTINGS))
 
 
+@pytest.mark.slow
 def test_on_several_devices_updates_are_split_and_predictions_run_on_their_own(
     model_and_variables, frames
 ):
@@ -232,6 +234,7 @@ def _summaryless(rows):
 
 # Readings carried over 7 frames: more than the partner window's 6, so a resumed run
 # must replay the frames before its position for the memory, not only for the partners.
+@pytest.mark.slow
 @pytest.mark.parametrize("reading_memory", [0, 7])
 def test_a_run_stopped_after_a_checkpoint_resumes_to_the_same_result(
     model_and_variables, stream, tmp_path, reading_memory
@@ -311,6 +314,7 @@ def _distance(variables, start):
     return float(np.sqrt(sum(jax.tree.leaves(moved["params"]))))
 
 
+@pytest.mark.slow
 def test_anchored_or_warming_up_the_learner_stays_nearer_its_start(model_and_variables, frames):
     start = model_and_variables[1]
     free = _learner(model_and_variables, asynchronous=False)

@@ -255,9 +255,15 @@ SHARDED_SCRIPT = textwrap.dedent(
 )
 
 
-# The main job's model compiles for ~40 s on two cores: with the slow tests.
+# The main job's model compiles for ~40 s on two cores, Eigen's step ~30 s: with the slow
+# tests.
 @pytest.mark.parametrize(
-    "model", ["paper", "eigen", pytest.param("recipe", marks=pytest.mark.slow)]
+    "model",
+    [
+        "paper",
+        pytest.param("eigen", marks=pytest.mark.slow),
+        pytest.param("recipe", marks=pytest.mark.slow),
+    ],
 )
 def test_four_device_step_equals_one_device_step(tmp_path, model):
     numbers = run_on_cpu_devices(SHARDED_SCRIPT, 4, model)
@@ -388,6 +394,7 @@ def sixteen_pairs_dense(tiny_scenes):
     return batch
 
 
+@pytest.mark.slow
 def test_a_few_hundred_steps_learn_each_pairs_depth_map_with_true_flow(sixteen_pairs_dense):
     """With flow on the scale of the other inputs (the model's default flow_scale), 300
     Adam steps on 16 pairs with true flow and dense labels learn every pair's scale and
