@@ -131,6 +131,7 @@ def test_compare_carries_the_references_whatever_it_is_asked(tiny_scenes_dir, tm
     assert f"{SFM_ROW} 0 | 0 | none | {failed} |" in lines
 
 
+@pytest.mark.slow
 def test_compare_scores_a_demon_dataset_by_demons_protocol_or_stops_before_training(tmp_path):
     sys.path.insert(0, str(REPO_ROOT / "tests" / "data"))
     import demon_files

@@ -90,6 +90,7 @@ def test_predict_writes_metric_depth_previews_and_point_clouds(trained_workdir, 
         )
 
 
+@pytest.mark.slow
 def test_bad_flags_are_named_before_anything_is_written(trained_workdir, tmp_path):
     frames, _ = _recording(tmp_path)
     empty = tmp_path / "empty"

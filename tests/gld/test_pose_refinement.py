@@ -183,6 +183,7 @@ def test_a_search_around_the_proposal_finds_the_motion_where_one_start_stops_in_
         )
 
 
+@pytest.mark.slow
 def test_a_model_refining_its_encoder_pose_gives_the_refined_pose_as_g_and_trains_the_proposal():
     flow, rotations, translations = _pairs()
     model = model_lib.GlobalLocal(encoder_channels=(4, 8, 8, 8, 8), pose_refinement_steps=10)

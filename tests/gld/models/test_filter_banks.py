@@ -247,6 +247,7 @@ SHARDED_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_banks_on_a_batch_sharded_mesh_give_the_single_device_gradients():
     # Under a mesh the banks run on each device's shard of the batch (shard_map); the
     # shared head's gradient must still sum over all examples of all devices.

@@ -433,6 +433,7 @@ def test_encoder_norm_reaches_the_global_encoder_and_old_configs_read_as_unnorma
         registry.check_config("global_local", {"encoder_norm": "layer"})
 
 
+@pytest.mark.slow
 def test_encoder_coordinates_reach_the_global_encoder_alone():
     from gld import geometry
 

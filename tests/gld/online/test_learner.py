@@ -267,6 +267,7 @@ def test_a_run_stopped_after_a_checkpoint_resumes_to_the_same_result(
     assert (stopped / run.CURVE_FILE).is_file()
 
 
+@pytest.mark.slow
 def test_a_run_is_resumed_only_as_it_was_made(model_and_variables, stream, tmp_path):
     arguments = dict(frames=8, checkpoint_every=4, window=4, progress=False)
     meta = {"model": "tiny", "settings": {"reading_memory": 0, "batch_size": 2}}

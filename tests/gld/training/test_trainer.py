@@ -28,6 +28,7 @@ def _params_of(workdir):
 
 
 # The loss weight is cast to float32 on purpose: it overflows to inf.
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")
 def test_nan_loss_stops_the_run_naming_the_step_and_keeps_the_last_good_checkpoint(
     tiny_scenes, tmp_path
