@@ -53,11 +53,12 @@ def source_decoders() -> dict[str, Any]:
     return {key: tfds.decode.SkipDecoding() for key in UNUSED_RECORD_KEYS}
 
 
-# Training reads every record once an epoch. The records a process read are kept, decoded,
-# up to this many bytes per process (grain worker or trainer): TFDS's
-# deserialising and zlib are ~55% of an example's preparation (3.1 of 5.6 ms of CPU on
-# gld_scenes/small, whose 2,000 records take ~580 MB), CPU time the train step would
-# otherwise share its cores with. Records beyond the budget are read again every epoch.
+# Training reads every record once an epoch. The records a process read are kept, decoded
+# (`records.decode`), up to this many bytes per process (grain worker or trainer): TFDS's
+# deserialising and zlib and the images' PNG decoding are most of an example's
+# preparation, CPU time the train step would otherwise share its cores with (on
+# gld_scenes/small, whose 2,000 decoded records take ~760 MB, the pipeline's 42-52 ms of
+# CPU a batch become 20-27). Records beyond the budget are read again every epoch.
 _RECORD_CACHE_BYTES = 1 << 30
 
 
