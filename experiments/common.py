@@ -228,6 +228,17 @@ def model_options(model_name: str) -> dict[str, Any]:
     return flow_net_options(model_name)
 
 
+def define_compile_cache_flag(use: str) -> None:
+    """--compile_cache: the compiled programs kept in <workdir>/compile_cache
+    (`gld.runs.workdir.keep_compiled_programs`); `use` says what this launcher gains."""
+    flags.DEFINE_bool(
+        "compile_cache",
+        True,
+        "Keep compiled programs in <workdir>/compile_cache (JAX's persistent cache) and "
+        f"load them from there: {use}",
+    )
+
+
 def define_distributed_flags() -> None:
     flags.DEFINE_integer(
         "cpu_devices",

@@ -42,6 +42,8 @@ rewritten with this run's rows.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from absl import app, flags
 
 from experiments import common
@@ -93,6 +95,9 @@ flags.DEFINE_bool(
     "triangulation, no training).",
 )
 flags.DEFINE_integer("step", None, "Checkpoint step to evaluate (default: latest).")
+common.define_compile_cache_flag(
+    "where the training launch kept them (a workdir without compile_cache/ gets none)."
+)
 common.define_data_flags(default_dataset=None)
 common.define_flow_source_flag()
 common.define_distributed_flags()
@@ -103,6 +108,10 @@ def main(argv):
     common.initialise()
     from data.demon import file_truth
     from gld.evaluation import evaluation_run
+    from gld.runs import workdir as workdir_lib
+
+    if FLAGS.compile_cache and (Path(FLAGS.workdir) / workdir_lib.COMPILE_CACHE_DIR).is_dir():
+        workdir_lib.keep_compiled_programs(FLAGS.workdir)
 
     if FLAGS.method and FLAGS.predictions:
         raise app.UsageError("give --method or --predictions, not both")

@@ -51,12 +51,9 @@ flags.DEFINE_string(
 flags.DEFINE_list("only", None, "Run only these tasks (names or prefixes: train/, classical).")
 flags.DEFINE_bool("report_only", False, "Write the report from the finished results only.")
 flags.DEFINE_bool("progress", True, "Progress bars of the training runs.")
-flags.DEFINE_bool(
-    "compile_cache",
-    True,
-    "Keep compiled programs in <workdir>/compile_cache (JAX's persistent cache): the "
-    "suite's runs of one program (a model at several label densities, say) compile it "
-    "once, and a continued suite reuses what the killed one compiled.",
+common.define_compile_cache_flag(
+    "the suite's runs of one program (a model at several label densities, say) compile "
+    "it once, and a continued suite reuses what the killed one compiled."
 )
 flags.DEFINE_string("data_dir", None, "Where built datasets live (default: ./datasets).")
 flags.DEFINE_string("manual_dir", None, "Unused by gld_scenes; kept for the data flags.")
@@ -75,12 +72,12 @@ def main(argv):
     from gld.paper import runner as paper_runner
     from gld.paper import training_runs as paper_training_runs
     from gld.paper.report_results import ReportResults
+    from gld.runs import workdir as workdir_lib
 
     scale = paper_scales.SUITES[FLAGS.suite]
     workdir = Path(FLAGS.workdir or f"runs/paper_{scale.name}")
     if FLAGS.compile_cache:
-        jax.config.update("jax_compilation_cache_dir", str(workdir / "compile_cache"))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        workdir_lib.keep_compiled_programs(workdir)
     report_dir = Path(
         FLAGS.report_dir or ("report" if scale.name == "cpu" else f"report/{scale.name}")
     )

@@ -30,6 +30,10 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", "runs/demo", "Run directory (checkpoints, logs, eval).")
 flags.DEFINE_bool("final_eval", True, "Evaluate the final model on the whole test split.")
 flags.DEFINE_integer("num_figures", 8, "Example figures written by the final evaluation.")
+common.define_compile_cache_flag(
+    "the final evaluation runs the periodic evaluation's program, and a relaunch or "
+    "experiments.evaluate on the workdir compiles only what is new."
+)
 # The main job's recipe (gld.runs.recipe) gives the launcher's defaults. Paper flagfiles
 # set the paper's (Adam 1e-4, constant, the paper's global module, no motion terms).
 common.define_training_flags(**recipe.TRAINING)
@@ -87,6 +91,7 @@ def main(argv):
             "flags.txt": common.flags_file_text(),
             workdir_export.FLOW_RECORD: common.dataset_flow_record(builder),
         },
+        keep_compiled=FLAGS.compile_cache,
     )
     step = int(state.step)
     if FLAGS.final_eval:

@@ -7,6 +7,7 @@
     <workdir>/corrupt_checkpoints/<step>-<time>/  damaged checkpoints a resume moved aside
     <workdir>/metrics.jsonl     one JSON line per (step, split)
     <workdir>/tensorboard/      the same scalars for TensorBoard
+    <workdir>/compile_cache/    the compiled programs a launcher keeps (`keep_compiled_programs`)
 
 The lock (`gld.runs.lock`), the verified checkpoints (`gld.runs.checkpoints`) and the
 metrics log (`gld.runs.metrics_log`) have modules of their own; this one holds the
@@ -18,7 +19,8 @@ the lock before its costly start-up (the state, the data, compiling), so that a 
 launch is refused before it builds anything, and checks the stored config again under
 the lock. On a new workdir the lock's file is thus the first thing written: a launch
 that fails after taking it (in the start-up, before its first step) leaves the folder
-with an empty `train.lock` and nothing else.
+with an empty `train.lock` and nothing else (but `compile_cache/`, when its launcher
+keeps the compiled programs, with what it compiled).
 
 The stored configuration. `check_run_config` only reads: it refuses a workdir trained
 with another architecture, dataset or resolution and returns the options that differ
@@ -64,10 +66,21 @@ from gld.runs.lock import LOCK_FILE, training_lock
 from gld.runs.metrics_log import METRICS_FILE
 
 CONFIG_FILE = "config.json"
+COMPILE_CACHE_DIR = "compile_cache"
 # Names a launcher's records may not take: the trainer owns them.
 RESERVED_NAMES = frozenset(
-    {CONFIG_FILE, METRICS_FILE, LOCK_FILE, CHECKPOINTS_DIR, CORRUPT_CHECKPOINTS_DIR, "tensorboard"}
+    {
+        CONFIG_FILE,
+        METRICS_FILE,
+        LOCK_FILE,
+        CHECKPOINTS_DIR,
+        CORRUPT_CHECKPOINTS_DIR,
+        COMPILE_CACHE_DIR,
+        "tensorboard",
+    }
 )
+# Programs that compile faster than this are compiled again rather than kept.
+_KEPT_COMPILE_SECONDS = 0.5
 # The dataset a run was trained on cannot change under its checkpoints.
 FIXED_OPTIONS = ("dataset", "height", "width")
 
@@ -84,6 +97,21 @@ def held_run(workdir: str | Path, check: Callable[[], Any]) -> Iterator[Any]:
     """
     with training_lock(workdir):
         yield check()
+
+
+def keep_compiled_programs(directory: str | Path) -> None:
+    """Keeps this process's compiled programs in `<directory>/compile_cache` (JAX's
+    persistent compilation cache), and loads them from there rather than compile them
+    again: a later use in this process (the final evaluation runs the periodic one's
+    program), a relaunch on the same directory (a resumed run, `experiments.evaluate`)
+    or, for a suite's directory, its other runs of one program. Programs that compile in
+    under half a second are not kept. JAX sets its cache up at the first compilation
+    after this call and keeps that directory for the rest of the process; only process 0
+    of a multi-process run writes to it. JAX's cache keys hold the cache's own path, so a
+    workdir moved elsewhere compiles its programs again.
+    """
+    jax.config.update("jax_compilation_cache_dir", str(Path(directory) / COMPILE_CACHE_DIR))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", _KEPT_COMPILE_SECONDS)
 
 
 # ------------------------------------------------------------------ the stored config

@@ -120,6 +120,7 @@ def train(
     *,
     progress: bool = True,
     print_fn: Callable[[str], None] = print,
+    keep_compiled: bool = False,
 ) -> TrainState:
     """Trains `run` (resuming from the workdir's newest intact checkpoint) and evaluates
     it every `eval_every` steps on `test_source`.
@@ -128,7 +129,8 @@ def train(
     before anything is written. The workdir is then held (locked, its stored config read
     again under the lock) before the costly start-up: initialising the state, opening the
     data, compiling. A second launch on a held workdir is refused before it builds
-    anything.
+    anything. With `keep_compiled`, the programs compiled from then on are kept in the
+    workdir (`workdir_lib.keep_compiled_programs`, for the rest of the process).
 
     Returns:
       The final TrainState.
@@ -154,6 +156,8 @@ def train(
         _one_line_when_the_disk_is_full(workdir),
         workdir_lib.held_run(workdir, lambda: run.check_workdir(workdir)) as changes,
     ):
+        if keep_compiled:
+            workdir_lib.keep_compiled_programs(workdir)
         state = run.fresh_state(model, optimizer, workdir, print_fn)
         if jax.process_index() == 0:
             print_fn(f"devices: {mesh.devices.size} {jax.default_backend()}, batch split over them")

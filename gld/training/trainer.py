@@ -240,6 +240,7 @@ def train_and_evaluate(
     progress: bool = True,
     print_fn: Callable[[str], None] = print,
     records: Mapping[str, str] | None = None,
+    keep_compiled: bool = False,
 ) -> TrainState:
     """Trains a depth model (resuming from the workdir's newest intact checkpoint) and
     evaluates it periodically (`gld.training.loop.train`).
@@ -260,6 +261,8 @@ def train_and_evaluate(
       print_fn: where start-up information and checkpoint warnings go.
       records: extra text files for the workdir, name -> content (e.g. the launcher's
         {"flags.txt": ...}), written with config.json.
+      keep_compiled: keep the compiled programs in `<workdir>/compile_cache` from the
+        start-up on, for the rest of the process (`gld.runs.workdir.keep_compiled_programs`).
 
     Returns:
       The final TrainState.
@@ -280,4 +283,5 @@ def train_and_evaluate(
         test_source,
         progress=progress,
         print_fn=print_fn,
+        keep_compiled=keep_compiled,
     )

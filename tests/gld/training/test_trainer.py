@@ -117,6 +117,56 @@ def test_resume_skips_a_damaged_latest_checkpoint_and_trains_to_the_same_state(
     assert "metrics.jsonl: dropped 2 lines after step 2" in messages
 
 
+KEEP_COMPILED_SCRIPT = textwrap.dedent(
+    """
+    import hashlib, json, logging, sys
+    import jax, numpy as np
+    import data
+    from gld.runs import config as config_lib
+    from gld.training import trainer as train
+    hits = []
+    class Hits(logging.Handler):
+        def emit(self, record):
+            if "Persistent compilation cache hit" in record.getMessage():
+                hits.append(record.getMessage().split("'")[1])
+    compiler = logging.getLogger("jax._src.compiler")
+    compiler.setLevel(logging.DEBUG)
+    compiler.addHandler(Hits())
+    builder = data.get_builder("gld_scenes/tiny", sys.argv[1])
+    config = config_lib.TrainConfig(model_config={"encoder_channels": [4, 8, 8, 8, 8]},
+                               batch_size=4, steps=2, log_every=1, eval_every=0,
+                               checkpoint_every=2, dataset="gld_scenes/tiny", height=48,
+                               width=64)
+    state = train.train_and_evaluate(config, sys.argv[2], builder.as_data_source("train"),
+                                     progress=False, print_fn=lambda _: None,
+                                     keep_compiled=True)
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
+    digest = hashlib.sha256(b"".join(np.asarray(l).tobytes() for l in leaves)).hexdigest()
+    print(json.dumps({"hits": sorted(set(hits)), "params": digest}))
+    """
+)
+
+
+# Two trainings in fresh interpreters: with the slow tests.
+@pytest.mark.slow
+def test_a_launch_keeps_its_compiled_programs_and_the_next_one_loads_them(
+    tiny_scenes_dir, tmp_path
+):
+    workdir = tmp_path / "run"
+    trained = run_on_cpu_devices(KEEP_COMPILED_SCRIPT, 1, str(tiny_scenes_dir), str(workdir))
+    kept = sorted(path.name for path in (workdir / workdir_lib.COMPILE_CACHE_DIR).iterdir())
+    assert trained["hits"] == []
+    assert any(name.startswith("jit_train_step-") for name in kept), kept
+    # The run trained again from scratch in its workdir (JAX's cache key holds the cache's
+    # path) loads those programs rather than compiling them, to the same parameters.
+    for path in workdir.iterdir():
+        if path.name != workdir_lib.COMPILE_CACHE_DIR:
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    again = run_on_cpu_devices(KEEP_COMPILED_SCRIPT, 1, str(tiny_scenes_dir), str(workdir))
+    assert {"jit_init", "jit_train_step"} <= set(again["hits"]), again["hits"]
+    assert again["params"] == trained["params"]
+
+
 def test_changed_options_are_stored_only_by_a_launch_that_trains(
     four_step_run, tiny_scenes, tmp_path
 ):
