@@ -312,7 +312,9 @@ class PoseInputs:
             geometry.normalised_intrinsics(camera_matrix, height, width), np.float32
         )
         if self.flow_pose:
-            poses = [flow_pose.pose_of_example(pair, normalised, normalised) for pair in flow]
+            poses = flow_pose.in_parallel(
+                flow_pose.pose_of_example, [(pair, normalised, normalised) for pair in flow]
+            )
             keywords.update(
                 flow_rotation=np.stack([pose[0] for pose in poses]).astype(np.float32),
                 flow_translation=np.stack([pose[1] for pose in poses]).astype(np.float32),

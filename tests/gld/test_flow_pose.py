@@ -59,6 +59,34 @@ def test_a_pair_without_parallax_fails_to_the_identity_and_a_zero_translation():
     np.testing.assert_array_equal(translation, np.zeros(3))
 
 
+def test_poses_in_parallel_are_the_serial_ones_in_the_pairs_order():
+    motions = [
+        ([0.0, 0.03, 0.01], [0.3, 0.05, 0.1]),
+        ([0.02, -0.01, 0.0], [-0.1, 0.2, 0.3]),
+        ([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]),  # no parallax: fails
+        ([-0.01, 0.02, 0.01], [0.2, -0.1, 0.05]),
+        ([0.01, 0.0, -0.02], [0.0, 0.3, 0.1]),
+    ]
+    pairs = []
+    for seed, (rotation_vector, translation) in enumerate(motions):
+        flow, intrinsics1, intrinsics2, _, _ = _pair(rotation_vector, translation, seed)
+        pairs.append(
+            (
+                flow,
+                geometry.intrinsics_matrix(intrinsics1, HEIGHT, WIDTH),
+                geometry.intrinsics_matrix(intrinsics2, HEIGHT, WIDTH),
+            )
+        )
+    serial = [flow_pose.estimate_pose(*pair) for pair in pairs]
+    parallel = flow_pose.in_parallel(flow_pose.estimate_pose, pairs)
+    assert [succeeded for _, _, succeeded in parallel] == [True, True, False, True, True]
+    for (rotation, translation, succeeded), expected in zip(parallel, serial, strict=True):
+        np.testing.assert_array_equal(rotation, expected[0])
+        np.testing.assert_array_equal(translation, expected[1])
+        assert succeeded == expected[2]
+    assert flow_pose.in_parallel(flow_pose.estimate_pose, []) == []
+
+
 def test_the_cached_pose_is_the_computed_one_and_a_caller_cannot_change_it():
     flow, intrinsics1, intrinsics2, _, _ = _pair([0.0, 0.02, 0.0], [0.3, 0.0, 0.1], seed=3)
     flow_pose._CACHE.clear()

@@ -336,18 +336,12 @@ class SfMFlow:
         intrinsics2 = np.asarray(batch["intrinsics2"], np.float64)
         camera_matrices1 = geometry.intrinsics_matrix(intrinsics1, height, width)
         camera_matrices2 = geometry.intrinsics_matrix(intrinsics2, height, width)
-        rotations = np.zeros((batch_size, 3, 3))
-        translations = np.zeros((batch_size, 3))
-        failed = np.zeros(batch_size, bool)
-        for index in range(batch_size):
-            rotation, translation, succeeded = self.estimate_pose(
-                flow[index], camera_matrices1[index], camera_matrices2[index]
-            )
-            rotations[index], translations[index], failed[index] = (
-                rotation,
-                translation,
-                not succeeded,
-            )
+        poses = flow_pose.in_parallel(
+            self.estimate_pose, list(zip(flow, camera_matrices1, camera_matrices2, strict=True))
+        )
+        rotations = np.reshape([rotation for rotation, _, _ in poses], (batch_size, 3, 3))
+        translations = np.reshape([translation for _, translation, _ in poses], (batch_size, 3))
+        failed = np.array([not succeeded for _, _, succeeded in poses], bool)
         outputs = _to_numpy(
             self._triangulate(
                 flow.astype(np.float32),
