@@ -17,7 +17,7 @@ worker count. `gld.input_pipeline` runs these over a record source with grain.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import cv2
@@ -85,12 +85,42 @@ def _check_finite(value: np.ndarray, key: str, where: str) -> None:
         raise ValueError(f"{where}: {key} contains non-finite values")
 
 
+# The stored fields each field of the contract is decoded from ("flow" comes from the one
+# the flow source names).
+_STORED_FIELDS = {
+    "image1": ("image1",),
+    "image2": ("image2",),
+    "depth": ("depth1",),
+    "depth_valid": ("depth1",),
+    "intrinsics1": ("intrinsics1",),
+    "intrinsics2": ("intrinsics2",),
+    "rotation": ("rotation",),
+    "translation": ("translation",),
+    "gt_flow": ("gt_flow",),
+    "gt_flow_valid": ("gt_flow_valid",),
+    "id": ("id",),
+}
+
+
+def stored_fields(fields: Collection[str], flow_source: str = "estimated") -> tuple[str, ...]:
+    """The record keys `decode_example` reads to make the contract's `fields` (and
+    `depth1`, which every example has): the other stored fields a source may skip."""
+    stored = {"depth1", "id"}
+    for field in fields:
+        if field == "flow":
+            stored.add("flow" if flow_source == "estimated" else "gt_flow")
+        else:
+            stored.update(_STORED_FIELDS.get(field, ()))
+    return tuple(key for key in records.RECORD_KEYS if key in stored)
+
+
 def decode_example(
     record: dict[str, Any],
     *,
     flow_source: str = "estimated",
     where: str = "",
     decoded: bool = False,
+    fields: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """A stored record -> an example before scale normalisation and sparse sampling:
     `records.decode`, then the checks of the contract and its names and ranges.
@@ -102,13 +132,16 @@ def decode_example(
       where: names the record (file and index) in errors.
       decoded: `record` is `records.decode`'s output already (a reader that keeps the
         records decoded), not a data source's.
+      fields: the contract's fields to make (`depth` and `depth_valid` always); only
+        the stored fields they come from (`stored_fields`) are decoded and checked, so
+        the source may skip the others. None makes all of them.
 
     Returns:
       image1, image2: [H, W, 3] float32 in [-0.5, 0.5]; flow: [H, W, 2] float32 pixels,
       I1 -> I2; depth: [H, W] float32 view-1 depth, 0 where invalid; depth_valid: [H, W]
       bool; intrinsics1, intrinsics2: [4] float32 normalised; rotation: [3, 3];
       translation: [3] (raw scale); gt_flow: [H, W, 2] float32; gt_flow_valid: [H, W]
-      bool; id: str.
+      bool; id: str (those of `fields`, when given).
 
     Raises:
       ValueError: naming `where` for missing keys, undecodable images, inconsistent
@@ -117,49 +150,56 @@ def decode_example(
     if flow_source not in FLOW_SOURCES:
         raise ValueError(f"unknown flow_source {flow_source!r}; valid: {FLOW_SOURCES}")
     where = where or "record"
-    raw = record if decoded else records.decode(record, where=where)
-    height, width = raw["image1"].shape[:2]
-    _check_shape(raw["image2"], (height, width, 3), "image2", where)
+    read = set(records.RECORD_KEYS) if fields is None else set(stored_fields(fields, flow_source))
+    raw = record if decoded else records.decode(record, where=where, keys=read)
+    height, width = raw["image1" if "image1" in read else "depth1"].shape[:2]
+    spatial = (
+        ("image2", (height, width, 3)),
+        ("depth1", (height, width)),
+        ("gt_flow", (height, width, 2)),
+        ("flow", (height, width, 2)),
+        ("gt_flow_valid", (height, width)),
+    )
+    for key, shape in spatial:
+        if key in read:
+            _check_shape(raw[key], shape, key, where)
+    for key in ("intrinsics1", "intrinsics2"):
+        if key in read:
+            _check_shape(raw[key], (4,), key, where)
+            _check_finite(raw[key], key, where)
+            if np.any(raw[key][:2] <= 0):
+                raise ValueError(
+                    f"{where}: {key} has non-positive focal lengths {raw[key].tolist()}"
+                )
+    for key, shape in (("rotation", (3, 3)), ("translation", (3,))):
+        if key in read:
+            _check_shape(raw[key], shape, key, where)
+    for key in ("rotation", "translation", "flow", "gt_flow"):
+        if key in read:
+            _check_finite(raw[key], key, where)
+    if "rotation" in read:
+        rotation = raw["rotation"]
+        if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3:
+            raise ValueError(f"{where}: rotation is not orthonormal: {rotation.tolist()}")
 
-    depth, gt_flow, estimated_flow = raw["depth1"], raw["gt_flow"], raw["flow"]
-    gt_flow_valid, rotation, translation = raw["gt_flow_valid"], raw["rotation"], raw["translation"]
-    intrinsics1, intrinsics2 = raw["intrinsics1"], raw["intrinsics2"]
-    _check_shape(depth, (height, width), "depth1", where)
-    _check_shape(gt_flow, (height, width, 2), "gt_flow", where)
-    _check_shape(estimated_flow, (height, width, 2), "flow", where)
-    _check_shape(gt_flow_valid, (height, width), "gt_flow_valid", where)
-    for key, value in (("intrinsics1", intrinsics1), ("intrinsics2", intrinsics2)):
-        _check_shape(value, (4,), key, where)
-        _check_finite(value, key, where)
-        if np.any(value[:2] <= 0):
-            raise ValueError(f"{where}: {key} has non-positive focal lengths {value.tolist()}")
-    _check_shape(rotation, (3, 3), "rotation", where)
-    _check_shape(translation, (3,), "translation", where)
-    for key, value in (
-        ("rotation", rotation),
-        ("translation", translation),
-        ("flow", estimated_flow),
-        ("gt_flow", gt_flow),
-    ):
-        _check_finite(value, key, where)
-    if np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3:
-        raise ValueError(f"{where}: rotation is not orthonormal: {rotation.tolist()}")
-
+    depth = raw["depth1"]
     depth_valid = geometry.valid_depth(depth)
-    return {
-        "image1": raw["image1"].astype(np.float32) / 255.0 - 0.5,
-        "image2": raw["image2"].astype(np.float32) / 255.0 - 0.5,
-        "flow": estimated_flow if flow_source == "estimated" else gt_flow.copy(),
-        "depth": np.where(depth_valid, depth, 0.0).astype(np.float32),
-        "depth_valid": depth_valid,
-        "intrinsics1": intrinsics1,
-        "intrinsics2": intrinsics2,
-        "rotation": rotation,
-        "translation": translation,
-        "gt_flow": gt_flow,
-        "gt_flow_valid": gt_flow_valid,
-        "id": raw["id"],
+    made = {
+        "image1": lambda: raw["image1"].astype(np.float32) / 255.0 - 0.5,
+        "image2": lambda: raw["image2"].astype(np.float32) / 255.0 - 0.5,
+        "flow": lambda: raw["flow"] if flow_source == "estimated" else raw["gt_flow"].copy(),
+        "depth": lambda: np.where(depth_valid, depth, 0.0).astype(np.float32),
+        "depth_valid": lambda: depth_valid,
+        "intrinsics1": lambda: raw["intrinsics1"],
+        "intrinsics2": lambda: raw["intrinsics2"],
+        "rotation": lambda: raw["rotation"],
+        "translation": lambda: raw["translation"],
+        "gt_flow": lambda: raw["gt_flow"],
+        "gt_flow_valid": lambda: raw["gt_flow_valid"],
+        "id": lambda: raw["id"],
     }
+    wanted = made.keys() if fields is None else {*fields, "depth", "depth_valid", "id"}
+    return {key: make() for key, make in made.items() if key in wanted}
 
 
 def _flip_frame(example: dict[str, Any], axes: tuple[int, ...]) -> dict[str, Any]:
@@ -280,6 +320,23 @@ def example_rng(seed: int, example_id: str, epoch: int, stream: int) -> np.rando
     return np.random.default_rng(sequence)
 
 
+def needed_fields(keys: Collection[str]) -> set[str]:
+    """The contract's fields `prepare_example` decodes to give a consumer `keys`: those,
+    the depth, its validity and the translation (the scale normalisation and the sparse
+    pixels read them), and what the derived keys are made from.
+
+    Raises:
+      ValueError: a key that is no field of the contract.
+    """
+    unknown = sorted(set(keys) - set(CONTRACT_KEYS))
+    if unknown:
+        raise ValueError(f"unknown example keys {unknown}; valid: {CONTRACT_KEYS}")
+    needed = {*keys, "id", "depth", "depth_valid", "translation"}
+    if set(keys) & set(DERIVED_KEYS):
+        needed |= {"flow", "intrinsics1", "intrinsics2"}
+    return needed
+
+
 def prepare_example(
     record: dict[str, Any],
     *,
@@ -304,9 +361,10 @@ def prepare_example(
       augment: rotate 180 degrees (p = 0.5), then mirror along x (p = 0.5).
       fixed_sparse_pixels: draw the same supervised pixels in every epoch (the epoch is
         dropped from their seed), as for a robot that measured each frame once.
-      keys: the contract's fields the consumer reads ("id" is always kept); the others
-        are dropped after decoding, before augmentation and batching. None keeps all
-        the stored ones. `DERIVED_KEYS` are made only when named here: the pose from
+      keys: the contract's fields the consumer reads ("id" is always kept); only the
+        stored fields they need are decoded (`needed_fields`, `decode_example`), and
+        the others are dropped before augmentation and batching. None keeps all the
+        stored ones. `DERIVED_KEYS` are made only when named here: the pose from
         the input flow is estimated before augmentation (once per pair and process,
         `gld.flow_pose.pose_of_example`) and flipped with the example.
       where: names the record in errors.
@@ -315,21 +373,15 @@ def prepare_example(
     Returns:
       the example dict of the contract, with `sparse_mask` [H, W] bool.
     """
-    example = decode_example(record, flow_source=flow_source, where=where, decoded=decoded)
-    if keys is not None:
-        unknown = sorted(set(keys) - set(CONTRACT_KEYS))
-        if unknown:
-            raise ValueError(f"unknown example keys {unknown}; valid: {CONTRACT_KEYS}")
-        # The pipeline itself reads depth, its validity and the translation.
-        needed = {*keys, "id", "depth", "depth_valid", "translation"}
-        if set(keys) & set(DERIVED_KEYS):
-            needed |= {"flow", "intrinsics1", "intrinsics2"}
-        example = {key: value for key, value in example.items() if key in needed}
-        if set(keys) & set(DERIVED_KEYS):
-            rotation, translation, _ = flow_pose.pose_of_example(
-                example["flow"], example["intrinsics1"], example["intrinsics2"]
-            )
-            example["flow_rotation"], example["flow_translation"] = rotation, translation
+    fields = None if keys is None else needed_fields(keys)
+    example = decode_example(
+        record, flow_source=flow_source, where=where, decoded=decoded, fields=fields
+    )
+    if keys is not None and set(keys) & set(DERIVED_KEYS):
+        rotation, translation, _ = flow_pose.pose_of_example(
+            example["flow"], example["intrinsics1"], example["intrinsics2"]
+        )
+        example["flow_rotation"], example["flow_translation"] = rotation, translation
     if augment:
         augment_rng = example_rng(seed, example["id"], epoch, _AUGMENT_STREAM)
         do_rotate, do_mirror = augment_rng.random(2) < 0.5

@@ -18,19 +18,26 @@ treatment whatever the shard, shuffle or worker count.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import threading
 import time
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from typing import Any
 
 import grain
 import numpy as np
 
 from gld import records
-from gld.contract import FLOW_SOURCES, UNUSED_RECORD_KEYS, prepare_example
+from gld.contract import (
+    FLOW_SOURCES,
+    UNUSED_RECORD_KEYS,
+    needed_fields,
+    prepare_example,
+    stored_fields,
+)
 
 # Threads preparing examples in each process. grain's defaults (16 threads, 500
 # prefetched elements) suit small remote records; ours are large decoded images, and
@@ -51,6 +58,20 @@ def source_decoders() -> dict[str, Any]:
     import tensorflow_datasets as tfds
 
     return {key: tfds.decode.SkipDecoding() for key in UNUSED_RECORD_KEYS}
+
+
+def decoding_only(source: Sequence[Any], stored: Collection[str]) -> Sequence[Any]:
+    """`source` decoding only the `stored` fields of its records: a TFDS data source is
+    opened again with `tfds.decode.SkipDecoding` for the others (their zlib inflation is
+    most of a record's read), any other source is given as it is. For a consumer of a
+    few fields (`contract.stored_fields`), as the dataset mean, which reads the depth
+    alone: 1.4 ms a record of gld_scenes/small instead of 3.0, and no PNG decoding."""
+    if not (dataclasses.is_dataclass(source) and hasattr(source, "decoders")):
+        return source
+    import tensorflow_datasets as tfds
+
+    skipped = {key: tfds.decode.SkipDecoding() for key in records.RECORD_KEYS if key not in stored}
+    return dataclasses.replace(source, decoders={**(source.decoders or {}), **skipped})
 
 
 # Training reads every record once an epoch. The records a process read are kept, decoded
@@ -470,6 +491,8 @@ def eval_batches(
     _check_sharding(len(source), process_index, process_count)
     # example_mask is made here, not by `prepare_example`.
     example_keys = None if keys is None else tuple(k for k in keys if k != "example_mask")
+    if example_keys is not None:
+        source = decoding_only(source, stored_fields(needed_fields(example_keys), flow_source))
     num_batches = num_eval_batches(len(source), batch_size, process_count)
     shard = list(range(len(source))[process_index::process_count])
     # A process whose shard is empty still pads with a real example (the split's first).

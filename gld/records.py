@@ -20,6 +20,7 @@ pipeline so the same records serve every protocol.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 import cv2
@@ -114,19 +115,29 @@ def encode(example: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
-def decode(record: dict[str, Any], where: str = "record") -> dict[str, Any]:
+def decode(
+    record: dict[str, Any], where: str = "record", keys: Collection[str] | None = None
+) -> dict[str, Any]:
     """A record read from a TFDS data source -> numpy arrays (decoded form above): the
     one place stored values are decoded (images from PNG, arrays to `DECODED_DTYPES`).
 
     `where` names the record (file and index) in the error raised for corrupt data.
+    `keys`: the stored fields to decode ("id" always), the others left out, which the
+    source may then skip (`tfds.decode.SkipDecoding`); None decodes all of them.
     """
+    if keys is not None and not set(keys) <= set(RECORD_KEYS):
+        raise ValueError(f"unknown record keys {sorted(set(keys) - set(RECORD_KEYS))}")
+    wanted = RECORD_KEYS if keys is None else [key for key in RECORD_KEYS if key in {*keys, "id"}]
     try:
-        example = {key: record[key] for key in RECORD_KEYS}
+        example = {key: record[key] for key in wanted}
     except KeyError as error:
         raise ValueError(f"{where}: missing key {error}") from None
     for key in IMAGE_KEYS:
-        example[key] = decode_png(record[key], f"{where}/{key}")
+        if key in example:
+            example[key] = decode_png(record[key], f"{where}/{key}")
     for key, dtype in DECODED_DTYPES.items():
+        if key not in example:
+            continue
         try:
             example[key] = np.asarray(record[key], dtype)
         except (TypeError, ValueError) as error:

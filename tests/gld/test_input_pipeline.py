@@ -167,6 +167,54 @@ def test_decode_example_zeroes_invalid_depth(scenes):
     assert np.all(np.isfinite(example["depth"]))
 
 
+def test_decode_example_of_some_fields_reads_only_the_stored_fields_they_need(source):
+    full = contract.decode_example(source[3])
+    # The fields it does not read may be anything, as a source skipping them gives them.
+    unread = dict(source[3], image1=b"not a png", gt_flow=b"zlib bytes", rotation="x")
+    fields = ("depth", "translation", "flow")
+    assert contract.stored_fields(fields) == ("depth1", "translation", "flow", "id")
+    assert contract.stored_fields(fields, flow_source="gt") == (
+        "depth1",
+        "translation",
+        "gt_flow",
+        "id",
+    )
+    example = contract.decode_example(unread, fields=fields)
+    assert sorted(example) == ["depth", "depth_valid", "flow", "id", "translation"]
+    for key in example:
+        np.testing.assert_array_equal(example[key], full[key], err_msg=key)
+    with pytest.raises(ValueError, match=r"test\[3\]: rotation"):
+        contract.decode_example(unread, fields=("rotation",), where="test[3]")
+    with pytest.raises(ValueError, match="image1"):
+        contract.decode_example(unread)
+
+
+def test_an_evaluation_of_a_few_fields_skips_decoding_the_others(tiny_builder, monkeypatch):
+    import zlib
+
+    source = tiny_builder.as_data_source("test")
+    skipping = input_pipeline.decoding_only(source, ("depth1", "translation", "id"))
+    assert isinstance(skipping[0]["gt_flow"], bytes)  # left zlib-compressed
+    assert isinstance(skipping[0]["depth1"], np.ndarray)
+    keys = ("depth", "depth_valid")
+    every_field = [source[index] for index in range(len(source))]  # no TFDS source: all read
+    # TFDS inflates each zlib field it decodes (depth1, depth2, flow, gt_flow); of a
+    # record read for the depth alone, only depth1. No image is decoded.
+    inflated = []
+    decompress = zlib.decompress
+    monkeypatch.setattr(zlib, "decompress", lambda *a: inflated.append(1) or decompress(*a))
+    monkeypatch.setattr(records, "decode_png", lambda *a: pytest.fail("an image was decoded"))
+    fitted = list(input_pipeline.eval_batches(source, batch_size=5, keys=keys))
+    assert len(inflated) == 5 * input_pipeline.num_eval_batches(len(source), 5, 1)
+    monkeypatch.undo()
+    reference = list(input_pipeline.eval_batches(every_field, batch_size=5, keys=keys))
+    assert len(fitted) == len(reference) == input_pipeline.num_eval_batches(len(source), 5, 1)
+    for batch, expected in zip(fitted, reference, strict=True):
+        assert sorted(batch) == sorted(expected) == ["depth", "depth_valid", "example_mask", "id"]
+        for key in batch:
+            np.testing.assert_array_equal(batch[key], expected[key], err_msg=key)
+
+
 @pytest.mark.parametrize("name", list(AUGMENTATIONS))
 def test_geometry_stays_consistent_under_augmentation(source, name):
     for index in (0, 3):

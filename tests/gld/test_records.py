@@ -122,3 +122,21 @@ def test_a_corrupt_record_names_the_record_and_the_field():
         records.decode(missing, where="shard-2[5]")
     with pytest.raises(ValueError, match=r"shard-2\[5\]: translation is undecodable"):
         records.decode(dict(stored, translation=["a", "b", "c"]), where="shard-2[5]")
+
+
+def test_a_record_decodes_only_the_fields_asked_for_and_leaves_the_others_unread():
+    features = records.features(HEIGHT, WIDTH)
+    stored = features.deserialize_example_np(features.serialize_example(records.encode(_example())))
+    # Skipped by the source (`tfds.decode.SkipDecoding`): bytes nobody decodes.
+    stored = dict(stored, image1=b"\x89PNG broken", gt_flow=b"zlib bytes")
+    decoded = records.decode(stored, where="shard-2[5]", keys=("translation", "depth1"))
+    assert list(decoded) == ["depth1", "translation", "id"]
+    full = records.decode(
+        dict(stored, image1=records.encode(_example())["image1"], gt_flow=_example()["gt_flow"])
+    )
+    for key in ("depth1", "translation"):
+        np.testing.assert_array_equal(decoded[key], full[key])
+    with pytest.raises(ValueError, match=r"corrupt image data in shard-2\[5\]/image1"):
+        records.decode(stored, where="shard-2[5]", keys=("image1", "depth1"))
+    with pytest.raises(ValueError, match=r"unknown record keys \['depth'\]"):
+        records.decode(stored, keys=("depth",))
