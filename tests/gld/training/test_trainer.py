@@ -122,7 +122,6 @@ KEEP_COMPILED_SCRIPT = textwrap.dedent(
     import hashlib, json, logging, sys
     import jax, numpy as np
     import data
-    from gld.runs import config as config_lib
     from gld.training import trainer as train
     hits = []
     class Hits(logging.Handler):
@@ -132,14 +131,12 @@ KEEP_COMPILED_SCRIPT = textwrap.dedent(
     compiler = logging.getLogger("jax._src.compiler")
     compiler.setLevel(logging.DEBUG)
     compiler.addHandler(Hits())
+    sys.path.insert(0, "tests")
+    from conftest import tiny_train_config
     builder = data.get_builder("gld_scenes/tiny", sys.argv[1])
-    config = config_lib.TrainConfig(model_config={"encoder_channels": [4, 8, 8, 8, 8]},
-                               batch_size=4, steps=2, log_every=1, eval_every=0,
-                               checkpoint_every=2, dataset="gld_scenes/tiny", height=48,
-                               width=64)
-    state = train.train_and_evaluate(config, sys.argv[2], builder.as_data_source("train"),
-                                     progress=False, print_fn=lambda _: None,
-                                     keep_compiled=True)
+    state = train.train_and_evaluate(tiny_train_config(steps=2), sys.argv[2],
+                                     builder.as_data_source("train"), progress=False,
+                                     print_fn=lambda _: None, keep_compiled=True)
     leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
     digest = hashlib.sha256(b"".join(np.asarray(l).tobytes() for l in leaves)).hexdigest()
     print(json.dumps({"hits": sorted(set(hits)), "params": digest}))
