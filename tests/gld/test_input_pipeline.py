@@ -193,7 +193,7 @@ def test_an_evaluation_of_a_few_fields_skips_decoding_the_others(tiny_builder, m
     import zlib
 
     source = tiny_builder.as_data_source("test")
-    skipping = input_pipeline.decoding_only(source, ("depth1", "translation", "id"))
+    skipping = records.decoding_only(source, ("depth1", "translation", "id"))
     assert isinstance(skipping[0]["gt_flow"], bytes)  # left zlib-compressed
     assert isinstance(skipping[0]["depth1"], np.ndarray)
     keys = ("depth", "depth_valid")
