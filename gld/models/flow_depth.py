@@ -116,7 +116,7 @@ class FlowNetHead(_OnFlowNet):
         estimated = self.estimate_flow(image1, image2, flow)
         features = layers.scaled_flow(estimated, HEAD_FLOW_SCALE)
         for index, channels in enumerate(self.head_channels):
-            features = nn.Conv(channels, (3, 3), name=f"head{index}")(features)
+            features = layers.Conv(channels, (3, 3), name=f"head{index}")(features)
             if index < len(self.head_channels) - 1:
                 features = layers.leaky_relu(features)
         return {**layers.depth_outputs(features), "flow": estimated}

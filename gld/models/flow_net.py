@@ -26,6 +26,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from gld.models import layers
 from gld.models.layers import leaky_relu
 from gld.options import option
 
@@ -176,8 +177,8 @@ class FeaturePyramid(nn.Module):
     def __call__(self, images: jax.Array) -> list[jax.Array]:
         features, x = [], images
         for level, channels in enumerate(self.channels, start=1):
-            x = leaky_relu(nn.Conv(channels, (3, 3), strides=2, name=f"level{level}_down")(x))
-            x = leaky_relu(nn.Conv(channels, (3, 3), name=f"level{level}_conv")(x))
+            x = leaky_relu(layers.Conv(channels, (3, 3), strides=2, name=f"level{level}_down")(x))
+            x = leaky_relu(layers.Conv(channels, (3, 3), name=f"level{level}_conv")(x))
             features.append(x)
         return features
 
@@ -193,8 +194,8 @@ class FlowEstimator(nn.Module):
     def __call__(self, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = inputs
         for index, channels in enumerate(self.channels):
-            x = leaky_relu(nn.Conv(channels, (3, 3), name=f"conv{index}")(x))
-        return nn.Conv(2, (3, 3), name="flow")(x), x
+            x = leaky_relu(layers.Conv(channels, (3, 3), name=f"conv{index}")(x))
+        return layers.Conv(2, (3, 3), name="flow")(x), x
 
 
 class ContextNetwork(nn.Module):
@@ -209,9 +210,9 @@ class ContextNetwork(nn.Module):
         for index, channels in enumerate(self.channels):
             dilation = 2 ** min(index, 3)
             x = leaky_relu(
-                nn.Conv(channels, (3, 3), kernel_dilation=dilation, name=f"conv{index}")(x)
+                layers.Conv(channels, (3, 3), kernel_dilation=dilation, name=f"conv{index}")(x)
             )
-        return nn.Conv(2, (3, 3), name="flow")(x)
+        return layers.Conv(2, (3, 3), name="flow")(x)
 
 
 class FlowNet(nn.Module):

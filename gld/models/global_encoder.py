@@ -57,7 +57,7 @@ class GlobalEncoder(nn.Module):
         kernel = (self.kernel_size, self.kernel_size)
         features = inputs
         for index, (channels, stride) in enumerate(zip(self.channels, self.strides, strict=True)):
-            features = nn.Conv(channels, kernel, strides=stride, name=f"conv{index}")(features)
+            features = layers.Conv(channels, kernel, strides=stride, name=f"conv{index}")(features)
             if self.norm == "instance" and features.shape[1] * features.shape[2] < 2:
                 raise ValueError(
                     f"conv{index} of the global encoder outputs a 1x1 map for inputs of "
@@ -69,5 +69,5 @@ class GlobalEncoder(nn.Module):
                     features
                 )
             features = layers.leaky_relu(features)
-        features = nn.Conv(self.global_dim, kernel, name="to_global")(features)
+        features = layers.Conv(self.global_dim, kernel, name="to_global")(features)
         return jnp.mean(features, axis=(1, 2))

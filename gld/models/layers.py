@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -11,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gld import geometry
+from gld.models import convolutions
 
 # LeakyReLU slope of every network (the paper uses LeakyReLU throughout; baselines too).
 NEGATIVE_SLOPE = 0.2
@@ -25,6 +27,10 @@ def leaky_relu(x: jax.Array) -> jax.Array:
     """LeakyReLU with gld's slope."""
     return jax.nn.leaky_relu(x, NEGATIVE_SLOPE)
 
+
+# Every network's conv: flax's, computed by `convolutions.conv_general_dilated` (a matmul
+# of patches where the input is smaller than the kernel, far faster on CPU).
+Conv = functools.partial(nn.Conv, conv_general_dilated=convolutions.conv_general_dilated)
 
 # The factor on the normalised flow of the global-local model and the flow-network head:
 # normalised flow has a std of ~0.075 on gld_scenes, against ~0.6 for the coordinates

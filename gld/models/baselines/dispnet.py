@@ -62,7 +62,7 @@ class DispNet(nn.Module):
         batch, height, width, _ = inputs.shape
 
         def conv(features, channels, kernel, stride, name):
-            features = nn.Conv(
+            features = layers.Conv(
                 channels, (kernel, kernel), strides=stride, padding="SAME", name=name
             )(features)
             return layers.leaky_relu(features)
@@ -79,7 +79,7 @@ class DispNet(nn.Module):
             skips.append(features)
         skips.pop()  # conv6b is the bottleneck, not a skip.
 
-        prediction = nn.Conv(1, (3, 3), name="pr6")(features)
+        prediction = layers.Conv(1, (3, 3), name="pr6")(features)
         predictions = [prediction]
         for level, channels in zip(range(5, 0, -1), self.decoder_features, strict=True):
             skip = skips[level - 1]
@@ -93,7 +93,7 @@ class DispNet(nn.Module):
             up_prediction = _crop_to(up_prediction, skip)
             features = jnp.concatenate([up_features, up_prediction, skip], axis=-1)
             features = conv(features, channels, 3, 1, f"iconv{level}")
-            prediction = nn.Conv(1, (3, 3), name=f"pr{level}")(features)
+            prediction = layers.Conv(1, (3, 3), name=f"pr{level}")(features)
             predictions.append(prediction)
 
         full_logits = jax.image.resize(prediction, (batch, height, width, 1), method="bilinear")

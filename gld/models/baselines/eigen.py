@@ -69,7 +69,7 @@ class EigenNet(nn.Module):
             zip(self.coarse_features, self.coarse_kernels, self.coarse_pooled, strict=True)
         ):
             stride = 4 if index == 0 else 1
-            features = nn.Conv(
+            features = layers.Conv(
                 channels,
                 (kernel, kernel),
                 strides=stride,
@@ -86,7 +86,7 @@ class EigenNet(nn.Module):
         coarse_logits = coarse_logits.reshape(batch, out_height, out_width, 1)
 
         # Fine (local) network at 1/4 resolution, fed the coarse map.
-        fine = nn.Conv(
+        fine = layers.Conv(
             self.fine_features[0],
             (self.fine_kernels[0],) * 2,
             strides=2,
@@ -96,9 +96,9 @@ class EigenNet(nn.Module):
         fine = layers.leaky_relu(fine)
         fine = nn.max_pool(fine, (2, 2), strides=(2, 2), padding="SAME")
         fine = jnp.concatenate([fine, coarse_logits], axis=-1)
-        fine = nn.Conv(self.fine_features[1], (self.fine_kernels[1],) * 2, name="fine3")(fine)
+        fine = layers.Conv(self.fine_features[1], (self.fine_kernels[1],) * 2, name="fine3")(fine)
         fine = layers.leaky_relu(fine)
-        fine_logits = nn.Conv(1, (self.fine_kernels[2],) * 2, name="fine4")(fine)
+        fine_logits = layers.Conv(1, (self.fine_kernels[2],) * 2, name="fine4")(fine)
 
         full_logits = jax.image.resize(fine_logits, (batch, height, width, 1), method="bilinear")
         outputs = layers.depth_outputs(full_logits)

@@ -34,18 +34,18 @@ class Bottleneck(nn.Module):
         norm = functools.partial(
             nn.BatchNorm, use_running_average=not train, momentum=0.9, epsilon=1e-5
         )
-        residual = nn.Conv(self.features, (1, 1), use_bias=False)(inputs)
+        residual = layers.Conv(self.features, (1, 1), use_bias=False)(inputs)
         residual = layers.leaky_relu(norm()(residual))
-        residual = nn.Conv(
+        residual = layers.Conv(
             self.features, (3, 3), strides=self.strides, padding="SAME", use_bias=False
         )(residual)
         residual = layers.leaky_relu(norm()(residual))
-        residual = nn.Conv(self.features * 4, (1, 1), use_bias=False)(residual)
+        residual = layers.Conv(self.features * 4, (1, 1), use_bias=False)(residual)
         # Zero-initialised last scale: each block starts as the identity (stable from scratch).
         residual = norm(scale_init=nn.initializers.zeros)(residual)
         shortcut = inputs
         if inputs.shape[-1] != self.features * 4 or self.strides != 1:
-            shortcut = nn.Conv(
+            shortcut = layers.Conv(
                 self.features * 4, (1, 1), strides=self.strides, use_bias=False, name="projection"
             )(inputs)
             shortcut = norm(name="projection_norm")(shortcut)
@@ -79,11 +79,11 @@ class UpProjection(nn.Module):
             nn.BatchNorm, use_running_average=not train, momentum=0.9, epsilon=1e-5
         )
         unpooled = unpool(inputs)
-        branch = nn.Conv(self.features, (5, 5), use_bias=False, name="conv5x5")(unpooled)
+        branch = layers.Conv(self.features, (5, 5), use_bias=False, name="conv5x5")(unpooled)
         branch = layers.leaky_relu(norm(name="norm5x5")(branch))
-        branch = nn.Conv(self.features, (3, 3), use_bias=False, name="conv3x3")(branch)
+        branch = layers.Conv(self.features, (3, 3), use_bias=False, name="conv3x3")(branch)
         branch = norm(name="norm3x3")(branch)
-        projection = nn.Conv(self.features, (5, 5), use_bias=False, name="projection")(unpooled)
+        projection = layers.Conv(self.features, (5, 5), use_bias=False, name="projection")(unpooled)
         projection = norm(name="projection_norm")(projection)
         return layers.leaky_relu(branch + projection)
 
@@ -129,7 +129,7 @@ class FCRN(nn.Module):
             nn.BatchNorm, use_running_average=not train, momentum=0.9, epsilon=1e-5
         )
 
-        features = nn.Conv(
+        features = layers.Conv(
             self.stem_features, (7, 7), strides=2, padding="SAME", use_bias=False, name="stem"
         )(inputs)
         features = layers.leaky_relu(norm(name="stem_norm")(features))
@@ -143,13 +143,15 @@ class FCRN(nn.Module):
                     name=f"stage{stage + 1}_block{block + 1}",
                 )(features, train=train)
 
-        features = nn.Conv(self.bridge_features, (1, 1), use_bias=False, name="bridge")(features)
+        features = layers.Conv(self.bridge_features, (1, 1), use_bias=False, name="bridge")(
+            features
+        )
         features = norm(name="bridge_norm")(features)
         for index, channels in enumerate(self.up_features):
             features = UpProjection(channels, name=f"up_projection{index + 1}")(
                 features, train=train
             )
         features = nn.Dropout(self.dropout_rate, deterministic=not train)(features)
-        logits = nn.Conv(1, (3, 3), name="prediction")(features)
+        logits = layers.Conv(1, (3, 3), name="prediction")(features)
         logits = jax.image.resize(logits, (batch, height, width, 1), method="bilinear")
         return layers.depth_outputs(logits)

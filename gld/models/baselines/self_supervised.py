@@ -128,14 +128,14 @@ class DepthNet(nn.Module):
         inv_depths = []
         for index, channels in enumerate(self.decoder_features):
             skip = skips.pop()
-            features = nn.Conv(channels, (3, 3), name=f"upconv{index + 1}")(features)
+            features = layers.Conv(channels, (3, 3), name=f"upconv{index + 1}")(features)
             features = layers.leaky_relu(features)
             features = upsample_to(features, skip)
             features = jnp.concatenate([features, skip], axis=-1)
-            features = nn.Conv(channels, (3, 3), name=f"iconv{index + 1}")(features)
+            features = layers.Conv(channels, (3, 3), name=f"iconv{index + 1}")(features)
             features = layers.leaky_relu(features)
             if index >= first_head:
-                logits = nn.Conv(1, (3, 3), name=f"inv_depth{index + 1}")(features)[..., 0]
+                logits = layers.Conv(1, (3, 3), name=f"inv_depth{index + 1}")(features)[..., 0]
                 sigmoid = jax.nn.sigmoid(logits)
                 inv_depths.append(min_inv_depth + (max_inv_depth - min_inv_depth) * sigmoid)
         return tuple(reversed(inv_depths))
@@ -160,11 +160,11 @@ class PoseNet(nn.Module):
         translation [B, 3]."""
         features = inputs
         for index, (channels, kernel) in enumerate(zip(self.features, self.kernels, strict=True)):
-            features = nn.Conv(
+            features = layers.Conv(
                 channels, (kernel, kernel), strides=2, padding="SAME", name=f"conv{index + 1}"
             )(features)
             features = layers.leaky_relu(features)
-        pose = nn.Conv(6, (1, 1), name="pose")(features)
+        pose = layers.Conv(6, (1, 1), name="pose")(features)
         pose = self.output_scale * jnp.mean(pose, axis=(1, 2))
         return pose[:, :3], pose[:, 3:]
 

@@ -32,7 +32,7 @@ def encode(
     """
     skips = [inputs]
     for index, (channels, kernel) in enumerate(zip(features, kernels, strict=True)):
-        inputs = nn.Conv(
+        inputs = layers.Conv(
             channels, (kernel, kernel), strides=2, padding="SAME", name=f"encoder{index + 1}"
         )(inputs)
         inputs = layers.leaky_relu(inputs)
@@ -88,9 +88,9 @@ class SmallEncDec(nn.Module):
         for index, channels in enumerate(self.decoder_features):
             skip = skips.pop()
             features = upsample_to(features, skip)
-            features = nn.Conv(channels, (self.decoder_kernel,) * 2, name=f"decoder{index + 1}")(
-                features
-            )
+            features = layers.Conv(
+                channels, (self.decoder_kernel,) * 2, name=f"decoder{index + 1}"
+            )(features)
             features = jnp.concatenate([layers.leaky_relu(features), skip], axis=-1)
-        logits = nn.Conv(1, (3, 3), name="prediction")(features)
+        logits = layers.Conv(1, (3, 3), name="prediction")(features)
         return layers.depth_outputs(logits)

@@ -1,0 +1,75 @@
+"""The conv every network runs (`gld.models.layers.Conv`): flax's, with small maps
+convolved as patches (`gld.models.convolutions.conv_general_dilated`)."""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gld.models import convolutions, layers
+
+# (input [B, H, W, C], kernel size, strides, padding): maps smaller than the kernel, a
+# map of at most 64 pixels, strided, explicit and 'VALID' padding, one larger map (lax).
+CASES = [
+    ((2, 4, 4, 6), 5, 1, "SAME"),
+    ((2, 1, 1, 5), 3, 1, "SAME"),
+    ((1, 2, 3, 4), 3, 2, "SAME"),
+    ((2, 8, 6, 3), 3, 2, "SAME"),
+    ((2, 5, 7, 3), 3, 1, ((2, 0), (1, 3))),
+    ((1, 6, 6, 4), 3, 1, "VALID"),
+    ((2, 16, 12, 3), 3, 1, "SAME"),
+]
+
+
+@pytest.mark.parametrize("shape, kernel_size, stride, padding", CASES)
+def test_the_conv_gives_flaxs_values_and_gradients(shape, kernel_size, stride, padding):
+    inputs = jnp.asarray(np.random.default_rng(0).normal(size=shape), jnp.float32)
+    modules = [
+        conv(7, (kernel_size, kernel_size), strides=stride, padding=padding)
+        for conv in (layers.Conv, nn.Conv)
+    ]
+    variables = modules[1].init(jax.random.key(0), inputs)
+    # The same parameters, by the same names: a checkpoint of either loads in the other.
+    assert jax.tree.structure(modules[0].init(jax.random.key(0), inputs)) == jax.tree.structure(
+        variables
+    )
+
+    def loss(module, variables, inputs):
+        return jnp.sum(jnp.sin(module.apply(variables, inputs)))
+
+    ours, flax_s = (
+        (m.apply(variables, inputs), jax.grad(loss, argnums=(1, 2))(m, variables, inputs))
+        for m in modules
+    )
+    np.testing.assert_allclose(ours[0], flax_s[0], rtol=1e-5, atol=1e-5)
+    for got, want in zip(jax.tree.leaves(ours[1]), jax.tree.leaves(flax_s[1]), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_small_maps_and_only_they_are_convolved_as_patches(monkeypatch):
+    calls = []
+    patches_conv = convolutions.patches_conv
+    monkeypatch.setattr(
+        convolutions, "patches_conv", lambda *a, **k: calls.append(a[0].shape) or patches_conv(*a)
+    )
+    for shape in [(1, 8, 8, 2), (1, 2, 40, 2), (1, 9, 8, 2), (1, 16, 16, 2)]:
+        layers.Conv(3, (3, 3)).init(jax.random.key(0), jnp.zeros(shape))
+    # 64 pixels, and a map thinner than the kernel; not 72 or 256 pixels.
+    assert calls == [(1, 8, 8, 2), (1, 2, 40, 2)]
+
+
+def test_a_conv_of_a_tiny_map_reads_only_the_taps_that_reach_it():
+    """A 3x3 conv of a 1x1 map is its centre tap: the other taps read padding alone."""
+    inputs = jnp.arange(4.0).reshape(1, 1, 1, 4)
+    kernel = jnp.asarray(np.random.default_rng(1).normal(size=(3, 3, 4, 2)), jnp.float32)
+    out = convolutions.patches_conv(inputs, kernel, (1, 1), ((1, 1), (1, 1)))
+    np.testing.assert_allclose(out[0, 0, 0], inputs[0, 0, 0] @ kernel[1, 1], rtol=1e-6)
+    jaxpr = str(
+        jax.make_jaxpr(convolutions.patches_conv, static_argnums=(2, 3))(
+            inputs, kernel, (1, 1), ((1, 1), (1, 1))
+        )
+    )
+    assert "f32[4,2]" in jaxpr and "f32[36,2]" not in jaxpr
