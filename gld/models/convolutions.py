@@ -2,8 +2,8 @@
 kernel, one example (also with its output channels aligned to the CPU's vectors),
 'SAME' padding, im2col patches, shifted matmuls, the input gradient, and LeakyReLU's
 backward pass read off its output; and the conv of every other network
-(`conv_general_dilated`, which `gld.models.layers.Conv` runs), a matmul of patches
-where the input is smaller than the kernel.
+(`conv_general_dilated`, which `gld.models.layers.Conv` runs): a matmul of patches for
+a small input map, lax's conv for any other.
 """
 
 from __future__ import annotations
@@ -161,6 +161,8 @@ def patches_conv(
         for dy in rows
         for dx in columns
     ]
+    if not views:  # a padding so wide that no output reads the image
+        return jnp.zeros((inputs.shape[0], *out_size, kernel.shape[-1]), inputs.dtype)
     # The offsets read are consecutive: one slice of the kernel, whose gradient is one pad.
     taps = kernel[rows[0] : rows[-1] + 1, columns[0] : columns[-1] + 1]
     return jnp.matmul(

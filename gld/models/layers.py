@@ -28,8 +28,8 @@ def leaky_relu(x: jax.Array) -> jax.Array:
     return jax.nn.leaky_relu(x, NEGATIVE_SLOPE)
 
 
-# Every network's conv: flax's, computed by `convolutions.conv_general_dilated` (a matmul
-# of patches where the input is smaller than the kernel, far faster on CPU).
+# Every network's conv: flax's, computed by `convolutions.conv_general_dilated` (a small
+# input map as a matmul of patches, which XLA's CPU runtime runs far faster).
 Conv = functools.partial(nn.Conv, conv_general_dilated=convolutions.conv_general_dilated)
 
 # The factor on the normalised flow of the global-local model and the flow-network head:

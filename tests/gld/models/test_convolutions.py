@@ -73,3 +73,14 @@ def test_a_conv_of_a_tiny_map_reads_only_the_taps_that_reach_it():
         )
     )
     assert "f32[4,2]" in jaxpr and "f32[36,2]" not in jaxpr
+
+
+def test_a_padding_no_output_reads_the_image_through_gives_laxs_zeros():
+    inputs, kernel = jnp.ones((1, 1, 4, 3)), jnp.ones((3, 3, 3, 4))
+    padding = ((3, 3), (1, 1))
+    out = convolutions.patches_conv(inputs, kernel, (7, 1), padding)
+    want = jax.lax.conv_general_dilated(
+        inputs, kernel, (7, 1), padding, dimension_numbers=convolutions.DIMENSION_NUMBERS
+    )
+    assert out.shape == want.shape == (1, 1, 4, 4)
+    np.testing.assert_array_equal(out, want)
