@@ -26,8 +26,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from gld.models import layers
-from gld.models.layers import leaky_relu
+from gld.models.layers import Conv, leaky_relu
 from gld.options import option
 
 
@@ -177,8 +176,8 @@ class FeaturePyramid(nn.Module):
     def __call__(self, images: jax.Array) -> list[jax.Array]:
         features, x = [], images
         for level, channels in enumerate(self.channels, start=1):
-            x = leaky_relu(layers.Conv(channels, (3, 3), strides=2, name=f"level{level}_down")(x))
-            x = leaky_relu(layers.Conv(channels, (3, 3), name=f"level{level}_conv")(x))
+            x = leaky_relu(Conv(channels, (3, 3), strides=2, name=f"level{level}_down")(x))
+            x = leaky_relu(Conv(channels, (3, 3), name=f"level{level}_conv")(x))
             features.append(x)
         return features
 
@@ -194,8 +193,8 @@ class FlowEstimator(nn.Module):
     def __call__(self, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = inputs
         for index, channels in enumerate(self.channels):
-            x = leaky_relu(layers.Conv(channels, (3, 3), name=f"conv{index}")(x))
-        return layers.Conv(2, (3, 3), name="flow")(x), x
+            x = leaky_relu(Conv(channels, (3, 3), name=f"conv{index}")(x))
+        return Conv(2, (3, 3), name="flow")(x), x
 
 
 class ContextNetwork(nn.Module):
@@ -209,10 +208,8 @@ class ContextNetwork(nn.Module):
         x = inputs
         for index, channels in enumerate(self.channels):
             dilation = 2 ** min(index, 3)
-            x = leaky_relu(
-                layers.Conv(channels, (3, 3), kernel_dilation=dilation, name=f"conv{index}")(x)
-            )
-        return layers.Conv(2, (3, 3), name="flow")(x)
+            x = leaky_relu(Conv(channels, (3, 3), kernel_dilation=dilation, name=f"conv{index}")(x))
+        return Conv(2, (3, 3), name="flow")(x)
 
 
 class FlowNet(nn.Module):
