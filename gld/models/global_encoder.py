@@ -55,9 +55,13 @@ class GlobalEncoder(nn.Module):
         if self.norm not in ENCODER_NORMS:
             raise ValueError(f"norm must be one of {ENCODER_NORMS}, got {self.norm!r}")
         kernel = (self.kernel_size, self.kernel_size)
+        # lax's convs, not `layers.Conv`'s patches: as patches, the last two convs' float32
+        # rounding differed more between one device and four, and the pose refinement
+        # after them carried it into the hypernetwork (its kernel 3.4e-5 apart after two
+        # steps of a test, against 6e-6 with lax); nor was the main job's step faster.
         features = inputs
         for index, (channels, stride) in enumerate(zip(self.channels, self.strides, strict=True)):
-            features = layers.Conv(channels, kernel, strides=stride, name=f"conv{index}")(features)
+            features = nn.Conv(channels, kernel, strides=stride, name=f"conv{index}")(features)
             if self.norm == "instance" and features.shape[1] * features.shape[2] < 2:
                 raise ValueError(
                     f"conv{index} of the global encoder outputs a 1x1 map for inputs of "
@@ -69,5 +73,5 @@ class GlobalEncoder(nn.Module):
                     features
                 )
             features = layers.leaky_relu(features)
-        features = layers.Conv(self.global_dim, kernel, name="to_global")(features)
+        features = nn.Conv(self.global_dim, kernel, name="to_global")(features)
         return jnp.mean(features, axis=(1, 2))
