@@ -1,7 +1,7 @@
 """Convolution pieces the filter-bank formulations are built from: a batch with one
 kernel, one example (also with its output channels aligned to the CPU's vectors),
 'SAME' padding, im2col patches, shifted matmuls, the input gradient, and LeakyReLU's
-backward pass read off its output; and the conv of every other network
+backward pass read off its output; and the conv of the baselines and the flow network
 (`conv_general_dilated`, which `gld.models.layers.Conv` runs): a matmul of patches for
 a small input map, lax's conv for any other.
 """

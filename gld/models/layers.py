@@ -28,8 +28,9 @@ def leaky_relu(x: jax.Array) -> jax.Array:
     return jax.nn.leaky_relu(x, NEGATIVE_SLOPE)
 
 
-# Every network's conv: flax's, computed by `convolutions.conv_general_dilated` (a small
-# input map as a matmul of patches, which XLA's CPU runtime runs far faster).
+# The conv of the baselines and the flow network: flax's, computed by
+# `convolutions.conv_general_dilated` (a small input map as a matmul of patches, which
+# XLA's CPU runtime runs far faster). The global encoder keeps lax's (its comment says why).
 Conv = functools.partial(nn.Conv, conv_general_dilated=convolutions.conv_general_dilated)
 
 # The factor on the normalised flow of the global-local model and the flow-network head:

@@ -1,5 +1,5 @@
-"""The conv every network runs (`gld.models.layers.Conv`): flax's, with small maps
-convolved as patches (`gld.models.convolutions.conv_general_dilated`)."""
+"""The conv of the baselines and the flow network (`gld.models.layers.Conv`): flax's, with
+small maps convolved as patches (`gld.models.convolutions.conv_general_dilated`)."""
 
 from __future__ import annotations
 
