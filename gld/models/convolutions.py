@@ -129,29 +129,22 @@ def patches_conv(
     """An NHWC x HWIO conv as one matmul of patches: the kernel's rows and columns that
     only ever read the zero padding are left out (a 3x3 conv of a 1x1 map is its centre
     tap alone)."""
-    (height, width), kernel_size = inputs.shape[1:3], kernel.shape[:2]
     padded = jnp.pad(inputs, ((0, 0), *padding, (0, 0)))
     out_size = [
-        (size + before + after - k) // stride + 1
-        for size, (before, after), k, stride in zip(
-            (height, width), padding, kernel_size, strides, strict=True
-        )
+        (padded.shape[1 + axis] - kernel.shape[axis]) // strides[axis] + 1 for axis in (0, 1)
     ]
 
-    def offsets_read(size, before, k, stride, count):
-        # The kernel offsets whose reads (offset, offset + stride, ...) reach the image.
+    def offsets_read(axis):
+        # The kernel offsets along `axis` whose reads (offset, offset + stride, ...) reach
+        # the image, which starts `padding[axis][0]` rows (or columns) into the padded map.
+        start, size, stride = padding[axis][0], inputs.shape[1 + axis], strides[axis]
         return [
             offset
-            for offset in range(k)
-            if any(before <= offset + stride * i < before + size for i in range(count))
+            for offset in range(kernel.shape[axis])
+            if any(start <= offset + stride * i < start + size for i in range(out_size[axis]))
         ]
 
-    rows, columns = (
-        offsets_read(size, before, k, stride, count)
-        for size, (before, _), k, stride, count in zip(
-            (height, width), padding, kernel_size, strides, out_size, strict=True
-        )
-    )
+    rows, columns = offsets_read(0), offsets_read(1)
     views = [
         padded[
             :,
