@@ -762,11 +762,14 @@ if __name__ == "__main__":
 
 
 def _alive(pid: int) -> bool:
+    """Whether `pid` runs: a process that has exited, is exiting (its /proc entry goes
+    between the open and the read) or is a zombie waiting to be reaped is not alive."""
     try:
         state = Path(f"/proc/{pid}/status").read_text()
-    except FileNotFoundError:
+    except (FileNotFoundError, ProcessLookupError):
         return False
-    return "\\tZ" not in next(line for line in state.splitlines() if line.startswith("State"))
+    fields = next((line.split() for line in state.splitlines() if line.startswith("State:")), [])
+    return len(fields) > 1 and fields[1] != "Z"
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
