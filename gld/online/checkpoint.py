@@ -19,12 +19,15 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from gld.online.learner import OnlineLearner
+from gld.runs.checkpoints import save_arrays_from_one_replica
 
 CHECKPOINTS_DIR = "checkpoints"
 
 
 def manager(workdir: str | Path) -> ocp.CheckpointManager:
-    """The run's orbax manager (items state, buffer, meta; the newest two kept)."""
+    """The run's orbax manager (items state, buffer, meta; the newest two kept; arrays
+    written from one replica, `gld.runs.checkpoints.save_arrays_from_one_replica`)."""
+    save_arrays_from_one_replica()
     return ocp.CheckpointManager(
         Path(workdir).absolute() / CHECKPOINTS_DIR,
         item_handlers={
