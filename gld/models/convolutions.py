@@ -3,7 +3,7 @@ kernel, one example (also with its output channels aligned to the CPU's vectors)
 'SAME' padding, im2col patches, shifted matmuls, the input gradient, and LeakyReLU's
 backward pass read off its output; and the conv of the baselines and the flow network
 (`conv_general_dilated`, which `gld.models.layers.Conv` runs): a matmul of patches for
-a small input map, lax's conv for any other.
+an input map smaller than the kernel, lax's conv for any other.
 """
 
 from __future__ import annotations
@@ -163,8 +163,6 @@ def patches_conv(
     )
 
 
-# The largest input map (pixels) that `conv_general_dilated` convolves as patches.
-PATCHES_MAX_PIXELS = 64
 # How flax describes an NHWC input and an HWIO kernel to `lax.conv_general_dilated`.
 _NHWC_HWIO = lax.ConvDimensionNumbers(
     lhs_spec=(0, 3, 1, 2), rhs_spec=(3, 2, 0, 1), out_spec=(0, 3, 1, 2)
@@ -183,18 +181,20 @@ def conv_general_dilated(
     precision=None,
     **kwargs,
 ):
-    """`lax.conv_general_dilated`, but a plain 2-D conv of a small input map (at most
-    `PATCHES_MAX_PIXELS` pixels, or smaller than the kernel on a side) is `patches_conv`:
-    the same values up to float32 rounding, and their gradients.
+    """`lax.conv_general_dilated`, but a plain 2-D conv of an input map smaller than its
+    kernel on a side is `patches_conv`: the same values up to float32 rounding, and their
+    gradients.
 
     XLA's CPU runtime (jaxlib 0.10) runs a conv of an input smaller than its kernel ~50x
     below its usual rate. One core of the Intel Xeon, batch 2, forward / gradient, lax
     against patches: a 5x5 conv of a 4x4 map, 1024 -> 512 channels (FCRN's first
     up-projection at 64x48), 1,380 / 4,118 ms against 16 / 54; a 3x3 conv of a 1x1 map,
-    1024 channels (DispNet's deepest at 64x48), 30 / 114 against 0.6 / 20. Up to 64
-    pixels patches stay ahead (8x6, 5x5, 1024 -> 512: 78 / 336 against 60 / 124; 8x8, 3x3,
-    32 channels: even), beyond they fall behind (32x24, 5x5, 128 -> 64: 4.3 / 13 against
-    9.1 / 28).
+    1024 channels (DispNet's deepest at 64x48), 30 / 114 against 0.6 / 20. Maps as large
+    as their kernel or larger stay lax's: patches of every map up to 64 pixels were
+    ahead in isolation (8x6, 5x5, 1024 -> 512: 78 / 336 against 60 / 124), but not in
+    FCRN's or DispNet's whole train step at 128x96, and their dots added a fifth to the
+    compile of the tiny suite's FCRN and DispNet steps (19.0 -> 15.7 s, 11.2 -> 8.4 s
+    without them).
     """
     plain = (
         lhs.ndim == 4
@@ -203,11 +203,7 @@ def conv_general_dilated(
         and feature_group_count == 1
         and not kwargs
     )
-    if plain and (
-        lhs.shape[1] * lhs.shape[2] <= PATCHES_MAX_PIXELS
-        or lhs.shape[1] < rhs.shape[0]
-        or lhs.shape[2] < rhs.shape[1]
-    ):
+    if plain and (lhs.shape[1] < rhs.shape[0] or lhs.shape[2] < rhs.shape[1]):
         if isinstance(padding, str):
             padding = lax.padtype_to_pads(lhs.shape[1:3], rhs.shape[:2], window_strides, padding)
         return patches_conv(lhs, rhs, tuple(window_strides), tuple(map(tuple, padding)), precision)

@@ -29,8 +29,9 @@ def leaky_relu(x: jax.Array) -> jax.Array:
 
 
 # The conv of the baselines and the flow network: flax's, computed by
-# `convolutions.conv_general_dilated` (a small input map as a matmul of patches, which
-# XLA's CPU runtime runs far faster). The global encoder keeps lax's (its comment says why).
+# `convolutions.conv_general_dilated` (an input map smaller than the kernel as a matmul of
+# patches, which XLA's CPU runtime runs far faster). The global encoder keeps lax's (its
+# comment says why).
 Conv = functools.partial(nn.Conv, conv_general_dilated=convolutions.conv_general_dilated)
 
 # The factor on the normalised flow of the global-local model and the flow-network head:

@@ -1,5 +1,6 @@
 """The conv of the baselines and the flow network (`gld.models.layers.Conv`): flax's, with
-small maps convolved as patches (`gld.models.convolutions.conv_general_dilated`)."""
+maps smaller than the kernel convolved as patches
+(`gld.models.convolutions.conv_general_dilated`), and the patches themselves."""
 
 from __future__ import annotations
 
@@ -11,8 +12,8 @@ import pytest
 
 from gld.models import convolutions, layers
 
-# (input [B, H, W, C], kernel size, strides, padding): maps smaller than the kernel, a
-# map of at most 64 pixels, strided, explicit and 'VALID' padding, one larger map (lax).
+# (input [B, H, W, C], kernel size, strides, padding): maps smaller than the kernel (the
+# module's patches), larger maps strided, with explicit and 'VALID' padding (lax's there).
 CASES = [
     ((2, 4, 4, 6), 5, 1, "SAME"),
     ((2, 1, 1, 5), 3, 1, "SAME"),
@@ -49,16 +50,43 @@ def test_the_conv_gives_flaxs_values_and_gradients(shape, kernel_size, stride, p
         np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
-def test_small_maps_and_only_they_are_convolved_as_patches(monkeypatch):
+@pytest.mark.parametrize("shape, kernel_size, stride, padding", CASES)
+def test_the_patches_give_laxs_values_and_gradients(shape, kernel_size, stride, padding):
+    """On any map, small or not: the strides, paddings and dropped taps are the patches'."""
+    rng = np.random.default_rng(0)
+    inputs = jnp.asarray(rng.normal(size=shape), jnp.float32)
+    kernel = jnp.asarray(rng.normal(size=(kernel_size, kernel_size, shape[-1], 7)), jnp.float32)
+    strides = (stride, stride)
+    if isinstance(padding, str):
+        padding = jax.lax.padtype_to_pads(shape[1:3], kernel.shape[:2], strides, padding)
+
+    def patches(inputs, kernel):
+        return convolutions.patches_conv(inputs, kernel, strides, tuple(map(tuple, padding)))
+
+    def lax_s(inputs, kernel):
+        return jax.lax.conv_general_dilated(
+            inputs, kernel, strides, padding, dimension_numbers=convolutions.DIMENSION_NUMBERS
+        )
+
+    np.testing.assert_allclose(patches(inputs, kernel), lax_s(inputs, kernel), rtol=1e-5, atol=1e-5)
+    grads = [
+        jax.grad(lambda i, k, f=f: jnp.sum(jnp.sin(f(i, k))), argnums=(0, 1))(inputs, kernel)
+        for f in (patches, lax_s)
+    ]
+    for got, want in zip(*grads, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_maps_smaller_than_the_kernel_and_only_they_are_convolved_as_patches(monkeypatch):
     calls = []
     patches_conv = convolutions.patches_conv
     monkeypatch.setattr(
         convolutions, "patches_conv", lambda *a, **k: calls.append(a[0].shape) or patches_conv(*a)
     )
-    for shape in [(1, 8, 8, 2), (1, 2, 40, 2), (1, 9, 8, 2), (1, 16, 16, 2)]:
+    for shape in [(1, 1, 1, 2), (1, 2, 40, 2), (1, 40, 2, 2), (1, 3, 3, 2), (1, 8, 8, 2)]:
         layers.Conv(3, (3, 3)).init(jax.random.key(0), jnp.zeros(shape))
-    # 64 pixels, and a map thinner than the kernel; not 72 or 256 pixels.
-    assert calls == [(1, 8, 8, 2), (1, 2, 40, 2)]
+    # Maps smaller than the 3x3 kernel on a side; not one as large as it, nor a larger one.
+    assert calls == [(1, 1, 1, 2), (1, 2, 40, 2), (1, 40, 2, 2)]
 
 
 def test_a_conv_of_a_tiny_map_reads_only_the_taps_that_reach_it():
