@@ -73,13 +73,6 @@ def create_train_state(
     return state_of(init_variables(model, height, width, seed), optimizer, seed)
 
 
-def initial_opt_state(optimizer: optax.GradientTransformation, params: Any) -> Any:
-    """`optimizer.init(params)` as one compiled program. Run op by op, it compiles one
-    small program per parameter shape (DispNet's first-moment zeros: 32), ~7 s of the
-    set-up of a run of the tiny suite; the values are the same."""
-    return jax.jit(optimizer.init)(params)
-
-
 def state_of(
     variables: dict[str, Any], optimizer: optax.GradientTransformation, seed: int
 ) -> TrainState:
@@ -90,7 +83,7 @@ def state_of(
         step=jnp.zeros((), jnp.int32),
         params=params,
         batch_stats=variables.get("batch_stats", {}),
-        opt_state=initial_opt_state(optimizer, params),
+        opt_state=optimizer.init(params),
         rng=jax.random.key_data(jax.random.key(seed + 1)),
     )
 
@@ -106,6 +99,6 @@ def create_flow_state(
         step=jnp.zeros((), jnp.int32),
         params=params,
         batch_stats={},
-        opt_state=initial_opt_state(optimizer, params),
+        opt_state=optimizer.init(params),
         rng=jax.random.key_data(jax.random.key(seed + 1)),
     )

@@ -54,7 +54,7 @@ def test_a_checkpoint_restores_on_another_number_of_devices(tmp_path, saved_on, 
 
 COMPILES_SCRIPT = """
 import json, sys
-import grain, jax, jax.numpy as jnp, numpy as np, optax
+import grain, jax, numpy as np, optax
 from gld import sharding
 from gld.runs import checkpoints, state as state_lib
 
@@ -63,14 +63,9 @@ jax.monitoring.register_event_duration_secs_listener(
     lambda event, seconds, **_: compiles.append(event)
     if event == "/jax/core/compile/backend_compile_duration" else None
 )
-# Six shapes that no eager op has made yet.
+# Six shapes, Adam's state beside them.
 params = {f"w{i}": jax.random.normal(jax.random.key(i), (2 * i + 2, 8)) for i in range(6)}
-optimizer = optax.adam(1e-3)
-before = len(compiles)
-opt_state = state_lib.initial_opt_state(optimizer, params)
-init = len(compiles) - before
-zeros = all(float(jnp.abs(m).max()) == 0 for m in jax.tree.leaves(opt_state[0].mu))
-state = state_lib.state_of({"params": params}, optimizer, seed=0)
+state = state_lib.state_of({"params": params}, optax.adam(1e-3), seed=0)
 state = jax.device_put(state, sharding.replicated(sharding.make_mesh()))
 manager = checkpoints.checkpoint_manager(sys.argv[1])
 iterator = iter(grain.MapDataset.range(10).to_iter_dataset())
@@ -81,17 +76,17 @@ restored = checkpoints.restore_checkpoint(manager, jax.eval_shape(lambda: state)
 same = all(
     np.array_equal(a, b) for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state))
 )
-print(json.dumps({"init": init, "save": saved, "zeros": zeros, "same": same}))
+print(json.dumps({"save": saved, "same": same}))
 """
 
 
-def test_a_fresh_state_and_its_save_compile_no_program_per_parameter(tmp_path):
-    """Adam's state is made by one program, and a state replicated over two devices is
-    saved without compiling (orbax's replica-parallel save slices every array with a jax
-    op, a program per shape and device), and restores to the same values."""
+def test_a_replicated_state_is_saved_without_compiling_and_restores(tmp_path):
+    """A state replicated over two devices is saved without compiling (orbax's
+    replica-parallel save slices every array with a jax op, a program per shape and
+    device: 14 here) and restores to the same values."""
     result = run_python(COMPILES_SCRIPT, str(tmp_path), device_count=2)
     counts = json.loads(result.stdout.strip().splitlines()[-1])
-    assert counts == {"init": 1, "save": 0, "zeros": True, "same": True}
+    assert counts == {"save": 0, "same": True}
     assert "overriding" not in result.stderr
 
 
