@@ -78,9 +78,9 @@ def save_arrays_from_one_replica() -> None:
     compiles one program per shape and device. A run's state is replicated over the
     devices of one host, whose memory every replica shares: there is nothing to
     parallelise, and a model's first save compiled ~2 programs a leaf (DispNet's 64,
-    ~6 s of a 2-step run of the tiny suite). The files are the same; the handler is
-    orbax's default but for that one option (registered once a process).
-    """
+    2.6 s of compiles in a 2-step run; the slices took 31 s of the tiny suite's 102 s of
+    saves). The arrays saved are the same, their chunks laid out otherwise; the handler
+    is orbax's default but for that one option (registered once a process)."""
     from orbax.checkpoint._src.metadata import array_metadata_store
 
     handler = ocp.type_handlers.ArrayHandler(
