@@ -31,6 +31,20 @@ def _xp(*arrays: Array):
     return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
 
 
+def _times(matrix: Array, vectors: Array, xp) -> Array:
+    """`matrix @ v` for each 3-vector v of `vectors` [..., H, W, 3]; matrix [..., 3, 3]
+    (its leading axes broadcast against the vectors').
+
+    Under JAX the product is written out as multiply-adds, which XLA fuses with what
+    surrounds them: on the CPU it runs a contraction over three terms as a separate
+    library call, several times slower. numpy keeps its einsum, so what numpy computes
+    (the rendered datasets' records) keeps its bits."""
+    if xp is np:
+        return np.einsum("...ij,...hwj->...hwi", matrix, vectors)
+    columns = matrix[..., None, None, :, :]
+    return sum(columns[..., column] * vectors[..., column : column + 1] for column in range(3))
+
+
 def intrinsics_matrix(intrinsics: Array, height: int, width: int) -> Array:
     """Normalised intrinsics -> pixel-index camera matrix.
 
@@ -107,7 +121,7 @@ def backproject(depth: Array, camera_matrix: Array) -> Array:
     height, width = depth.shape[-2:]
     grid = pixel_grid(height, width, xp)
     homogeneous = xp.concatenate([grid, xp.ones_like(grid[..., :1])], axis=-1)
-    rays = xp.einsum("...ij,hwj->...hwi", xp.linalg.inv(camera_matrix), homogeneous)
+    rays = _times(xp.linalg.inv(camera_matrix), homogeneous, xp)
     return rays * depth[..., None]
 
 
@@ -122,7 +136,7 @@ def project(points: Array, camera_matrix: Array) -> tuple[Array, Array]:
       pixels [..., H, W, 2] (u, v) and z [..., H, W]; pixels are meaningless where z <= 0.
     """
     xp = _xp(points, camera_matrix)
-    image_points = xp.einsum("...ij,...hwj->...hwi", camera_matrix, points)
+    image_points = _times(camera_matrix, points, xp)
     z = image_points[..., 2]
     safe_z = xp.where(xp.abs(z) > 1e-12, z, 1e-12)
     return image_points[..., :2] / safe_z[..., None], z
@@ -131,7 +145,7 @@ def project(points: Array, camera_matrix: Array) -> tuple[Array, Array]:
 def transform_points(points: Array, rotation: Array, translation: Array) -> Array:
     """`R @ X + t` for points [..., H, W, 3], rotation [..., 3, 3], translation [..., 3]."""
     xp = _xp(points, rotation, translation)
-    return xp.einsum("...ij,...hwj->...hwi", rotation, points) + translation[..., None, None, :]
+    return _times(rotation, points, xp) + translation[..., None, None, :]
 
 
 def depth_to_flow(
@@ -181,7 +195,7 @@ def rotation_flow(
     homography = camera_matrix2 @ rotation @ xp.linalg.inv(camera_matrix1)
     pixels = pixel_grid(height, width, xp)
     homogeneous = xp.concatenate([pixels, xp.ones_like(pixels[..., :1])], axis=-1)
-    mapped = xp.einsum("...ij,hwj->...hwi", homography, homogeneous)
+    mapped = _times(homography, homogeneous, xp)
     depth = xp.maximum(mapped[..., 2:], 1e-6)
     return mapped[..., :2] / depth - pixels
 
@@ -313,8 +327,8 @@ def _projection_terms(flow, camera_matrix1, camera_matrix2, rotation, translatio
     height, width = flow.shape[-3:-1]
     grid = pixel_grid(height, width, xp)
     homogeneous = xp.concatenate([grid, xp.ones_like(grid[..., :1])], axis=-1)
-    rays1 = xp.einsum("...ij,hwj->...hwi", xp.linalg.inv(camera_matrix1), homogeneous)
-    a = xp.einsum("...ij,...hwj->...hwi", camera_matrix2 @ rotation, rays1)
+    rays1 = _times(xp.linalg.inv(camera_matrix1), homogeneous, xp)
+    a = _times(camera_matrix2 @ rotation, rays1, xp)
     b = xp.einsum("...ij,...j->...i", camera_matrix2, translation)[..., None, None, :]
     target = grid + flow
     ray = target * a[..., 2:] - a[..., :2]
@@ -403,13 +417,13 @@ def epipolar_distance(
     def camera_coordinates(pixels, intrinsics):
         inverse_k = xp.linalg.inv(intrinsics_matrix(intrinsics, height, width))
         homogeneous = xp.concatenate([pixels, xp.ones_like(pixels[..., :1])], axis=-1)
-        return xp.einsum("bij,bhwj->bhwi", inverse_k, homogeneous)
+        return _times(inverse_k, homogeneous, xp)
 
     x1 = camera_coordinates(pixels1, intrinsics1)
     x2 = camera_coordinates(pixels2, intrinsics2)
     essential = skew(translation) @ rotation
-    e_x1 = xp.einsum("bij,bhwj->bhwi", essential, x1)
-    et_x2 = xp.einsum("bji,bhwj->bhwi", essential, x2)
+    e_x1 = _times(essential, x1, xp)
+    et_x2 = _times(xp.swapaxes(essential, -1, -2), x2, xp)
     residual = xp.sum(x2 * e_x1, axis=-1)
     gradient_sq = e_x1[..., 0] ** 2 + e_x1[..., 1] ** 2 + et_x2[..., 0] ** 2 + et_x2[..., 1] ** 2
     focal = intrinsics1[:, 0, None, None] * width
