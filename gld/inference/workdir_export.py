@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from gld import flow as flow_lib
-from gld.arguments import ArgumentError
+from gld.arguments import ArgumentError, MissingInputError
 from gld.inference import export, export_interface, onnx_export
 from gld.models import registry
 from gld.runs import checkpoints as checkpoint_lib
@@ -118,7 +118,7 @@ def export_workdir(
     available = list(manager.all_steps())
     manager.close()
     if not available:
-        raise FileNotFoundError(f"no checkpoint in {workdir / 'checkpoints'}")
+        raise MissingInputError(f"no checkpoint in {workdir / 'checkpoints'}")
     if step is not None and step not in available:
         raise ValueError(f"no checkpoint of step {step} in {workdir}; available: {available}")
     step = max(available) if step is None else step

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import jax
 import orbax.checkpoint as ocp
 
-from gld.arguments import RunStoppedError
+from gld.arguments import MissingInputError, RunStoppedError
 from gld.files import DiskFullError, no_space_error, write_atomically
 from gld.runs.state import TrainState
 
@@ -304,7 +304,8 @@ def restore_intact_checkpoint(
     skipped and reported through `print_fn`, naming the file or the error.
 
     Raises:
-      FileNotFoundError: the manager holds no checkpoint (or not `step`).
+      gld.arguments.MissingInputError (a FileNotFoundError): the manager holds no
+        checkpoint (or not `step`).
       CorruptCheckpointError: no checkpoint is intact (`step` given: that one is not);
         every step's fault is listed. Nothing is deleted.
     """
@@ -314,11 +315,11 @@ def restore_intact_checkpoint(
     manager.reload()  # another process may have saved or moved steps
     available = sorted(manager.all_steps(), reverse=True)
     if step is not None and step not in available:
-        raise FileNotFoundError(
+        raise MissingInputError(
             f"no checkpoint of step {step} in {directory}; there are {sorted(available)}"
         )
     if not available:
-        raise FileNotFoundError(f"no checkpoint in {directory}")
+        raise MissingInputError(f"no checkpoint in {directory}")
     candidates = [step] if step is not None else available
     abstract = jax.tree_util.tree_map(_on_these_devices, state)
     skipped: dict[int, str] = {}

@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from gld import flow as flow_lib
+from gld.arguments import MissingInputError
 from gld.flow import FLOW_CONFIG_FILE
 from gld.images import as_unit_rgb
 from gld.models.flow_depth import check_flow_net_workdir
@@ -37,7 +38,7 @@ def load_flow_run(
     workdir = Path(workdir)
     path = workdir / FLOW_CONFIG_FILE
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: {workdir} holds no flow-network run")
+        raise MissingInputError(f"{path} not found: {workdir} holds no flow-network run")
     stored = json.loads(path.read_text())
     config = FlowTrainConfig(**stored["config"])
     model = config.make_model()

@@ -50,7 +50,7 @@ from typing import Any, NamedTuple
 import flax.linen as nn
 import jax
 
-from gld.arguments import ArgumentError
+from gld.arguments import ArgumentError, MissingInputError
 from gld.files import write_atomically
 from gld.models import registry
 from gld.runs import config as config_lib
@@ -294,7 +294,7 @@ def load_run_config(workdir: str | Path) -> config_lib.TrainConfig:
     """The TrainConfig a workdir was trained with."""
     path = Path(workdir) / CONFIG_FILE
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: is {workdir} a gld training workdir?")
+        raise MissingInputError(f"{path} not found: is {workdir} a gld training workdir?")
     return config_lib.from_stored(json.loads(path.read_text())["config"])
 
 

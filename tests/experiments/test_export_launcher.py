@@ -67,6 +67,26 @@ def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_p
         assert json.loads(archive.read("metadata.json"))["source"]["step"] == 2
 
 
+def test_a_workdir_without_a_checkpoint_is_named_in_one_line(trained_workdir, tmp_path):
+    """The launchers that load a trained run say which workdir holds no checkpoint, in one
+    line with the usage status, and write nothing."""
+    empty = tmp_path / "untrained"
+    (empty / "checkpoints").mkdir(parents=True)
+    shutil.copy(trained_workdir / "config.json", empty / "config.json")
+    before = sorted(path.relative_to(empty) for path in empty.rglob("*"))
+    output, online = tmp_path / "model.gldx", tmp_path / "online"
+    for module, flags in [
+        ("experiments.export", [f"--workdir={empty}", f"--output={output}"]),
+        ("experiments.online", [f"--pretrained={empty}", f"--workdir={online}", "--frames=2"]),
+    ]:
+        completed = launch(module, *flags)
+        assert completed.returncode == 2, (module, completed.stderr[-3000:])
+        assert completed.stderr.splitlines()[-1] == f"no checkpoint in {empty / 'checkpoints'}"
+        assert "Traceback" not in completed.stderr, module
+    assert not output.exists() and not online.exists()
+    assert sorted(path.relative_to(empty) for path in empty.rglob("*")) == before
+
+
 def test_the_runtime_flow_comes_from_the_record_or_the_flag(trained_workdir, tmp_path):
     output = tmp_path / "model.gldx"
     given = workdir_export.export_workdir(trained_workdir, output, flow="farneback")
