@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from gld import flow as flow_lib
-from gld.arguments import ArgumentError, MissingInputError
+from gld.arguments import ArgumentError
 from gld.inference import export, export_interface, onnx_export
 from gld.models import registry
 from gld.runs import checkpoints as checkpoint_lib
@@ -97,13 +97,19 @@ def export_workdir(
     config = workdir_lib.load_run_config(workdir)
     # Refused before the checkpoint is read: a bad formulation, or one for a model
     # without per-example filters.
-    if "filter_formulation" in registry.full_config(config.model, config.model_config):
-        export_interface.choose_formulation(formulation, platforms, batch_size)
-    elif formulation is not None:
-        raise ValueError(f"model {config.model!r} has no per-example filters to give a formulation")
-    if onnx_output is not None:
-        if formulation == "vmap":
+    has_filters = "filter_formulation" in registry.full_config(config.model, config.model_config)
+    try:
+        if has_filters:
+            export_interface.choose_formulation(formulation, platforms, batch_size)
+        elif formulation is not None:
+            raise ValueError(
+                f"model {config.model!r} has no per-example filters to give a formulation"
+            )
+        if onnx_output is not None and formulation == "vmap":
             raise ValueError("formulation 'vmap' cannot be exported to ONNX; choose another")
+    except ValueError as error:
+        raise ArgumentError(f"--formulation={formulation}: {error}") from None
+    if onnx_output is not None:
         missing = [
             name for name in ("jax2onnx", "onnxruntime") if not importlib.util.find_spec(name)
         ]
@@ -115,13 +121,10 @@ def export_workdir(
             f"(height={config.height}, width={config.width})"
         )
     manager = checkpoint_lib.checkpoint_manager(workdir)
-    available = list(manager.all_steps())
-    manager.close()
-    if not available:
-        raise MissingInputError(f"no checkpoint in {workdir / 'checkpoints'}")
-    if step is not None and step not in available:
-        raise ValueError(f"no checkpoint of step {step} in {workdir}; available: {available}")
-    step = max(available) if step is None else step
+    try:
+        step = checkpoint_lib.checkpointed_steps(manager, step)[0]
+    finally:
+        manager.close()
     flow_entry, flow_network = run_flow(workdir, config.model, flow)
     model, variables, config = workdir_lib.load_trained(workdir, step=step)
     source = {

@@ -289,6 +289,24 @@ class Restored(NamedTuple):
     skipped: dict[int, str]  # newer steps that were damaged -> why
 
 
+def checkpointed_steps(manager: ocp.CheckpointManager, step: int | None = None) -> list[int]:
+    """The steps a restore tries: every step the manager holds, newest first, or [step].
+
+    Raises:
+      gld.arguments.MissingInputError (a FileNotFoundError): the manager holds no
+        checkpoint, or not `step`.
+    """
+    directory = Path(str(manager.directory))
+    available = sorted(manager.all_steps(), reverse=True)
+    if step is not None and step not in available:
+        raise MissingInputError(
+            f"no checkpoint of step {step} in {directory}; available: {sorted(available)}"
+        )
+    if not available:
+        raise MissingInputError(f"no checkpoint in {directory}")
+    return [step] if step is not None else available
+
+
 def restore_intact_checkpoint(
     manager: ocp.CheckpointManager,
     state: TrainState,
@@ -313,14 +331,7 @@ def restore_intact_checkpoint(
 
     directory = Path(str(manager.directory))
     manager.reload()  # another process may have saved or moved steps
-    available = sorted(manager.all_steps(), reverse=True)
-    if step is not None and step not in available:
-        raise MissingInputError(
-            f"no checkpoint of step {step} in {directory}; there are {sorted(available)}"
-        )
-    if not available:
-        raise MissingInputError(f"no checkpoint in {directory}")
-    candidates = [step] if step is not None else available
+    candidates = checkpointed_steps(manager, step)
     abstract = jax.tree_util.tree_map(_on_these_devices, state)
     skipped: dict[int, str] = {}
     for candidate in candidates:

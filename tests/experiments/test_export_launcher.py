@@ -68,20 +68,40 @@ def test_bad_flags_are_refused_before_anything_is_written(trained_workdir, tmp_p
 
 
 def test_a_workdir_without_a_checkpoint_is_named_in_one_line(trained_workdir, tmp_path):
-    """The launchers that load a trained run say which workdir holds no checkpoint, in one
-    line with the usage status, and write nothing."""
+    """The launchers that load a trained run say which workdir holds no checkpoint (or
+    not the step asked for, or a formulation export refuses), in one line with the usage
+    status, and write nothing."""
     empty = tmp_path / "untrained"
     (empty / "checkpoints").mkdir(parents=True)
     shutil.copy(trained_workdir / "config.json", empty / "config.json")
     before = sorted(path.relative_to(empty) for path in empty.rglob("*"))
     output, online = tmp_path / "model.gldx", tmp_path / "online"
-    for module, flags in [
-        ("experiments.export", [f"--workdir={empty}", f"--output={output}"]),
-        ("experiments.online", [f"--pretrained={empty}", f"--workdir={online}", "--frames=2"]),
+    checkpoints = empty / "checkpoints"
+    for module, flags, line in [
+        ("experiments.export", [f"--workdir={empty}", f"--output={output}"], None),
+        (
+            "experiments.online",
+            [f"--pretrained={empty}", f"--workdir={online}", "--frames=2"],
+            None,
+        ),
+        (
+            "experiments.export",
+            [f"--workdir={empty}", f"--output={output}", "--step=5"],
+            f"no checkpoint of step 5 in {checkpoints}; available: []",
+        ),
+        (
+            "experiments.export",
+            [f"--workdir={empty}", f"--output={output}", "--formulation=vmap"],
+            "--formulation=vmap: formulation 'vmap' needs a fixed batch size",
+        ),
     ]:
         completed = launch(module, *flags)
         assert completed.returncode == 2, (module, completed.stderr[-3000:])
-        assert completed.stderr.splitlines()[-1] == f"no checkpoint in {empty / 'checkpoints'}"
+        last = completed.stderr.splitlines()[-1]
+        if line is None:
+            assert last == f"no checkpoint in {checkpoints}"
+        else:
+            assert last.startswith(line), (flags, last)
         assert "Traceback" not in completed.stderr, module
     assert not output.exists() and not online.exists()
     assert sorted(path.relative_to(empty) for path in empty.rglob("*")) == before
