@@ -83,6 +83,8 @@ def _rays(flow, inverse_k1, inverse_k2, stride):
 # over the rays' axis (rays [3, N], the pixels last): XLA fuses them into a few loops.
 # As dot products of three terms, each ran as a library call of its own on the CPU, and
 # the main job's search and refinement took 33 ms for a device's 8 pairs, 4.7 ms now.
+# `gld.geometry._times` does the same for per-pixel vectors [..., H, W, 3]; the rays
+# here keep their pixels on the last axis, where the loops run along them.
 
 
 def _times_homogeneous(matrix, pixels):
