@@ -453,6 +453,10 @@ def machine(accelerator: str | None = None) -> str:
 
 
 if __name__ == "__main__":
-    # Worker mode: one measurement, its JSON on the last stdout line.
+    # Worker mode: one measurement, its JSON on the last stdout line, with the freed
+    # memory kept for reuse as the launchers keep it.
+    from gld import host_memory
+
+    host_memory.keep_freed_memory()
     worker = {"row": measure_one, "gemm": measure_gemm}[sys.argv[1]]
     print(json.dumps(worker(**json.loads(sys.argv[2]))))

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from experiments.benchmarks.model_tables import FIGURES, GOALS, MODES, spread, torch_seconds
+from gld import host_memory
 
 DEFAULT_TORCH_REFERENCE = (
     Path(__file__).resolve().parents[3] / "shared" / "bench" / "torch_reference.py"
@@ -41,7 +42,11 @@ def run_torch_reference(
         command += ["--repeats", str(repeats)]
     if not compile_torch:
         command.append("--no-compile")
-    completed = subprocess.run(command, capture_output=True, text=True)
+    # The reference keeps its freed memory as gld's workers do (`gld.host_memory`): the
+    # same allocator settings on both sides.
+    completed = subprocess.run(
+        command, capture_output=True, text=True, env=host_memory.environment()
+    )
     if completed.returncode != 0:
         return {"error": (completed.stderr.strip().splitlines() or ["failed"])[-1]}
     return json.loads(completed.stdout.strip().splitlines()[-1])
