@@ -117,9 +117,15 @@ def estimate_pose(
     )
     if essential is None or essential.shape[0] < 3 or not np.all(np.isfinite(essential)):
         return failure
+    # recoverPose counts, for each of the essential matrix's four poses, the RANSAC
+    # inliers in front of both cameras; given the inliers alone it counts the same and
+    # picks the same pose, without triangulating the outliers four times.
+    inliers = ransac_mask.ravel() > 0
+    if inliers.sum() < settings.min_inliers:
+        return failure
     # Several solutions come stacked as [3k, 3]; take the best-supported (first).
     inlier_count, rotation, translation, _ = cv2.recoverPose(
-        essential[:3], points1, points2, identity, mask=ransac_mask
+        essential[:3], points1[inliers], points2[inliers], identity
     )
     translation = translation[:, 0]
     if (

@@ -87,6 +87,49 @@ def test_poses_in_parallel_are_the_serial_ones_in_the_pairs_order():
     assert flow_pose.in_parallel(flow_pose.estimate_pose, []) == []
 
 
+def test_the_pose_from_the_inliers_alone_is_the_pose_from_every_point_and_the_mask(monkeypatch):
+    # A flow with a fifth of its pixels wrong: RANSAC leaves them out. recoverPose is given
+    # the inliers alone; called as before (every point and the RANSAC mask) it must pick
+    # the same pose and count the same inliers.
+    flow, intrinsics1, intrinsics2, _, _ = _pair([0.01, 0.03, 0.0], [0.3, 0.05, 0.1], seed=5)
+    rng = np.random.default_rng(5)
+    wrong = rng.random(flow.shape[:2]) < 0.2
+    flow[wrong] += rng.normal(0.0, 4.0, (int(wrong.sum()), 2)).astype(np.float32)
+    cv2 = flow_pose.opencv()
+    find_essential, recover_pose = cv2.findEssentialMat, cv2.recoverPose
+    seen = {}
+
+    def find_and_keep(points1, points2, *args, **kwargs):
+        essential, mask = find_essential(points1, points2, *args, **kwargs)
+        seen.update(points1=points1, points2=points2, mask=mask.copy())
+        return essential, mask
+
+    def recover_both_ways(essential, points1, points2, camera_matrix):
+        given = recover_pose(essential, points1, points2, camera_matrix)
+        seen["as_before"] = recover_pose(
+            essential, seen["points1"], seen["points2"], camera_matrix, mask=seen["mask"].copy()
+        )
+        seen["given_points"] = len(points1)
+        return given
+
+    monkeypatch.setattr(cv2, "findEssentialMat", find_and_keep)
+    monkeypatch.setattr(cv2, "recoverPose", recover_both_ways)
+    rotation, translation, succeeded = flow_pose.estimate_pose(
+        flow,
+        geometry.intrinsics_matrix(intrinsics1, HEIGHT, WIDTH),
+        geometry.intrinsics_matrix(intrinsics2, HEIGHT, WIDTH),
+    )
+    assert succeeded
+    inliers = int((seen["mask"] > 0).sum())
+    assert seen["given_points"] == inliers < 0.9 * len(seen["points1"])
+    count, rotation_before, translation_before, _ = seen["as_before"]
+    assert count >= flow_pose.DEFAULT_SETTINGS.min_inliers
+    np.testing.assert_array_equal(rotation, rotation_before)
+    np.testing.assert_array_equal(
+        translation, translation_before[:, 0] / np.linalg.norm(translation_before)
+    )
+
+
 def test_the_cached_pose_is_the_computed_one_and_a_caller_cannot_change_it():
     flow, intrinsics1, intrinsics2, _, _ = _pair([0.0, 0.02, 0.0], [0.3, 0.0, 0.1], seed=3)
     flow_pose._CACHE.clear()
