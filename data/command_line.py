@@ -3,7 +3,8 @@
 the benchmarks included. It lives on the data floor, the lowest that reads flags (`gld`
 reads none), so that both can import it.
 
-`run(main)` runs `main(argv)` under absl with the flags parsed by `parse_flags`. A user's
+`run(main)` runs `main(argv)` under absl with the flags parsed by `parse_flags`, in a
+process that keeps the memory it frees for reuse (`gld.host_memory`). A user's
 mistake ends it with one line on stderr naming the flag or the file and what is wrong,
 no traceback and no help text, before anything is written:
 - exit status 2: a bad command line (a bad value, an unknown flag, a flagfile that is
@@ -24,6 +25,7 @@ from typing import Any, NoReturn
 
 from absl import flags
 
+from gld import host_memory
 from gld.arguments import ArgumentError, RunStoppedError
 from gld.files import no_space_error
 
@@ -37,6 +39,8 @@ def run(main: Callable[[list[str]], Any]) -> None:
     """Runs a launcher's `main(argv)` under absl (`app.run`), its flags parsed by
     `parse_flags`; an error that says what went wrong ends it in one line (above)."""
     from absl import app
+
+    host_memory.keep_freed_memory()
 
     def main_in_one_line(argv: list[str]) -> Any:
         try:

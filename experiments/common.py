@@ -269,20 +269,17 @@ def define_distributed_flags() -> None:
 
 
 def initialise() -> None:
-    """Quiet library logs (unless --verbosity is given), keep the memory the process frees
-    for reuse (`gld.host_memory`), split the CPU into --cpu_devices devices and start
-    multi-process JAX when --num_processes > 1 (before any device is touched).
+    """Quiet library logs (unless --verbosity is given), split the CPU into --cpu_devices
+    devices and start multi-process JAX when --num_processes > 1 (before any device is
+    touched).
 
     JAX aborts the process with a C++ stack trace when the others do not join in time;
     a watchdog stops it a moment earlier with a message saying what to check.
     """
     from absl import logging
 
-    from gld import host_memory
-
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)
-    host_memory.keep_freed_memory()
     if "cpu_devices" in FLAGS:
         from gld import sharding
 

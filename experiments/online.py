@@ -332,11 +332,10 @@ def main(argv: list[str]) -> None:
     height, width = _size()
     from absl import logging
 
-    from gld import host_memory, sharding
+    from gld import sharding
 
     if not FLAGS["verbosity"].present:
         logging.set_verbosity(logging.WARNING)  # orbax's progress lines
-    host_memory.keep_freed_memory()
     sharding.split_cpu_devices(1 + sharding.devices_for_batch(FLAGS.batch_size, FLAGS.cpu_devices))
     from gld.online import learner as learner_lib
     from gld.online import references, run

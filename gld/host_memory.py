@@ -13,7 +13,8 @@ allocation from the heap (`M_MMAP_MAX` 0) and never trimming its top (`M_TRIM_TH
 at its maximum) makes the next run reuse the pages of the last: the process's resident
 memory stays at its peak instead of rising and falling with each step.
 
-It applies to later allocations only, so launchers call it first. `environment()` gives
+It applies to later allocations only, so it is called first: `data.command_line.run`
+calls it before every launcher's main, the benchmark's workers at their start. `environment()` gives
 another program the same setting as glibc reads it at a process's start (the
 benchmark's PyTorch reference, which gains as much). Elsewhere than glibc,
 or where the environment already sets malloc's options (`MALLOC_MMAP_MAX_`,
@@ -34,12 +35,7 @@ _M_MMAP_MAX = -4
 _NEVER_TRIM = 2**31 - 1
 # The same options as environment variables, read by glibc when a process starts.
 ENVIRONMENT = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(_NEVER_TRIM)}
-_ENVIRONMENT_SETTINGS = (
-    "MALLOC_MMAP_MAX_",
-    "MALLOC_TRIM_THRESHOLD_",
-    "MALLOC_MMAP_THRESHOLD_",
-    "MALLOC_TOP_PAD_",
-)
+_ENVIRONMENT_SETTINGS = (*ENVIRONMENT, "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_")
 
 
 def set_by_environment(environ: dict[str, str] | None = None) -> bool:

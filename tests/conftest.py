@@ -34,8 +34,10 @@ def pytest_collection_modifyitems(session, config, items):
 
 
 def _interpreter(arguments, *, timeout: int, env=None, **options) -> subprocess.CompletedProcess:
-    """A fresh Python interpreter with `arguments`, on the CPU, from the repository root."""
+    """A fresh Python interpreter with `arguments`, on the CPU, from the repository root;
+    `env` adds variables to this environment, and removes those it gives as None."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO_ROOT), **(env or {}))
+    env = {name: value for name, value in env.items() if value is not None}
     return subprocess.run(
         [sys.executable, *arguments],
         capture_output=True,

@@ -1,53 +1,51 @@
 import json
 import os
 import platform
-import subprocess
-import sys
 
 import pytest
-from conftest import REPO_ROOT
+from conftest import _interpreter
 
 from gld import host_memory
 
 pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc")
 
 # Allocates, touches, frees and again allocates and touches 64 MB (above the 32 MB that
-# glibc's mmap threshold rises to), after keep_freed_memory() when argv[1] says so; prints
-# the page faults of the second allocation.
+# glibc's mmap threshold rises to) and prints the page faults of the second allocation:
+# after keep_freed_memory() ("keep"), as a launcher's main under data.command_line.run
+# ("launcher"), or as it is ("default").
 FAULTS_SCRIPT = """
 import ctypes, json, resource, sys
 from gld import host_memory
-applied = host_memory.keep_freed_memory() if sys.argv[1] == "keep" else None
-libc = ctypes.CDLL(None)
-libc.malloc.restype = ctypes.c_void_p
-libc.free.argtypes = [ctypes.c_void_p]
-size = 64 << 20
-buffer = libc.malloc(size)
-ctypes.memset(buffer, 1, size)
-libc.free(buffer)
-before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-buffer = libc.malloc(size)
-ctypes.memset(buffer, 1, size)
-faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
-print(json.dumps({"applied": applied, "faults": faults}))
+
+def measure(argv=None, applied=None):
+    libc = ctypes.CDLL(None)
+    libc.malloc.restype = ctypes.c_void_p
+    libc.free.argtypes = [ctypes.c_void_p]
+    size = 64 << 20
+    buffer = libc.malloc(size)
+    ctypes.memset(buffer, 1, size)
+    libc.free(buffer)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    buffer = libc.malloc(size)
+    ctypes.memset(buffer, 1, size)
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+    print(json.dumps({"applied": applied, "faults": faults}))
+
+mode = sys.argv.pop(1)
+if mode == "launcher":
+    from data import command_line
+    command_line.run(measure)
+else:
+    measure(applied=host_memory.keep_freed_memory() if mode == "keep" else None)
 """
 
 
 def _faults(mode: str, **environment: str) -> dict:
-    env = {
-        name: value
-        for name, value in os.environ.items()
-        if not name.startswith("MALLOC_") and name != "GLIBC_TUNABLES"
+    # The child's malloc options are only these: any in this environment are removed.
+    removed = {
+        name: None for name in os.environ if name.startswith("MALLOC_") or name == "GLIBC_TUNABLES"
     }
-    env.update(PYTHONPATH=str(REPO_ROOT), **environment)
-    result = subprocess.run(
-        [sys.executable, "-c", FAULTS_SCRIPT, mode],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=REPO_ROOT,
-        timeout=120,
-    )
+    result = _interpreter(["-c", FAULTS_SCRIPT, mode], timeout=120, env={**removed, **environment})
     assert result.returncode == 0, result.stderr[-2000:]
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -59,6 +57,8 @@ def test_a_freed_large_buffer_is_reused_without_faulting_its_pages_again():
     kept = _faults("keep")
     assert kept["applied"] is True
     assert kept["faults"] < pages // 100
+    # Every launcher's main runs with it.
+    assert _faults("launcher")["faults"] < pages // 100
     # The same setting given to a child process through its environment.
     assert _faults("default", **host_memory.ENVIRONMENT)["faults"] < pages // 100
 
