@@ -262,7 +262,7 @@ def _least_singular_vectors(
 
 def in_parallel(estimate: Callable[..., Any], pairs: Sequence[tuple]) -> list[Any]:
     """`estimate(*pair)` for each of `pairs`, in order, on a thread per core (at most one
-    per pair): the pose estimators spend their time in OpenCV, outside Python's lock."""
+    per pair): the pose estimators spend most of their time in OpenCV, outside Python's lock."""
     workers = min(len(pairs), len(os.sched_getaffinity(0)))
     if workers <= 1:
         return [estimate(*pair) for pair in pairs]

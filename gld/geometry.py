@@ -42,8 +42,10 @@ def _times(matrix: Array, vectors: Array, xp) -> Array:
     in order, no fused multiply-add) in half its time; other dtypes keep the einsum
     (float64's differs from the multiply-adds in the last bit), so what numpy computes
     (the rendered datasets' records, the classical baselines) keeps its bits."""
-    if xp is np and not (matrix.dtype == vectors.dtype == np.float32):
-        return np.einsum("...ij,...hwj->...hwi", matrix, vectors)
+    if xp is np:
+        matrix, vectors = np.asarray(matrix), np.asarray(vectors)
+        if not matrix.dtype == vectors.dtype == np.float32:
+            return np.einsum("...ij,...hwj->...hwi", matrix, vectors)
     columns = matrix[..., None, None, :, :]
     return sum(columns[..., column] * vectors[..., column : column + 1] for column in range(3))
 
