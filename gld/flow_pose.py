@@ -212,8 +212,8 @@ def _least_singular_vectors(
     largest diagonal entry, multiplied by adj(M) `iterations` times (inverse iteration
     without a solve), converges to the least eigenvector, at the ratio of the two
     smallest eigenvalues per step. A vector that still moves by more than `tolerance` in
-    a last step (an outlier whose two smallest singular values are close) is computed by
-    an SVD instead.
+    a last step (an outlier whose two smallest singular values are close), or is not
+    finite (an adjugate of zero), is computed by an SVD instead.
     """
     m = np.einsum("kin,kjn->ijn", system, system)
 

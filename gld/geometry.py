@@ -47,6 +47,7 @@ def _times(matrix: Array, vectors: Array, xp) -> Array:
         if not matrix.dtype == vectors.dtype == np.float32:
             return np.einsum("...ij,...hwj->...hwi", matrix, vectors)
     columns = matrix[..., None, None, :, :]
+    # sum() starts from 0, as numpy's einsum does (three products of -0.0 give +0.0).
     return sum(columns[..., column] * vectors[..., column : column + 1] for column in range(3))
 
 

@@ -239,14 +239,7 @@ def test_recover_pose_breaks_a_tie_between_two_poses_as_opencv():
     rng = np.random.default_rng(3)
     rotation = geometry.rotation_matrix(np.array([0.05, -0.1, 0.02]))
     translation = np.array([0.6, -0.2, 0.4])
-    skew = np.array(
-        [
-            [0.0, -translation[2], translation[1]],
-            [translation[2], 0.0, -translation[0]],
-            [-translation[1], translation[0], 0.0],
-        ]
-    )
-    essential = skew @ rotation
+    essential = geometry.skew(translation) @ rotation
     rotation1, rotation2, unit = cv2.decomposeEssentialMat(essential)
     poses = [
         (rotation1, unit[:, 0]),

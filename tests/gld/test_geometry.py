@@ -188,3 +188,8 @@ def test_numpy_transforms_keep_the_bits_of_numpys_einsum(dtype):
     moved = geometry.transform_points(points, rotation, translation)
     assert moved.dtype == dtype
     assert moved.tobytes() == expected.tobytes()
+    # The einsum sums from zero: three products of -0.0 give +0.0, which the translation
+    # would hide. A non-negative row and a point of -0.0 show it in the product itself.
+    rotation[0, 0] = np.abs(rotation[0, 0])
+    product = geometry._times(rotation, points, np)
+    assert product.tobytes() == np.einsum("...ij,...hwj->...hwi", rotation, points).tobytes()
